@@ -1,0 +1,99 @@
+"""The per-frame path: apply control displacements delta_c to a precomputed basis.
+
+Pure array math, no bookkeeping of regions (that is :mod:`splatdeform.deform`):
+
+    p' = p + B delta_c                          (N, 3)
+    J  = I + sum_k outer(delta_c[k], grad b_k)  (N, 3, 3)
+    n' = normalize(cof(J) n)                    cof(J) = det(J) J^-T, no inverse needed
+    u' = J u,  v' = J v                         tangent axes
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+def _check_delta(delta_c: np.ndarray, k: int) -> np.ndarray:
+    d = np.asarray(delta_c)
+    if d.shape != (k, 3):
+        raise ValueError(f"delta_c: expected shape ({k}, 3) for a {k}-column basis, got {d.shape}")
+    return d
+
+
+def displace(positions: np.ndarray, values: np.ndarray, delta_c: np.ndarray) -> np.ndarray:
+    """Deformed positions ``positions + values @ delta_c``.
+
+    positions: (N, 3); values: (N, k); delta_c: (k, 3). Returns (N, 3) in the positions' dtype
+    (float32 stays float32: the fast per-frame path).
+    """
+    d = _check_delta(delta_c, values.shape[1]).astype(values.dtype, copy=False)
+    out = values @ d
+    out += positions
+    return out.astype(positions.dtype, copy=False)
+
+
+def jacobians(gradients: np.ndarray, delta_c: np.ndarray) -> np.ndarray:
+    """J = I + sum_k outer(delta_c[k], gradients[:, k]).
+
+    gradients: (N, k, 3); delta_c: (k, 3). Returns (N, 3, 3), J[n, a, b] = d x'_a / d x_b.
+    Computed as one (N, 3k) @ (3k, 9) product.
+    """
+    n, k, _ = gradients.shape
+    d = _check_delta(delta_c, k).astype(gradients.dtype, copy=False)
+    # J[n, a, b] = delta_ab + sum_k d[k, a] * g[n, k, b]  ->  mixing matrix over (k, b) x (a, b').
+    mix = np.einsum("ka,bc->kbac", d, np.eye(3, dtype=gradients.dtype)).reshape(3 * k, 9)
+    jac = (gradients.reshape(n, 3 * k) @ mix).reshape(n, 3, 3)
+    jac[:, 0, 0] += 1
+    jac[:, 1, 1] += 1
+    jac[:, 2, 2] += 1
+    return jac
+
+
+def cofactor_apply(jac: np.ndarray, vectors: np.ndarray) -> np.ndarray:
+    """cof(J) n = det(J) J^-T n for each point, without an inverse.
+
+    With the columns c0, c1, c2 of J: cof(J) n = n0 (c1 x c2) + n1 (c2 x c0) + n2 (c0 x c1).
+    jac: (N, 3, 3); vectors: (N, 3). Returns (N, 3), not normalised.
+    """
+    c0, c1, c2 = jac[:, :, 0], jac[:, :, 1], jac[:, :, 2]
+    return (
+        vectors[:, 0:1] * np.cross(c1, c2)
+        + vectors[:, 1:2] * np.cross(c2, c0)
+        + vectors[:, 2:3] * np.cross(c0, c1)
+    )
+
+
+def normalize_rows(v: np.ndarray) -> np.ndarray:
+    """Rows scaled to unit length; zero rows stay zero. (N, 3) -> (N, 3)."""
+    length = np.linalg.norm(v, axis=1, keepdims=True)
+    return np.divide(v, length, out=np.zeros_like(v), where=length > 0)
+
+
+def transform_normals(jac: np.ndarray, normals: np.ndarray) -> np.ndarray:
+    """Deformed unit normals normalize(cof(J) n). jac (N, 3, 3), normals (N, 3) -> (N, 3)."""
+    return normalize_rows(cofactor_apply(jac, normals))
+
+
+def transform_axes(jac: np.ndarray, axes: np.ndarray) -> np.ndarray:
+    """Tangent axes mapped by J. jac (N, 3, 3), axes (N, 2, 3) -> (N, 2, 3)."""
+    return np.einsum("nab,nkb->nka", jac, axes)
+
+
+def radius_to_axes(normals: np.ndarray, radius: np.ndarray) -> np.ndarray:
+    """Tangent axes of round surfels: u perpendicular to n, v = n x u, |u| = |v| = r.
+
+    normals: (N, 3) unit; radius: (N,). Returns (N, 2, 3) float64. Deterministic choice of u:
+    the cross product of n with the coordinate axis least aligned with it.
+    """
+    n = normalize_rows(np.asarray(normals, dtype=np.float64))
+    helper = np.zeros_like(n)
+    helper[np.arange(n.shape[0]), np.argmin(np.abs(n), axis=1)] = 1.0
+    u = normalize_rows(np.cross(n, helper))
+    v = np.cross(n, u)
+    r = np.asarray(radius, dtype=np.float64)[:, None]
+    return np.stack([u * r, v * r], axis=1)
+
+
+def axes_to_radius(axes: np.ndarray) -> np.ndarray:
+    """Area-preserving radius sqrt(|u x v|) of (N, 2, 3) axes -> (N,)."""
+    return np.sqrt(np.linalg.norm(np.cross(axes[:, 0], axes[:, 1]), axis=1))

@@ -1,0 +1,151 @@
+"""The one data type for every input: :class:`PointModel`.
+
+A model holds the geometry the deformation needs as plain numpy arrays (positions, normals, surfel
+radius or tangent axes, 3D Gaussian splat fields, faces) plus, when it came from a PLY file, the
+verbatim file contents (:class:`PlySource`) so that a save reproduces every property, extra
+element, comment and type of the input.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+KINDS = ("mesh", "oriented_cloud", "cloud", "surfel_radius", "surfel_axes", "gaussians")
+
+
+@dataclass
+class Gaussians:
+    """3D Gaussian splat fields in the usual 3DGS file conventions.
+
+    scale_log: (N, 3) float32, log of the per-axis standard deviations.
+    rotation:  (N, 4) float32, quaternion (w, x, y, z), not necessarily normalised.
+    opacity:   (N,) float32 logit, or None.
+    sh_dc:     (N, 3) float32 degree-0 SH coefficients, or None.
+    sh_rest:   (N, M) float32 higher SH coefficients (f_rest_*, channel-major), or None.
+    """
+
+    scale_log: np.ndarray
+    rotation: np.ndarray
+    opacity: np.ndarray | None = None
+    sh_dc: np.ndarray | None = None
+    sh_rest: np.ndarray | None = None
+
+
+@dataclass
+class PlySource:
+    """Everything a PLY file held, kept verbatim for a lossless save.
+
+    elements: list of (name, structured array, list-property names) in file order; the vertex
+    element's array is the one read from the file (never modified; saves copy it).
+    comments / obj_info: header lines. text: ascii format. byte_order: '<', '>' or '='.
+    """
+
+    elements: list[tuple[str, np.ndarray]]
+    comments: list[str] = field(default_factory=list)
+    obj_info: list[str] = field(default_factory=list)
+    text: bool = False
+    byte_order: str = "<"
+
+    def element(self, name: str) -> np.ndarray | None:
+        for element_name, data in self.elements:
+            if element_name == name:
+                return data
+        return None
+
+
+@dataclass
+class PointModel:
+    """A scanned point model.
+
+    positions: (N, 3) float64.
+    normals:   (N, 3) float64 or None.
+    colors:    (N, 3) uint8 or None.
+    radius:    (N,) float64 surfel radius or None.
+    axes:      (N, 2, 3) float64 surfel/splat tangent axes (u, v) or None.
+    faces:     (F, 3) int64 triangles (from ``face`` lists, fan-triangulated, or ``tristrips``)
+               or None.
+    gaussians: 3DGS fields or None.
+    kind:      one of :data:`KINDS`.
+    source:    the verbatim PLY contents, or None for models not read from PLY.
+    path:      the file it was loaded from, if any (saves refuse to overwrite it).
+    """
+
+    positions: np.ndarray
+    normals: np.ndarray | None = None
+    colors: np.ndarray | None = None
+    radius: np.ndarray | None = None
+    axes: np.ndarray | None = None
+    faces: np.ndarray | None = None
+    gaussians: Gaussians | None = None
+    kind: str = "cloud"
+    source: PlySource | None = None
+    path: str | None = None
+
+    def __post_init__(self) -> None:
+        self.positions = np.asarray(self.positions, dtype=np.float64)
+        if self.positions.ndim != 2 or self.positions.shape[1] != 3:
+            raise ValueError(f"positions: expected shape (N, 3), got {self.positions.shape}")
+
+    @property
+    def n_points(self) -> int:
+        return int(self.positions.shape[0])
+
+    @property
+    def n_faces(self) -> int:
+        return 0 if self.faces is None else int(self.faces.shape[0])
+
+    def bbox(self) -> tuple[np.ndarray, np.ndarray]:
+        """Axis-aligned bounding box: two (3,) float64 arrays (min, max)."""
+        return self.positions.min(axis=0), self.positions.max(axis=0)
+
+    def diagonal(self) -> float:
+        """Length of the bounding-box diagonal (model units)."""
+        lo, hi = self.bbox()
+        return float(np.linalg.norm(hi - lo))
+
+    def copy(self) -> PointModel:
+        """Deep copy of the per-point arrays (the verbatim source is shared, it is read-only)."""
+
+        def c(a: np.ndarray | None) -> np.ndarray | None:
+            return None if a is None else a.copy()
+
+        g = self.gaussians
+        gaussians = (
+            None
+            if g is None
+            else Gaussians(c(g.scale_log), c(g.rotation), c(g.opacity), c(g.sh_dc), c(g.sh_rest))
+        )
+        return replace(
+            self,
+            positions=self.positions.copy(),
+            normals=c(self.normals),
+            colors=c(self.colors),
+            radius=c(self.radius),
+            axes=c(self.axes),
+            faces=c(self.faces),
+            gaussians=gaussians,
+        )
+
+
+def classify(
+    *,
+    has_faces: bool,
+    has_normals: bool,
+    has_radius: bool,
+    has_axes: bool,
+    has_gaussians: bool,
+) -> str:
+    """The model kind from what it holds (3DGS > surfels > mesh > oriented > plain cloud)."""
+    if has_gaussians:
+        return "gaussians"
+    if has_axes:
+        return "surfel_axes"
+    if has_radius:
+        return "surfel_radius"
+    if has_faces:
+        return "mesh"
+    if has_normals:
+        return "oriented_cloud"
+    return "cloud"

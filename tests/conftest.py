@@ -1,0 +1,35 @@
+"""Shared test fixtures.
+
+Real scans live in ``../shared/data`` beside the checkout; tests that need them skip with a clear
+reason only when that folder is absent (a user's fresh clone). Generated fixtures come from
+``data_tools/`` and are written to pytest's tmp folders, never into the repository.
+"""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+SHARED_DATA = ROOT.parent / "shared" / "data"
+
+if str(ROOT) not in sys.path:  # data_tools/ is a top-level folder, not part of the package
+    sys.path.insert(0, str(ROOT))
+
+
+@pytest.fixture(scope="session")
+def shared_data() -> Path:
+    """Path of ../shared/data; skips the test when the folder is absent."""
+    if not SHARED_DATA.is_dir():
+        pytest.skip(f"real data folder {SHARED_DATA} is absent (fresh clone without ../shared)")
+    return SHARED_DATA
+
+
+def shared_file(relative: str) -> Path:
+    """A file under ../shared/data, skipping when absent."""
+    path = SHARED_DATA / relative
+    if not path.is_file():
+        pytest.skip(f"real data file {path} is absent (fresh clone without ../shared)")
+    return path
