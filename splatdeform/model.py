@@ -34,24 +34,62 @@ class Gaussians:
 
 
 @dataclass
+class PlyProperty:
+    """One PLY property as written in the header.
+
+    dtype / len_dtype: numpy type codes ('f4', 'u1', ...); type_name / len_type_name: the
+    spelling used in the file ('float', 'float32', 'uchar', ...), written back unchanged.
+    """
+
+    name: str
+    dtype: str
+    type_name: str
+    is_list: bool = False
+    len_dtype: str = ""
+    len_type_name: str = ""
+
+
+@dataclass
+class PlyElementData:
+    """One PLY element: its properties and its rows.
+
+    data: (count,) structured array; scalar properties are plain fields, list properties are
+    object fields holding one 1-D array per row (the plyfile convention).
+    """
+
+    name: str
+    properties: list[PlyProperty]
+    data: np.ndarray
+
+    @property
+    def count(self) -> int:
+        return int(self.data.shape[0])
+
+    def property(self, name: str) -> PlyProperty | None:
+        for prop in self.properties:
+            if prop.name == name:
+                return prop
+        return None
+
+
+@dataclass
 class PlySource:
     """Everything a PLY file held, kept verbatim for a lossless save.
 
-    elements: list of (name, structured array, list-property names) in file order; the vertex
-    element's array is the one read from the file (never modified; saves copy it).
-    comments / obj_info: header lines. text: ascii format. byte_order: '<', '>' or '='.
+    elements: in file order; comments / obj_info: header lines in order; text: ascii format;
+    byte_order: '<' or '>' for binary files.
     """
 
-    elements: list[tuple[str, np.ndarray]]
+    elements: list[PlyElementData]
     comments: list[str] = field(default_factory=list)
     obj_info: list[str] = field(default_factory=list)
     text: bool = False
     byte_order: str = "<"
 
-    def element(self, name: str) -> np.ndarray | None:
-        for element_name, data in self.elements:
-            if element_name == name:
-                return data
+    def element(self, name: str) -> PlyElementData | None:
+        for element in self.elements:
+            if element.name == name:
+                return element
         return None
 
 

@@ -1,0 +1,65 @@
+"""Loading and saving models, dispatched by file extension.
+
+``load(path)`` never returns an empty model: it raises an :class:`~splatdeform.errors.InputError`
+naming the file. ``save(model, path)`` writes atomically and refuses to overwrite the file the
+model was loaded from.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from ..errors import FormatError, InputError
+from ..model import PointModel
+from . import open3d_io, ply
+from .atomic import atomic_path, atomic_write, check_output_path
+
+READERS = {".ply": ply.read_model, **{ext: open3d_io.read_model for ext in open3d_io.EXTENSIONS}}
+SUPPORTED = tuple(READERS)
+
+
+def _extension(path: Path, what: str) -> str:
+    ext = path.suffix.lower()
+    if ext not in READERS:
+        raise InputError(f"{path}: unknown {what} extension {ext or '(none)'!r}; expected one of "
+                         f"{', '.join(SUPPORTED)}")
+    return ext
+
+
+def load(path: str | Path, *, drop_nonfinite: bool = False) -> PointModel:
+    """Load a model file (.ply, .pcd, .xyz, .xyzn, .pts).
+
+    drop_nonfinite: drop vertices with NaN/Inf coordinates (and the faces using them) instead of
+    raising. Raises InputError/FormatError with one line naming the file.
+    """
+    path = Path(path)
+    if not path.exists():
+        raise InputError(f"{path}: no such file")
+    if path.is_dir():
+        raise InputError(f"{path}: is a directory; expected a model file")
+    ext = _extension(path, "model file")
+    try:
+        return READERS[ext](path, drop_nonfinite=drop_nonfinite)
+    except PermissionError as exc:
+        raise InputError(f"{path}: cannot read it (permission denied)") from exc
+    except (FormatError, InputError):
+        raise
+    except (ValueError, IndexError, KeyError, OSError) as exc:
+        raise FormatError(f"{path}: cannot read it: {exc}") from exc
+
+
+def save(model: PointModel, path: str | Path, *, text: bool | None = None) -> Path:
+    """Save atomically; the format follows the extension (PLY keeps the input's encoding unless
+    ``text`` is given). Refuses to overwrite ``model.path``. Returns the written path."""
+    path = check_output_path(path, model.path)
+    ext = _extension(path, "output")
+    if ext == ".ply":
+        with atomic_write(path) as stream:
+            ply.write_model(model, stream, text=text)
+    else:
+        with atomic_path(path) as tmp:
+            open3d_io.write_model(model, tmp)
+    return path
+
+
+__all__ = ["load", "save", "SUPPORTED", "atomic_path", "atomic_write", "check_output_path"]

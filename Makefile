@@ -1,0 +1,44 @@
+# The two commands: `make demo` and `make test`. Each sets up a fresh Debian machine first:
+# apt packages when missing (PoCL OpenCL for the basis kernel, libusb for Open3D, Mesa EGL for the
+# headless renderer), a .venv, and `pip install -e .[dev]`.
+
+VENV    := .venv
+PY      := $(VENV)/bin/python
+STAMP   := $(VENV)/.installed-stamp
+APT_PKGS := pocl-opencl-icd ocl-icd-libopencl1 libusb-1.0-0 libegl1 libegl-mesa0 libgl1-mesa-dri libgomp1
+SUDO    := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
+DEMO_DIR := demo_out
+
+.PHONY: demo test setup system lint bench clean
+
+system:
+	@missing=""; for p in $(APT_PKGS); do dpkg -s $$p >/dev/null 2>&1 || missing="$$missing $$p"; done; \
+	if [ -n "$$missing" ]; then \
+	  echo "installing apt packages:$$missing"; \
+	  $(SUDO) apt-get update -qq && DEBIAN_FRONTEND=noninteractive $(SUDO) apt-get install -y -qq $$missing; \
+	fi
+
+$(STAMP): pyproject.toml
+	$(MAKE) system
+	[ -x $(PY) ] || python3 -m venv $(VENV)
+	$(PY) -m pip install -q --upgrade pip
+	$(PY) -m pip install -q -e '.[dev]'
+	touch $(STAMP)
+
+setup: $(STAMP)
+
+test: setup
+	$(PY) -m pytest -q
+
+demo: setup
+	$(PY) -m data_tools.synth $(DEMO_DIR)/scans
+	$(VENV)/bin/splatdeform info $(DEMO_DIR)/scans/bar.ply
+
+lint: setup
+	$(VENV)/bin/ruff check splatdeform tests data_tools benchmarks
+
+bench: setup
+	for b in benchmarks/bench_*.py; do echo "== $$b"; $(PY) $$b || exit 1; done
+
+clean:
+	rm -rf $(DEMO_DIR) build dist .pytest_cache

@@ -1,0 +1,75 @@
+"""The ``splatdeform`` command.
+
+Exit codes: 0 success, 1 processing failure, 2 bad usage/config/input. Errors are one line on
+stderr naming the file or key; ``--debug`` shows the traceback.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import traceback
+from collections.abc import Callable
+
+from .errors import InputError, SplatdeformError
+
+
+class _Parser(argparse.ArgumentParser):
+    def error(self, message: str) -> None:  # argparse would exit 2 with usage; keep one line
+        raise InputError(f"{self.prog}: {message}")
+
+
+def cmd_info(args: argparse.Namespace) -> int:
+    from .info import describe, format_text
+    from .io import load
+
+    model = load(args.model, drop_nonfinite=args.drop_nonfinite)
+    info = describe(model)
+    print(json.dumps(info, indent=2) if args.json else format_text(info))
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = _Parser(prog="splatdeform", description="Real-time RBF shape editing of scans.")
+    parser.add_argument("--debug", action="store_true", help="show tracebacks on errors")
+    sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
+
+    p = sub.add_parser("info", help="what the loader sees in a model file")
+    p.add_argument("model")
+    p.add_argument("--json", action="store_true", help="machine-readable output")
+    p.add_argument("--drop-nonfinite", action="store_true",
+                   help="drop vertices with NaN/Inf coordinates instead of failing")
+    p.set_defaults(func=cmd_info)
+
+    for register in _EXTRA_COMMANDS:
+        register(sub)
+    return parser
+
+
+_EXTRA_COMMANDS: list[Callable[[argparse._SubParsersAction], None]] = []
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else argv
+    debug = "--debug" in argv
+    try:
+        args = build_parser().parse_args(argv)
+        return int(args.func(args) or 0)
+    except SplatdeformError as exc:
+        if debug:
+            traceback.print_exc()
+        print(f"splatdeform: error: {exc}", file=sys.stderr)
+        return exc.exit_code
+    except MemoryError:
+        if debug:
+            traceback.print_exc()
+        print("splatdeform: error: out of memory", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        print("splatdeform: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

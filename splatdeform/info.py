@@ -1,0 +1,66 @@
+"""What the loader sees in a model: ``splatdeform info``."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from .model import PointModel
+
+
+def describe(model: PointModel) -> dict[str, Any]:
+    """A JSON-ready summary: kind, counts, properties with types, bbox, normal lengths."""
+    lo, hi = model.bbox()
+    info: dict[str, Any] = {
+        "path": model.path,
+        "kind": model.kind,
+        "points": model.n_points,
+        "faces": model.n_faces,
+        "bbox_min": lo.tolist(),
+        "bbox_max": hi.tolist(),
+        "diagonal": model.diagonal(),
+    }
+    if model.source is not None:
+        src = model.source
+        info["format"] = "ascii" if src.text else (
+            "binary_big_endian" if src.byte_order == ">" else "binary_little_endian")
+        info["elements"] = [
+            {"name": el.name, "count": el.count, "properties": [
+                {"name": p.name,
+                 "type": f"list {p.len_type_name} {p.type_name}" if p.is_list else p.type_name}
+                for p in el.properties]}
+            for el in src.elements]
+        info["comments"] = list(src.comments)
+    if model.normals is None:
+        info["normals"] = "none"
+    else:
+        length = np.linalg.norm(model.normals, axis=1)
+        unit = bool(np.all(np.abs(length - 1) < 1e-3))
+        info["normals"] = "unit" if unit else "not unit length"
+        info["normal_length_range"] = [float(length.min()), float(length.max())]
+    if model.radius is not None:
+        info["radius_median"] = float(np.median(model.radius))
+    return info
+
+
+def format_text(info: dict[str, Any]) -> str:
+    """Human-readable rendering of :func:`describe`'s dict."""
+    fmt = lambda v: "[" + ", ".join(f"{x:.6g}" for x in v) + "]"  # noqa: E731
+    lines = [
+        f"file:     {info['path']}",
+        f"kind:     {info['kind']}" + (f" ({info['format']})" if "format" in info else ""),
+        f"points:   {info['points']:,}",
+        f"faces:    {info['faces']:,}",
+        f"bbox:     {fmt(info['bbox_min'])} .. {fmt(info['bbox_max'])}"
+        f"  (diagonal {info['diagonal']:.6g})",
+        f"normals:  {info['normals']}",
+    ]
+    if "radius_median" in info:
+        lines.append(f"radius:   median {info['radius_median']:.6g}")
+    for el in info.get("elements", []):
+        props = ", ".join(f"{p['name']}:{p['type']}" for p in el["properties"])
+        lines.append(f"element {el['name']} ({el['count']:,}): {props}")
+    for c in info.get("comments", []):
+        lines.append(f"comment:  {c}")
+    return "\n".join(lines)

@@ -1,0 +1,58 @@
+"""Point cloud formats read and written through Open3D: .pcd .xyz .xyzn .pts."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import FormatError
+from ..model import PointModel, classify
+
+EXTENSIONS = (".pcd", ".xyz", ".xyzn", ".pts")
+
+
+def _o3d():
+    import open3d  # imported lazily: it takes a second
+
+    return open3d
+
+
+def read_model(path: str | Path, *, drop_nonfinite: bool = False) -> PointModel:
+    """Load a point cloud through Open3D (positions, normals and colors when present)."""
+    o3d = _o3d()
+    cloud = o3d.io.read_point_cloud(str(path), remove_nan_points=False,
+                                    remove_infinite_points=False)
+    positions = np.asarray(cloud.points, dtype=np.float64)
+    if positions.shape[0] == 0:
+        raise FormatError(f"{path}: no points could be read (empty or malformed "
+                          f"{Path(path).suffix} file)")
+    normals = np.asarray(cloud.normals, dtype=np.float64) if cloud.has_normals() else None
+    colors = None
+    if cloud.has_colors():
+        colors = np.clip(np.asarray(cloud.colors) * 255 + 0.5, 0, 255).astype(np.uint8)
+    bad = ~np.isfinite(positions).all(axis=1)
+    if bad.any():
+        if not drop_nonfinite:
+            raise FormatError(f"{path}: {int(bad.sum())} points have NaN/Inf coordinates (first "
+                              f"at index {int(np.flatnonzero(bad)[0])}); fix the file or load "
+                              "with drop_nonfinite=True (CLI: --drop-nonfinite)")
+        positions = positions[~bad]
+        normals = None if normals is None else normals[~bad]
+        colors = None if colors is None else colors[~bad]
+    kind = classify(has_faces=False, has_normals=normals is not None, has_radius=False,
+                    has_axes=False, has_gaussians=False)
+    return PointModel(positions=positions, normals=normals, colors=colors, kind=kind,
+                      path=str(path))
+
+
+def write_model(model: PointModel, path: Path) -> None:
+    """Write positions (+ normals, colors) through Open3D; ``path``'s suffix picks the format."""
+    o3d = _o3d()
+    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(model.positions))
+    if model.normals is not None:
+        cloud.normals = o3d.utility.Vector3dVector(model.normals)
+    if model.colors is not None:
+        cloud.colors = o3d.utility.Vector3dVector(model.colors.astype(np.float64) / 255.0)
+    if not o3d.io.write_point_cloud(str(path), cloud, write_ascii=path.suffix != ".pcd"):
+        raise FormatError(f"{path}: Open3D could not write this file")

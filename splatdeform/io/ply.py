@@ -1,0 +1,238 @@
+"""PLY files <-> :class:`PointModel`: recognise the kind, expose the geometry, save losslessly.
+
+Recognised vertex properties (everything else is kept verbatim and written back):
+  x y z (required) · nx ny nz · red green blue · radius | surfel_radius ·
+  ux uy uz vx vy vz (surfel tangent axes) · 3DGS: scale_0..2 rot_0..3 opacity f_dc_* f_rest_*.
+Faces come from a ``face`` element (``vertex_indices`` or ``vertex_index``; polygons are fan
+triangulated) or from a ``tristrips`` element (strips separated by -1).
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import FormatError
+from ..model import Gaussians, PlyElementData, PlyProperty, PlySource, PointModel, classify
+from .ply_format import read_ply, write_ply
+
+AXIS_NAMES = ("ux", "uy", "uz", "vx", "vy", "vz")
+RADIUS_NAMES = ("radius", "surfel_radius")
+
+
+def _columns(data: np.ndarray, names: list[str] | tuple[str, ...]) -> np.ndarray | None:
+    if not all(n in (data.dtype.names or ()) for n in names):
+        return None
+    return np.stack([data[n].astype(np.float64) for n in names], axis=1)
+
+
+def _triangles_from_faces(column: np.ndarray) -> np.ndarray:
+    if len(column) == 0:
+        return np.empty((0, 3), dtype=np.int64)
+    lengths = np.fromiter((len(f) for f in column), dtype=np.int64, count=len(column))
+    if (lengths == 3).all():
+        return np.stack(column).astype(np.int64).reshape(-1, 3)
+    tris = []
+    for face in column:
+        face = np.asarray(face, dtype=np.int64)
+        for i in range(1, len(face) - 1):
+            tris.append((face[0], face[i], face[i + 1]))
+    return np.asarray(tris, dtype=np.int64).reshape(-1, 3)
+
+
+def _triangles_from_strips(column: np.ndarray) -> np.ndarray:
+    tris = []
+    for strip_list in column:
+        strip_list = np.asarray(strip_list, dtype=np.int64)
+        for strip in np.split(strip_list, np.flatnonzero(strip_list < 0)):
+            strip = strip[strip >= 0]
+            if len(strip) < 3:
+                continue
+            a, b, c = strip[:-2], strip[1:-1], strip[2:]
+            odd = (np.arange(len(a)) % 2) == 1
+            t = np.stack([a, np.where(odd, c, b), np.where(odd, b, c)], axis=1)
+            keep = (t[:, 0] != t[:, 1]) & (t[:, 1] != t[:, 2]) & (t[:, 0] != t[:, 2])
+            tris.append(t[keep])
+    return np.concatenate(tris) if tris else np.empty((0, 3), dtype=np.int64)
+
+
+def model_from_source(source: PlySource, path: str | Path, *,
+                      drop_nonfinite: bool = False) -> PointModel:
+    """Build a PointModel from a verbatim PLY source (validates coordinates and indices)."""
+    vertex = source.element("vertex")
+    if vertex is None:
+        raise FormatError(f"{path}: no 'vertex' element")
+    data = vertex.data
+    positions = _columns(data, ("x", "y", "z"))
+    if positions is None:
+        missing = [n for n in "xyz" if n not in (data.dtype.names or ())]
+        raise FormatError(f"{path}: vertex element lacks property {', '.join(missing)} "
+                          "(x, y and z are required)")
+    if vertex.count == 0:
+        raise FormatError(f"{path}: the vertex element is empty")
+    bad = ~np.isfinite(positions).all(axis=1)
+    if bad.any():
+        if not drop_nonfinite:
+            raise FormatError(
+                f"{path}: {int(bad.sum())} vertices have NaN/Inf coordinates (first at index "
+                f"{int(np.flatnonzero(bad)[0])}); fix the file or load with drop_nonfinite=True "
+                "(CLI: --drop-nonfinite)")
+        source = _drop_vertices(source, path, bad)
+        return model_from_source(source, path)
+
+    faces = None
+    face_el = source.element("face")
+    if face_el is not None and face_el.count > 0:
+        name = next((n for n in ("vertex_indices", "vertex_index")
+                     if face_el.property(n) is not None), None)
+        if name is not None:
+            faces = _triangles_from_faces(face_el.data[name])
+    strips = source.element("tristrips")
+    if strips is not None and strips.count > 0 and strips.property("vertex_indices"):
+        strip_tris = _triangles_from_strips(strips.data["vertex_indices"])
+        faces = strip_tris if faces is None else np.concatenate([faces, strip_tris])
+    if faces is not None and faces.size:
+        if faces.min() < 0 or faces.max() >= vertex.count:
+            raise FormatError(f"{path}: face indices out of range 0..{vertex.count - 1}")
+    elif faces is not None:
+        faces = None
+
+    normals = _columns(data, ("nx", "ny", "nz"))
+    if normals is not None and not np.any(normals):
+        normals = None  # all-zero placeholder normals (common in 3DGS exports)
+    colors = None
+    rgb = _columns(data, ("red", "green", "blue"))
+    if rgb is not None:
+        colors = np.clip(rgb, 0, 255).astype(np.uint8)
+    radius = next((data[n].astype(np.float64) for n in RADIUS_NAMES
+                   if n in (data.dtype.names or ())), None)
+    axes = _columns(data, AXIS_NAMES)
+    if axes is not None:
+        axes = axes.reshape(-1, 2, 3)
+    gaussians = None
+    names = data.dtype.names or ()
+    if all(f"scale_{i}" in names for i in range(3)) and all(f"rot_{i}" in names for i in range(4)):
+        rest = sorted((n for n in names if n.startswith("f_rest_")),
+                      key=lambda n: int(n[7:]) if n[7:].isdigit() else 0)
+        gaussians = Gaussians(
+            scale_log=_columns(data, [f"scale_{i}" for i in range(3)]).astype(np.float32),
+            rotation=_columns(data, [f"rot_{i}" for i in range(4)]).astype(np.float32),
+            opacity=data["opacity"].astype(np.float32) if "opacity" in names else None,
+            sh_dc=None if _columns(data, ["f_dc_0", "f_dc_1", "f_dc_2"]) is None else
+            _columns(data, ["f_dc_0", "f_dc_1", "f_dc_2"]).astype(np.float32),
+            sh_rest=_columns(data, rest).astype(np.float32) if rest else None,
+        )
+        if colors is None and gaussians.sh_dc is not None:
+            sh0 = 0.28209479177387814
+            colors = np.clip((0.5 + sh0 * gaussians.sh_dc) * 255, 0, 255).astype(np.uint8)
+    kind = classify(has_faces=faces is not None, has_normals=normals is not None,
+                    has_radius=radius is not None, has_axes=axes is not None,
+                    has_gaussians=gaussians is not None)
+    return PointModel(positions=positions, normals=normals, colors=colors, radius=radius,
+                      axes=axes, faces=faces, gaussians=gaussians, kind=kind, source=source,
+                      path=str(path))
+
+
+def _drop_vertices(source: PlySource, path: str | Path, bad: np.ndarray) -> PlySource:
+    """Remove vertices (bool mask ``bad`` (N,)) and the faces that use them."""
+    if source.element("tristrips") is not None:
+        raise FormatError(f"{path}: cannot drop non-finite vertices from a tristrips model")
+    remap = np.cumsum(~bad) - 1
+    elements = []
+    for el in source.elements:
+        data = el.data
+        if el.name == "vertex":
+            data = data[~bad]
+        elif el.name == "face":
+            name = next((n for n in ("vertex_indices", "vertex_index")
+                         if el.property(n) is not None), None)
+            if name is not None:
+                keep = np.array([not bad[np.asarray(f, dtype=np.int64)].any()
+                                 for f in data[name]], dtype=bool)
+                data = data[keep].copy()
+                column = np.empty(len(data), dtype=object)
+                column[:] = [remap[np.asarray(f, dtype=np.int64)].astype(f.dtype)
+                             for f in data[name]]
+                data[name] = column
+        elements.append(PlyElementData(el.name, el.properties, data))
+    return replace(source, elements=elements)
+
+
+def read_model(path: str | Path, *, drop_nonfinite: bool = False) -> PointModel:
+    """Load a PLY file as a PointModel (raises FormatError naming the file)."""
+    return model_from_source(read_ply(path), path, drop_nonfinite=drop_nonfinite)
+
+
+def _set_field(data: np.ndarray, props: list[PlyProperty], name: str, values: np.ndarray,
+               type_name: str = "float") -> tuple[np.ndarray, list[PlyProperty]]:
+    """Set (or append) scalar property ``name`` of the structured array ``data``."""
+    if name in (data.dtype.names or ()):
+        data[name] = values.astype(data.dtype[name], copy=False)
+        return data, props
+    code = {"float": "f4", "double": "f8", "uchar": "u1"}[type_name]
+    descr = [(n, data.dtype[n]) for n in data.dtype.names] + [(name, code)]
+    grown = np.empty(len(data), dtype=descr)
+    for n in data.dtype.names:
+        grown[n] = data[n]
+    grown[name] = values
+    return grown, props + [PlyProperty(name, code, type_name)]
+
+
+def source_for_save(model: PointModel) -> PlySource:
+    """The PlySource a save writes: the verbatim source with the model's geometry written in."""
+    if model.source is not None:
+        source = model.source
+        vertex = source.element("vertex")
+        data = vertex.data.copy()
+        props = list(vertex.properties)
+    else:
+        source = PlySource(elements=[], comments=["written by splatdeform"], text=False,
+                           byte_order="<")
+        data = np.empty(model.n_points, dtype=[])
+        props = []
+    if data.shape[0] != model.n_points:
+        raise FormatError(f"model has {model.n_points} points but its PLY source "
+                          f"{data.shape[0]} vertices; cannot save it verbatim")
+    pos_type = "double" if model.source is None else "float"
+    for i, axis in enumerate("xyz"):
+        data, props = _set_field(data, props, axis, model.positions[:, i], pos_type)
+    if model.normals is not None:
+        for i, n in enumerate(("nx", "ny", "nz")):
+            data, props = _set_field(data, props, n, model.normals[:, i])
+    if model.colors is not None and (model.source is None or "red" in data.dtype.names):
+        for i, n in enumerate(("red", "green", "blue")):
+            data, props = _set_field(data, props, n, model.colors[:, i], "uchar")
+    if model.radius is not None:
+        name = next((n for n in RADIUS_NAMES if n in (data.dtype.names or ())), "radius")
+        data, props = _set_field(data, props, name, model.radius)
+    if model.axes is not None and (model.radius is None or "ux" in (data.dtype.names or ())):
+        flat = model.axes.reshape(-1, 6)
+        for i, n in enumerate(AXIS_NAMES):
+            data, props = _set_field(data, props, n, flat[:, i])
+    g = model.gaussians
+    if g is not None:
+        for i in range(3):
+            data, props = _set_field(data, props, f"scale_{i}", g.scale_log[:, i])
+        for i in range(4):
+            data, props = _set_field(data, props, f"rot_{i}", g.rotation[:, i])
+    elements = [el for el in source.elements]
+    new_vertex = PlyElementData("vertex", props, data)
+    if model.source is None:
+        elements = [new_vertex]
+        if model.faces is not None and model.n_faces:
+            column = np.empty(model.n_faces, dtype=object)
+            column[:] = list(model.faces.astype(np.int32))
+            face = np.empty(model.n_faces, dtype=[("vertex_indices", object)])
+            face["vertex_indices"] = column
+            elements.append(PlyElementData(
+                "face", [PlyProperty("vertex_indices", "i4", "int", True, "u1", "uchar")], face))
+    else:
+        elements = [new_vertex if el.name == "vertex" else el for el in elements]
+    return replace(source, elements=elements)
+
+
+def write_model(model: PointModel, stream, *, text: bool | None = None) -> None:
+    """Write ``model`` as PLY to an open binary stream."""
+    write_ply(source_for_save(model), stream, text=text)
