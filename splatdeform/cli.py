@@ -30,6 +30,33 @@ def cmd_info(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_deform(args: argparse.Namespace) -> int:
+    from pathlib import Path
+
+    from .config import load_edit
+    from .edit import format_report, run_edit
+
+    cfg = load_edit(args.config)
+    if args.backend:
+        cfg.backend = args.backend
+    if args.device:
+        cfg.device = args.device
+    base = Path(args.config).resolve().parent
+    output = Path(args.output) if args.output else None
+    reuse = args.reuse_file
+    if args.reuse and reuse is None:
+        reuse = str((output or base / cfg.output)) + ".deform.npz"
+    result = run_edit(cfg, base, output=output, drop_nonfinite=args.drop_nonfinite, reuse=reuse,
+                      log=print)
+    render_out = args.render or (str(base / cfg.render.output) if cfg.render else None)
+    if render_out:
+        from .edit_render import render_result
+
+        render_result(result, cfg, render_out, frames=args.frames)
+    print(format_report(result))
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = _Parser(prog="splatdeform", description="Real-time RBF shape editing of scans.")
     parser.add_argument("--debug", action="store_true", help="show tracebacks on errors")
@@ -41,6 +68,23 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--drop-nonfinite", action="store_true",
                    help="drop vertices with NaN/Inf coordinates instead of failing")
     p.set_defaults(func=cmd_info)
+
+    p = sub.add_parser("deform", help="run one edit config (handle or curve)")
+    p.add_argument("config", help="edit YAML file")
+    p.add_argument("-o", "--output", help="output model (overrides the config's output)")
+    p.add_argument("--backend", choices=("auto", "numpy", "opencl"),
+                   help="basis backend (overrides the config)")
+    p.add_argument("--device", help="OpenCL device: 'P:D' indices or a name substring")
+    p.add_argument("--reuse", action="store_true",
+                   help="reuse/store the precomputed deformation in OUTPUT.deform.npz: a new "
+                        "transform with the same regions skips fitting and the basis")
+    p.add_argument("--reuse-file", help="like --reuse, with this file")
+    p.add_argument("--render", help="also write a before/after PNG (or GIF with --frames)")
+    p.add_argument("--frames", type=int, default=0,
+                   help="render N frames of the handle moving from identity to the target")
+    p.add_argument("--drop-nonfinite", action="store_true",
+                   help="drop vertices with NaN/Inf coordinates instead of failing")
+    p.set_defaults(func=cmd_deform)
 
     for register in _EXTRA_COMMANDS:
         register(sub)

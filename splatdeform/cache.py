@@ -1,0 +1,95 @@
+"""Save/load a precomputed deformation so a new handle transform skips fit and basis.
+
+The file (``.npz``) holds the centers, weights, normalisation, basis, region masks and the edit
+key: a hash of everything that determines the basis (input file bytes, regions, boundary, fit,
+normals, curve control points, backend). The handle transform and curve ``moved_to`` are not in
+the key: changing them is exactly what reuse is for.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from pathlib import Path
+
+import numpy as np
+
+from .basis.result import Basis
+from .config import EditConfig
+from .deform import Deformation
+from .errors import InputError
+from .handle import AffineFrame
+from .io.atomic import atomic_path
+from .model import PointModel
+from .rbf.result import Normalization, RbfFit
+
+FORMAT_VERSION = 1
+
+
+def _file_digest(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for chunk in iter(lambda: f.read(1 << 20), b""):
+            h.update(chunk)
+    return h.hexdigest()
+
+
+def edit_key(cfg: EditConfig, input_path: str | Path) -> str:
+    """Hash of the parts of an edit that determine the precomputed basis."""
+    parts = cfg.model_dump(include={"regions", "boundary", "fit", "normals"})
+    if cfg.curve is not None:
+        parts["curve"] = cfg.curve.model_dump(exclude={"moved_to"})
+    parts["metaphor"] = "curve" if cfg.curve is not None else "handle"
+    parts["input"] = _file_digest(Path(input_path))
+    parts["version"] = FORMAT_VERSION
+    return hashlib.sha256(json.dumps(parts, sort_keys=True).encode()).hexdigest()
+
+
+def save_deformation(path: str | Path, key: str, d: Deformation) -> Path:
+    """Write ``d`` atomically to ``path`` (.npz)."""
+    arrays = {
+        "key": np.array(key), "n_points": np.array(d.n_points), "fixed": d.fixed,
+        "moving": d.moving, "free_idx": d.free_idx, "moving_idx": d.moving_idx,
+        "moving_coords": d.moving_coords,
+        "moving_gradients": np.ascontiguousarray(d.moving_gradients),
+        "constraint_idx": d.constraint_idx, "constraint_points": d.constraint_points,
+        "constraint_rhs": d.constraint_rhs, "control_points": d.control_points,
+        "centers": d.fit.centers, "weights": d.fit.weights, "residuals": d.fit.residuals,
+        "converged": np.array(d.fit.converged), "tolerance": np.array(d.fit.tolerance),
+        "norm_center": d.fit.normalization.center, "norm_scale": np.array(d.fit.normalization.scale),
+        "values": d.basis.values,
+        "gradients": d.basis.gradients if d.basis.gradients is not None else np.zeros(0),
+        "frame_inverse": d.frame.inverse if d.frame is not None else np.zeros(0),
+    }
+    path = Path(path)
+    with atomic_path(path) as tmp, open(tmp, "wb") as f:
+        np.savez(f, **arrays)
+    return path
+
+
+def load_deformation(path: str | Path, key: str, model: PointModel) -> Deformation | None:
+    """The stored deformation if ``path`` exists and matches ``key`` and the model, else None."""
+    path = Path(path)
+    if not path.is_file():
+        return None
+    try:
+        z = np.load(path, allow_pickle=False)
+        if str(z["key"]) != key or int(z["n_points"]) != model.n_points:
+            return None
+        fit = RbfFit(centers=z["centers"], weights=z["weights"],
+                     normalization=Normalization(z["norm_center"], float(z["norm_scale"])),
+                     residuals=z["residuals"], converged=bool(z["converged"]),
+                     tolerance=float(z["tolerance"]))
+        grads = z["gradients"]
+        frame = None
+        if z["frame_inverse"].size:
+            frame = AffineFrame(control_points=z["control_points"], inverse=z["frame_inverse"])
+        return Deformation(
+            n_points=int(z["n_points"]), fixed=z["fixed"], moving=z["moving"],
+            free_idx=z["free_idx"], moving_idx=z["moving_idx"], moving_coords=z["moving_coords"],
+            moving_gradients=z["moving_gradients"], constraint_idx=z["constraint_idx"],
+            constraint_points=z["constraint_points"], constraint_rhs=z["constraint_rhs"],
+            control_points=z["control_points"], fit=fit,
+            basis=Basis(z["values"], grads if grads.size else None), frame=frame)
+    except (OSError, KeyError, ValueError) as exc:
+        raise InputError(f"{path}: not a splatdeform precomputed deformation ({exc})") from exc

@@ -1,0 +1,227 @@
+"""YAML edit configs -> validated config objects.
+
+Every error is one :class:`ConfigError` line naming the file and the key path, e.g.
+``edit.yaml: regions.fixed[0].box.min: expected a list of 3 numbers``.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated, Any, Literal
+
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+
+from .errors import ConfigError
+from .regions import Box, Indices, Plane, Property, Selector, Sphere
+
+Vec3 = Annotated[list[float], Field(min_length=3, max_length=3)]
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid", strict=False)
+
+
+class BoxCfg(_Strict):
+    min: Vec3
+    max: Vec3
+
+
+class SphereCfg(_Strict):
+    center: Vec3
+    radius: float = Field(gt=0)
+
+
+class PlaneCfg(_Strict):
+    point: Vec3
+    normal: Vec3
+
+
+class PropertyCfg(_Strict):
+    name: str
+    equals: float
+
+
+class SelectorCfg(_Strict):
+    """Exactly one of box, sphere, plane, indices (list or {file: path}), property."""
+
+    box: BoxCfg | None = None
+    sphere: SphereCfg | None = None
+    plane: PlaneCfg | None = None
+    indices: list[int] | dict[Literal["file"], str] | None = None
+    property: PropertyCfg | None = None
+
+    @model_validator(mode="after")
+    def _exactly_one(self) -> SelectorCfg:
+        given = [k for k in ("box", "sphere", "plane", "indices", "property")
+                 if getattr(self, k) is not None]
+        if len(given) != 1:
+            raise ValueError("expected exactly one of box, sphere, plane, indices, property; "
+                             f"got {', '.join(given) or 'none'}")
+        return self
+
+    def to_selector(self) -> Selector:
+        if self.box:
+            return Box(tuple(self.box.min), tuple(self.box.max))
+        if self.sphere:
+            return Sphere(tuple(self.sphere.center), self.sphere.radius)
+        if self.plane:
+            return Plane(tuple(self.plane.point), tuple(self.plane.normal))
+        if self.property:
+            return Property(self.property.name, self.property.equals)
+        if isinstance(self.indices, dict):
+            return Indices(file=self.indices["file"])
+        return Indices(indices=tuple(self.indices))
+
+
+class RegionsCfg(_Strict):
+    units: Literal["model", "relative"] = "model"
+    fixed: list[SelectorCfg] = Field(min_length=1)
+    handle: list[SelectorCfg] | None = None
+
+
+class RotateCfg(_Strict):
+    axis: Vec3 = [0.0, 0.0, 1.0]
+    degrees: float = 0.0
+
+
+class TransformCfg(_Strict):
+    pivot: Literal["centroid"] | Vec3 = "centroid"
+    scale: float | Vec3 = 1.0
+    rotate: RotateCfg = RotateCfg()
+    translate: Vec3 = [0.0, 0.0, 0.0]
+
+
+class HandleCfg(_Strict):
+    transform: TransformCfg | None = None
+    matrix: Annotated[list[Vec3 | Annotated[list[float], Field(min_length=4, max_length=4)]],
+                      Field(min_length=4, max_length=4)] | None = None
+
+    @model_validator(mode="after")
+    def _one(self) -> HandleCfg:
+        if (self.transform is None) == (self.matrix is None):
+            raise ValueError("expected exactly one of transform, matrix")
+        if self.matrix is not None and any(len(r) != 4 for r in self.matrix):
+            raise ValueError("matrix: expected 4 rows of 4 numbers")
+        return self
+
+
+class CurveCfg(_Strict):
+    control_points: list[Vec3] = Field(min_length=2)
+    moved_to: list[Vec3]
+    degree: int = Field(default=3, ge=1, le=5)
+    capture_radius: float = Field(gt=0)
+    parametrization: Literal["uniform", "chord"] = "chord"
+
+
+class BoundaryCfg(_Strict):
+    continuity: Literal[0, 1, 2] = 2
+    neighbors: int = Field(default=10, ge=3, le=200)
+
+
+class FitCfg(_Strict):
+    tolerance: float = Field(default=1e-4, gt=0, lt=1)
+    max_centers: int = Field(default=2000, ge=0, le=20000)
+
+
+class RenderCfg(_Strict):
+    output: str
+    size: Annotated[list[int], Field(min_length=2, max_length=2)] = [1200, 600]
+    azimuth: float = 30.0
+    elevation: float = 20.0
+    fov: float = 35.0
+    frames: int = Field(default=0, ge=0, le=1000)
+
+
+class EditConfig(_Strict):
+    input: str
+    output: str
+    regions: RegionsCfg
+    handle: HandleCfg | None = None
+    curve: CurveCfg | None = None
+    boundary: BoundaryCfg = BoundaryCfg()
+    fit: FitCfg = FitCfg()
+    normals: Literal["keep", "estimate"] = "keep"
+    backend: Literal["auto", "numpy", "opencl"] = "auto"
+    device: str | None = None
+    render: RenderCfg | None = None
+
+    @model_validator(mode="after")
+    def _metaphor(self) -> EditConfig:
+        if (self.handle is None) == (self.curve is None):
+            raise ValueError("expected exactly one of handle, curve")
+        if self.handle is not None and not self.regions.handle:
+            raise ValueError("regions.handle: required with a handle edit")
+        if self.curve is not None and len(self.curve.moved_to) != len(self.curve.control_points):
+            raise ValueError(f"curve.moved_to: expected {len(self.curve.control_points)} points "
+                             f"(one per control point), got {len(self.curve.moved_to)}")
+        return self
+
+
+def _loc(loc: tuple[Any, ...]) -> str:
+    out = ""
+    for part in loc:
+        if isinstance(part, int):
+            out += f"[{part}]"
+        elif part in ("function-after", "list[float]", "float", "str", "int") or "[" in str(part):
+            continue  # union-branch labels pydantic adds
+        else:
+            out += ("." if out else "") + str(part)
+    return out or "(top level)"
+
+
+def _message(err: dict[str, Any]) -> str:
+    kind = err["type"]
+    if kind == "extra_forbidden":
+        return "unknown key"
+    if kind == "missing":
+        return "required key is missing"
+    msg = err["msg"]
+    if msg.startswith("Value error, "):
+        msg = msg[len("Value error, "):]
+    got = err.get("input")
+    if kind not in ("value_error",) and not isinstance(got, (dict, list)):
+        msg += f" (got {got!r})"
+    return msg
+
+
+def format_validation_error(source: str, exc: ValidationError, prefix: str = "") -> str:
+    """One line for the first (most specific) validation error."""
+    errors = exc.errors()
+    # prefer errors that are not union-branch noise: the deepest location first
+    err = max(errors, key=lambda e: (e["type"] != "model_type", len(e["loc"])))
+    loc = _loc(err["loc"])
+    path = f"{prefix}.{loc}" if prefix and loc != "(top level)" else (prefix or loc)
+    return f"{source}: {path}: {_message(err)}"
+
+
+def read_yaml(path: str | Path) -> dict[str, Any]:
+    """Parse a YAML mapping; ConfigError naming the file for missing/invalid files."""
+    path = Path(path)
+    if not path.is_file():
+        raise ConfigError(f"{path}: config file not found")
+    try:
+        data = yaml.safe_load(path.read_text())
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, "problem_mark", None)
+        where = f" line {mark.line + 1}" if mark is not None else ""
+        raise ConfigError(f"{path}:{where} invalid YAML: "
+                          f"{getattr(exc, 'problem', None) or exc}") from exc
+    except UnicodeDecodeError as exc:
+        raise ConfigError(f"{path}: not a text file") from exc
+    if not isinstance(data, dict):
+        raise ConfigError(f"{path}: expected a YAML mapping of config keys at the top level")
+    return data
+
+
+def parse_edit(data: dict[str, Any], source: str, prefix: str = "") -> EditConfig:
+    """Validate an edit mapping (``prefix`` names where it sits, e.g. 'edit' in a batch)."""
+    try:
+        return EditConfig.model_validate(data)
+    except ValidationError as exc:
+        raise ConfigError(format_validation_error(source, exc, prefix)) from None
+
+
+def load_edit(path: str | Path) -> EditConfig:
+    """Read and validate an edit config file."""
+    return parse_edit(read_yaml(path), str(path))

@@ -1,0 +1,217 @@
+"""Region bookkeeping around the fitted field: precompute once, apply many delta_c.
+
+Every point is fixed (F), moving (the handle H, or a curve band) or free:
+- F is copied unchanged (bit-exact), whatever delta_c is.
+- A moving point h moves by its control coordinates: h' = h + coords(h) @ delta_c (for a handle
+  that is exactly the affine map T; pass the 4x4 matrix to use T itself).
+- Only free points evaluate the RBF field through the precomputed basis: p' = p + B delta_c.
+Ring points of F and H are the fit's constraints; they get their prescribed values exactly
+because they are F or H points.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from . import apply as ap
+from .basis.result import Basis
+from .errors import RegionError
+from .handle import AffineFrame, apply_affine, handle_frame
+from .model import PointModel
+from .rbf.result import RbfFit
+from .regions import check_regions
+from .rings import adjacency, boundary_rings
+
+
+@dataclass
+class Deformation:
+    """A precomputed deformation of one model.
+
+    fixed / moving: (N,) bool masks. free_idx: (Nf,) int64. moving_idx: (Nh,) int64.
+    moving_coords: (Nh, k) float64, a moving point's displacement is moving_coords @ delta_c.
+    moving_gradients: (Nh, k, 3) float64, d coords / d x (constant rows for a handle).
+    constraint_idx: (m,) int64 ring points; constraint_points: (m, 3); constraint_rhs: (m, k) float64 (M, 0 rows for F).
+    control_points: (k, 3) float64 (C). frame: the handle's affine frame, or None (curves).
+    fit: the RBF fit; basis: b and grad b for the free points (Nf rows).
+    timings: seconds per stage. rings: ring sizes (fixed, moving).
+    """
+
+    n_points: int
+    fixed: np.ndarray
+    moving: np.ndarray
+    free_idx: np.ndarray
+    moving_idx: np.ndarray
+    moving_coords: np.ndarray
+    moving_gradients: np.ndarray
+    constraint_idx: np.ndarray
+    constraint_points: np.ndarray
+    constraint_rhs: np.ndarray
+    control_points: np.ndarray
+    fit: RbfFit
+    basis: Basis
+    frame: AffineFrame | None = None
+    timings: dict[str, float] = field(default_factory=dict)
+    ring_sizes: tuple[list[int], list[int]] = ((), ())
+
+    @property
+    def k(self) -> int:
+        return int(self.control_points.shape[0])
+
+
+BasisFn = Callable[[np.ndarray, RbfFit], Basis]
+FitFn = Callable[[np.ndarray, np.ndarray], RbfFit]
+
+
+def prepare(model: PointModel, fixed: np.ndarray, moving: np.ndarray, *,
+            control_points: np.ndarray,
+            coordinates: Callable[[np.ndarray], np.ndarray],
+            coordinate_gradients: Callable[[np.ndarray], np.ndarray],
+            fit_fn: FitFn, basis_fn: BasisFn, continuity: int = 2, neighbors: int = 10,
+            moving_name: str = "handle", frame: AffineFrame | None = None) -> Deformation:
+    """Rings, constraints, fit and basis for fixed/moving masks (N,) bool.
+
+    coordinates(points (M, 3)) -> (M, k) control coordinates of moving points;
+    coordinate_gradients(points (M, 3)) -> (M, k, 3).
+    """
+    if continuity not in (0, 1, 2):
+        raise RegionError(f"boundary.continuity: expected 0, 1 or 2, got {continuity}")
+    check_regions(fixed, moving, handle_name=moving_name)
+    timings: dict[str, float] = {}
+    t0 = time.perf_counter()
+    adj = adjacency(model, neighbors)
+    fixed_rings, moving_rings = boundary_rings(adj, fixed, moving, continuity + 1, moving_name)
+    timings["rings"] = time.perf_counter() - t0
+
+    fixed_c = np.concatenate(fixed_rings)
+    moving_c = np.concatenate(moving_rings)
+    moving_idx = np.flatnonzero(moving)
+    coords_all = coordinates(model.positions[moving_idx])
+    k = coords_all.shape[1]
+    lookup = np.full(model.n_points, -1, dtype=np.int64)
+    lookup[moving_idx] = np.arange(moving_idx.size)
+    constraint_idx = np.concatenate([fixed_c, moving_c])
+    rhs = np.zeros((constraint_idx.size, k))
+    rhs[fixed_c.size:] = coords_all[lookup[moving_c]]
+
+    t0 = time.perf_counter()
+    fit = fit_fn(model.positions[constraint_idx], rhs)
+    timings["fit"] = time.perf_counter() - t0
+
+    free_idx = np.flatnonzero(~(fixed | moving))
+    t0 = time.perf_counter()
+    basis = basis_fn(model.positions[free_idx], fit)
+    timings["basis"] = time.perf_counter() - t0
+    return Deformation(
+        n_points=model.n_points, fixed=fixed, moving=moving, free_idx=free_idx,
+        moving_idx=moving_idx, moving_coords=coords_all,
+        moving_gradients=coordinate_gradients(model.positions[moving_idx]),
+        constraint_idx=constraint_idx, constraint_points=model.positions[constraint_idx],
+        constraint_rhs=rhs,
+        control_points=np.asarray(control_points, dtype=np.float64), fit=fit, basis=basis,
+        frame=frame, timings=timings,
+        ring_sizes=([r.size for r in fixed_rings], [r.size for r in moving_rings]),
+    )
+
+
+def prepare_handle(model: PointModel, fixed: np.ndarray, handle: np.ndarray, *,
+                   fit_fn: FitFn, basis_fn: BasisFn, continuity: int = 2,
+                   neighbors: int = 10) -> Deformation:
+    """:func:`prepare` for the handle metaphor (k = 4 affine frame coordinates)."""
+    if not handle.any():
+        check_regions(fixed, handle)
+    frame = handle_frame(model.positions[handle])
+    grads = frame.coordinate_gradients()
+    return prepare(
+        model, fixed, handle, control_points=frame.control_points,
+        coordinates=frame.coordinates,
+        coordinate_gradients=lambda p: np.broadcast_to(grads, (p.shape[0], 4, 3)),
+        fit_fn=fit_fn, basis_fn=basis_fn, continuity=continuity, neighbors=neighbors,
+        frame=frame)
+
+
+def _deform_gaussians(model: PointModel, out: PointModel, idx: np.ndarray,
+                      jac: np.ndarray) -> None:
+    """Sigma' = J Sigma J^T for 3DGS splats ``idx``; scale and rotation re-extracted."""
+    from .gaussians import covariance_to_scale_rotation, scale_rotation_to_factor
+
+    g = model.gaussians
+    factor = scale_rotation_to_factor(g.scale_log[idx], g.rotation[idx])  # (M, 3, 3) = R S
+    deformed = jac @ factor
+    scale_log, rotation = covariance_to_scale_rotation(deformed @ deformed.transpose(0, 2, 1))
+    out.gaussians.scale_log[idx] = scale_log
+    out.gaussians.rotation[idx] = rotation
+
+
+def _transform_attributes(model: PointModel, out: PointModel, idx: np.ndarray,
+                          jac: np.ndarray) -> None:
+    if model.normals is not None:
+        out.normals[idx] = ap.transform_normals(jac, model.normals[idx])
+    if model.axes is not None:
+        out.axes[idx] = ap.transform_axes(jac, model.axes[idx])
+    elif model.radius is not None and model.normals is not None:
+        axes = ap.transform_axes(jac, ap.radius_to_axes(model.normals[idx], model.radius[idx]))
+        out.radius[idx] = ap.axes_to_radius(axes)
+    if model.gaussians is not None:
+        _deform_gaussians(model, out, idx, jac)
+
+
+def apply(deformation: Deformation, model: PointModel, delta_c: np.ndarray, *,
+          moving_matrix: np.ndarray | None = None) -> PointModel:
+    """The deformed copy of ``model`` for control displacements delta_c (k, 3).
+
+    Positions, normals (cof(J) n), tangent axes (J u), radius-only surfels (area-preserving
+    radius) and 3DGS covariances follow. moving_matrix: the handle's 4x4 affine map, used
+    verbatim for handle points (else it is recovered from delta_c).
+    """
+    if model.n_points != deformation.n_points:
+        raise ValueError(f"model: expected {deformation.n_points} points, got {model.n_points}")
+    delta = np.asarray(delta_c, dtype=np.float64)
+    out = model.copy()
+    free = deformation.free_idx
+    values = deformation.basis.values.astype(np.float64, copy=False)
+    out.positions[free] = ap.displace(model.positions[free], values, delta)
+    mov = deformation.moving_idx
+    if moving_matrix is not None:
+        out.positions[mov] = apply_affine(moving_matrix, model.positions[mov])
+    else:
+        out.positions[mov] = model.positions[mov] + deformation.moving_coords @ delta
+    needs_jac = any(a is not None for a in (model.normals, model.axes, model.gaussians))
+    if needs_jac:
+        if deformation.basis.gradients is None:
+            raise ValueError("deformation: basis has no gradients; normals/axes need them")
+        grads = deformation.basis.gradients.astype(np.float64, copy=False)
+        _transform_attributes(model, out, free, ap.jacobians(grads, delta))
+        _transform_attributes(model, out, mov,
+                              ap.jacobians(np.ascontiguousarray(deformation.moving_gradients),
+                                           delta))
+    return out
+
+
+def full_basis(deformation: Deformation) -> tuple[np.ndarray, np.ndarray]:
+    """Basis for every point, for one-draw-call rendering: values (N, k) float32 and
+    gradients (N, k, 3) float32; 0 for fixed points, control coordinates for moving points."""
+    n, k = deformation.n_points, deformation.k
+    values = np.zeros((n, k), dtype=np.float32)
+    grads = np.zeros((n, k, 3), dtype=np.float32)
+    values[deformation.free_idx] = deformation.basis.values
+    if deformation.basis.gradients is not None:
+        grads[deformation.free_idx] = deformation.basis.gradients
+    values[deformation.moving_idx] = deformation.moving_coords
+    grads[deformation.moving_idx] = deformation.moving_gradients
+    return values, grads
+
+
+def constraint_error(deformation: Deformation, delta_c: np.ndarray,
+                     basis_fn: BasisFn) -> float:
+    """Largest |d(c) - prescribed(c)| over the constraint points for this delta_c (model units):
+    how well the fitted field meets the constraints it was fitted to."""
+    if deformation.constraint_idx.size == 0:
+        return 0.0
+    basis = basis_fn(deformation.constraint_points, deformation.fit)
+    delta = np.asarray(delta_c, dtype=np.float64)
+    error = (basis.values.astype(np.float64) - deformation.constraint_rhs) @ delta
+    return float(np.linalg.norm(error, axis=1).max())

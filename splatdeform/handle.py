@@ -1,0 +1,101 @@
+"""The handle metaphor: affine frame, affine coordinates and the handle transform.
+
+Frame C (4, 3): the handle's centroid plus its principal axes scaled by its extent. Every point
+h has affine coordinates m(h) (4,) with sum 1 and h = m(h)^T C, so for any affine T,
+T(h) - h = m(h)^T (T(C) - C) = m(h)^T delta_c.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .errors import InputError, RegionError
+
+
+@dataclass(frozen=True)
+class AffineFrame:
+    """control_points: (4, 3) float64 frame C. inverse: (4, 4) float64 with
+    m(h) = inverse[:, :3] @ h + inverse[:, 3]."""
+
+    control_points: np.ndarray
+    inverse: np.ndarray
+
+    def coordinates(self, points: np.ndarray) -> np.ndarray:
+        """Affine coordinates (M, 4) float64 of points (M, 3)."""
+        return points @ self.inverse[:, :3].T + self.inverse[:, 3]
+
+    def coordinate_gradients(self) -> np.ndarray:
+        """(4, 3) float64: d m_k / d h (constant)."""
+        return self.inverse[:, :3].copy()
+
+
+def handle_frame(points: np.ndarray) -> AffineFrame:
+    """Affine frame of the handle points (M, 3).
+
+    Raises RegionError when the handle is degenerate (a single point or collinear points): an
+    affine map is not determined by such a handle. A planar handle is fine: its third axis is the
+    plane normal, scaled like the largest extent.
+    """
+    pts = np.asarray(points, dtype=np.float64)
+    centroid = pts.mean(axis=0)
+    centred = pts - centroid
+    _, sv, vt = np.linalg.svd(centred, full_matrices=False)
+    if sv.size < 2 or sv[0] <= 0 or sv[1] <= 1e-6 * sv[0]:
+        raise RegionError("regions.handle: the handle points are (nearly) collinear or a single "
+                          "point; an affine handle needs points spanning at least a plane")
+    extent = np.abs(centred @ vt.T).max(axis=0)
+    extent = np.where(extent > 1e-3 * extent[0], extent, extent[0])
+    axes = vt * extent[:, None]
+    if np.linalg.det(vt) < 0:
+        axes[2] *= -1
+    control = np.vstack([centroid, centroid + axes])
+    system = np.vstack([control.T, np.ones(4)])  # (4, 4): system @ m = [h; 1]
+    return AffineFrame(control_points=control, inverse=np.linalg.inv(system))
+
+
+def rotation_matrix(axis, degrees: float) -> np.ndarray:
+    """(3, 3) rotation by ``degrees`` about ``axis`` (right-handed)."""
+    a = np.asarray(axis, dtype=np.float64)
+    norm = np.linalg.norm(a)
+    if not norm > 0:
+        raise InputError("handle.transform.rotate.axis: expected a non-zero vector")
+    x, y, z = a / norm
+    t = np.radians(degrees)
+    c, s, C = np.cos(t), np.sin(t), 1 - np.cos(t)
+    return np.array([[c + x * x * C, x * y * C - z * s, x * z * C + y * s],
+                     [y * x * C + z * s, c + y * y * C, y * z * C - x * s],
+                     [z * x * C - y * s, z * y * C + x * s, c + z * z * C]])
+
+
+def compose_transform(*, pivot: np.ndarray, scale=1.0, axis=(0.0, 0.0, 1.0),
+                      degrees: float = 0.0, translate=(0.0, 0.0, 0.0)) -> np.ndarray:
+    """4x4 matrix: scale, then rotate, then translate, about ``pivot`` (3,)."""
+    s = np.broadcast_to(np.asarray(scale, dtype=np.float64), (3,))
+    if np.any(s == 0):
+        raise InputError("handle.transform.scale: expected non-zero scale factors")
+    linear = rotation_matrix(axis, degrees) @ np.diag(s) if degrees else np.diag(s)
+    pivot = np.asarray(pivot, dtype=np.float64)
+    m = np.eye(4)
+    m[:3, :3] = linear
+    m[:3, 3] = pivot + np.asarray(translate, dtype=np.float64) - linear @ pivot
+    return m
+
+
+def apply_affine(matrix: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """Points (M, 3) mapped by a 4x4 affine matrix."""
+    return points @ matrix[:3, :3].T + matrix[:3, 3]
+
+
+def delta_for_transform(control_points: np.ndarray, matrix: np.ndarray) -> np.ndarray:
+    """delta_c (4, 3) = T(C) - C for a 4x4 affine matrix T."""
+    return apply_affine(matrix, control_points) - control_points
+
+
+def affine_from_delta(frame: AffineFrame, delta_c: np.ndarray) -> np.ndarray:
+    """The 4x4 affine map T(x) = x + m(x)^T delta_c that a handle delta_c (4, 3) encodes."""
+    m = np.eye(4)
+    m[:3, :3] += delta_c.T @ frame.inverse[:, :3]
+    m[:3, 3] = delta_c.T @ frame.inverse[:, 3]
+    return m

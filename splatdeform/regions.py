@@ -1,0 +1,161 @@
+"""Region selectors -> boolean masks over a model's points.
+
+A region is the union of a list of selectors. In ``model`` units coordinates are model
+coordinates. In ``relative`` units a point (or pivot/translation) u in [0, 1]^3 means
+``bbox_min + u * bbox_extent``: boxes and planes are evaluated in those box coordinates, a
+sphere's centre is mapped that way and its radius is a fraction of the bounding-box diagonal.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from .errors import InputError, RegionError
+from .model import PointModel
+
+
+@dataclass(frozen=True)
+class Box:
+    min: tuple[float, float, float]
+    max: tuple[float, float, float]
+
+
+@dataclass(frozen=True)
+class Sphere:
+    center: tuple[float, float, float]
+    radius: float
+
+
+@dataclass(frozen=True)
+class Plane:
+    """Points on the side the normal points to (signed distance >= 0)."""
+
+    point: tuple[float, float, float]
+    normal: tuple[float, float, float]
+
+
+@dataclass(frozen=True)
+class Indices:
+    """Explicit point indices, or a file of them (whitespace separated text, or .npy)."""
+
+    indices: tuple[int, ...] = ()
+    file: str | None = None
+
+
+@dataclass(frozen=True)
+class Property:
+    """Points whose vertex property ``name`` equals ``equals``."""
+
+    name: str
+    equals: float
+
+
+Selector = Box | Sphere | Plane | Indices | Property
+
+
+def _box_frame(model: PointModel) -> tuple[np.ndarray, np.ndarray]:
+    lo, hi = model.bbox()
+    extent = hi - lo
+    return lo, np.where(extent > 0, extent, 1.0)
+
+
+def to_model_point(model: PointModel, point, units: str) -> np.ndarray:
+    """A (3,) point given in ``units`` as model coordinates."""
+    p = np.asarray(point, dtype=np.float64)
+    if units == "relative":
+        lo, extent = _box_frame(model)
+        return lo + p * extent
+    return p
+
+
+def to_model_vector(model: PointModel, vector, units: str) -> np.ndarray:
+    """A (3,) displacement given in ``units`` as a model-unit displacement."""
+    v = np.asarray(vector, dtype=np.float64)
+    if units == "relative":
+        return v * _box_frame(model)[1]
+    return v
+
+
+def _load_indices(sel: Indices, base_dir: Path | None) -> np.ndarray:
+    if sel.file is None:
+        return np.asarray(sel.indices, dtype=np.int64)
+    path = Path(sel.file)
+    if base_dir is not None and not path.is_absolute():
+        path = base_dir / path
+    if not path.is_file():
+        raise InputError(f"{path}: indices file not found")
+    try:
+        if path.suffix == ".npy":
+            return np.load(path).astype(np.int64).ravel()
+        return np.loadtxt(path, dtype=np.int64, ndmin=1).ravel()
+    except ValueError as exc:
+        raise InputError(f"{path}: expected integer point indices: {exc}") from exc
+
+
+def select_one(model: PointModel, sel: Selector, units: str = "model",
+               base_dir: Path | None = None) -> np.ndarray:
+    """Mask (N,) bool of the points one selector picks."""
+    pts = model.positions
+    if isinstance(sel, (Box, Plane)) and units == "relative":
+        lo, extent = _box_frame(model)
+        pts = (pts - lo) / extent
+    if isinstance(sel, Box):
+        lo, hi = np.asarray(sel.min, float), np.asarray(sel.max, float)
+        if np.any(lo > hi):
+            raise InputError(f"box: min {list(sel.min)} exceeds max {list(sel.max)}")
+        return np.all((pts >= lo) & (pts <= hi), axis=1)
+    if isinstance(sel, Sphere):
+        center = to_model_point(model, sel.center, units)
+        radius = sel.radius * (model.diagonal() if units == "relative" else 1.0)
+        return np.sum((pts - center) ** 2, axis=1) <= radius * radius
+    if isinstance(sel, Plane):
+        normal = np.asarray(sel.normal, float)
+        if not np.linalg.norm(normal) > 0:
+            raise InputError("plane: normal must be a non-zero vector")
+        return (pts - np.asarray(sel.point, float)) @ normal >= 0
+    if isinstance(sel, Indices):
+        idx = _load_indices(sel, base_dir)
+        if idx.size and (idx.min() < 0 or idx.max() >= model.n_points):
+            raise InputError(f"indices: expected values in 0..{model.n_points - 1}, got "
+                             f"{int(idx.min())}..{int(idx.max())}")
+        mask = np.zeros(model.n_points, dtype=bool)
+        mask[idx] = True
+        return mask
+    if isinstance(sel, Property):
+        vertex = None if model.source is None else model.source.element("vertex")
+        names = () if vertex is None else vertex.data.dtype.names
+        if sel.name not in names:
+            raise InputError(f"property: the model has no vertex property {sel.name!r} "
+                             f"(it has {', '.join(names) or 'none'})")
+        return vertex.data[sel.name] == sel.equals
+    raise InputError(f"selector: unknown selector {sel!r}")
+
+
+def select(model: PointModel, selectors: list[Selector], units: str = "model",
+           base_dir: Path | None = None) -> np.ndarray:
+    """Union of selectors -> mask (N,) bool."""
+    if units not in ("model", "relative"):
+        raise InputError(f"units: expected 'model' or 'relative', got {units!r}")
+    mask = np.zeros(model.n_points, dtype=bool)
+    for sel in selectors:
+        mask |= select_one(model, sel, units, base_dir)
+    return mask
+
+
+def check_regions(fixed: np.ndarray, handle: np.ndarray, *, handle_name: str = "handle") -> None:
+    """Raise RegionError for empty, overlapping or all-covering regions."""
+    if not fixed.any():
+        raise RegionError("regions.fixed: selects no point; widen the fixed region")
+    if not handle.any():
+        raise RegionError(f"regions.{handle_name}: selects no point; widen the {handle_name} "
+                          "region")
+    both = fixed & handle
+    if both.any():
+        raise RegionError(f"regions: fixed and {handle_name} regions overlap in "
+                          f"{int(both.sum())} points; they must be disjoint")
+    if (fixed | handle).all():
+        raise RegionError(f"regions: fixed and {handle_name} regions cover every point; "
+                          "leave a free region between them")
