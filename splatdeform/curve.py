@@ -1,0 +1,123 @@
+"""The curve metaphor: a B-spline curve on the surface whose control points the user moves.
+
+- ``control_points`` (k, 3) are snapped to the nearest model point; they define a clamped
+  B-spline of ``degree`` (k >= degree + 1). Parametrisation: ``chord`` (default; knots from the
+  cumulative chord length of the control polygon, de Boor's averaging) or ``uniform``.
+- Every model point within ``capture_radius`` of the curve joins the curve band; its control
+  coordinates are the spline basis values N_i(t) at its nearest curve parameter t (they sum to 1,
+  so moving every control point by v moves the band by exactly v).
+- The band plays the handle's role: its rings next to the free region are constraints with right
+  hand side N(t); the fixed region's rings have 0. delta_c = moved_to - control_points (k, 3), the
+  user's coordinates as given (snapping only places the curve on the surface).
+- Band points move by N(t(x)) delta_c; their Jacobian uses grad t = c'(t) / |c'(t)|^2 (the
+  nearest-point projection, curvature ignored; 0 past the curve's ends, where t is clamped).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.interpolate import BSpline
+from scipy.spatial import cKDTree
+
+from . import deform as df
+from .config import CurveCfg
+from .errors import ConfigError, RegionError
+from .model import PointModel
+from .regions import to_model_point
+
+SAMPLES_PER_SPAN = 64
+
+
+def knot_vector(control_points: np.ndarray, degree: int, parametrization: str) -> np.ndarray:
+    """Clamped knot vector (k + degree + 1,) on [0, 1]."""
+    k = control_points.shape[0]
+    if parametrization == "uniform":
+        inner = np.linspace(0, 1, k - degree + 1)[1:-1]
+    else:
+        chord = np.linalg.norm(np.diff(control_points, axis=0), axis=1)
+        if not chord.sum() > 0:
+            raise ConfigError("curve.control_points: all control points coincide")
+        params = np.concatenate([[0.0], np.cumsum(chord) / chord.sum()])
+        inner = np.array([params[j:j + degree].mean() for j in range(1, k - degree)])
+    return np.concatenate([np.zeros(degree + 1), inner, np.ones(degree + 1)])
+
+
+class SplineCurve:
+    """A clamped B-spline with identity coefficients: evaluates all k basis functions."""
+
+    def __init__(self, control_points: np.ndarray, degree: int, parametrization: str) -> None:
+        k = control_points.shape[0]
+        if k < degree + 1:
+            raise ConfigError(f"curve.control_points: a degree-{degree} curve needs at least "
+                              f"{degree + 1} control points, got {k}")
+        self.control_points = control_points
+        self.knots = knot_vector(control_points, degree, parametrization)
+        self.basis = BSpline(self.knots, np.eye(k), degree)
+        self.dbasis = self.basis.derivative()
+
+    def weights(self, t: np.ndarray) -> np.ndarray:
+        """Basis values (M, k) at parameters t (M,)."""
+        return self.basis(np.clip(t, 0, 1))
+
+    def points(self, t: np.ndarray) -> np.ndarray:
+        return self.weights(t) @ self.control_points
+
+    def tangents(self, t: np.ndarray) -> np.ndarray:
+        return self.dbasis(np.clip(t, 0, 1)) @ self.control_points
+
+
+def capture(curve: SplineCurve, positions: np.ndarray, radius: float
+            ) -> tuple[np.ndarray, np.ndarray]:
+    """Indices (M,) of points within ``radius`` of the curve and their parameters t (M,)."""
+    spans = curve.control_points.shape[0] - 1
+    t = np.linspace(0, 1, SAMPLES_PER_SPAN * spans + 1)
+    samples = curve.points(t)
+    dist, nearest = cKDTree(samples).query(positions, workers=-1)
+    idx = np.flatnonzero(dist <= radius)
+    return idx, t[nearest[idx]]
+
+
+def prepare_curve(model: PointModel, fixed: np.ndarray, cfg: CurveCfg, units: str, *,
+                  fit_fn, basis_fn, continuity: int = 2, neighbors: int = 10) -> df.Deformation:
+    """Precompute a curve deformation (k = number of control points)."""
+    raw = np.array([to_model_point(model, p, units) for p in cfg.control_points])
+    _, snap = cKDTree(model.positions).query(raw)
+    control = model.positions[snap]
+    curve = SplineCurve(control, cfg.degree, cfg.parametrization)
+    radius = cfg.capture_radius * (model.diagonal() if units == "relative" else 1.0)
+    band_idx, band_t = capture(curve, model.positions, radius)
+    if band_idx.size == 0:
+        raise RegionError("curve.capture_radius: captures no point of the model; raise it")
+    if band_idx.size == model.n_points:
+        raise RegionError("curve.capture_radius: captures every point of the model; lower it")
+    band = np.zeros(model.n_points, dtype=bool)
+    band[band_idx] = True
+    param = np.zeros(model.n_points)
+    param[band_idx] = band_t
+
+    def coordinates(points: np.ndarray) -> np.ndarray:
+        # called with model.positions[moving_idx], in index order
+        return curve.weights(param[band_idx])
+
+    def coordinate_gradients(points: np.ndarray) -> np.ndarray:
+        t = param[band_idx]
+        tangent = curve.tangents(t)
+        grad_t = tangent / np.maximum(np.sum(tangent**2, axis=1, keepdims=True), 1e-300)
+        grad_t[(t <= 0) | (t >= 1)] = 0.0  # beyond the ends the parameter is clamped
+        return curve.dbasis(np.clip(t, 0, 1))[:, :, None] * grad_t[:, None, :]
+
+    return df.prepare(model, fixed, band, control_points=control, coordinates=coordinates,
+                      coordinate_gradients=coordinate_gradients, fit_fn=fit_fn,
+                      basis_fn=basis_fn, continuity=continuity, neighbors=neighbors,
+                      moving_name="curve band")
+
+
+def curve_delta(cfg: CurveCfg, model: PointModel, units: str,
+                deformation: df.Deformation) -> np.ndarray:
+    """delta_c (k, 3) = moved_to - control_points, both as given in the config's units."""
+    given = np.array([to_model_point(model, p, units) for p in cfg.control_points])
+    moved = np.array([to_model_point(model, p, units) for p in cfg.moved_to])
+    if moved.shape != given.shape:
+        raise ConfigError(f"curve.moved_to: expected {given.shape[0]} points, got "
+                          f"{moved.shape[0]}")
+    return moved - given
