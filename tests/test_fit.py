@@ -1,0 +1,182 @@
+"""Incremental QR fitter: properties against independent oracles (affine maps, scipy)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.interpolate import RBFInterpolator
+
+from splatdeform.basis.reference import evaluate_field
+from splatdeform.errors import InputError
+from splatdeform.rbf import Normalization, farthest_point_order, fit_incremental, kernel_matrix
+
+
+def bumpy_cylinder(n: int, rng: np.random.Generator, z_lo: float = 0.0, z_hi: float = 1.0):
+    """(n, 3) points on a bumpy cylinder of radius ~0.15 along z in [z_lo, z_hi]."""
+    t = rng.uniform(0.0, 2 * np.pi, n)
+    z = rng.uniform(z_lo, z_hi, n)
+    rad = 0.15 * (1.0 + 0.15 * np.sin(5 * t) * np.sin(9 * z))
+    return np.column_stack([rad * np.cos(t), rad * np.sin(t), z])
+
+
+def rotation_x(deg: float) -> np.ndarray:
+    a = np.deg2rad(deg)
+    return np.array([[1, 0, 0], [0, np.cos(a), -np.sin(a)], [0, np.sin(a), np.cos(a)]])
+
+
+def handle_setup(seed: int = 0, per_band: int = 300):
+    """Fixed band (z in [0.15, 0.2]) with zero displacement, handle band (z in [0.8, 0.85]) with a
+    rotation + translation; free points in between. Returns (points, disp, free)."""
+    rng = np.random.default_rng(seed)
+    fixed = bumpy_cylinder(per_band, rng, 0.15, 0.2)
+    handle = bumpy_cylinder(per_band, rng, 0.8, 0.85)
+    free = bumpy_cylinder(2000, rng, 0.2, 0.8)
+    pivot = np.array([0.0, 0.0, 0.825])
+    moved = (handle - pivot) @ rotation_x(25.0).T + pivot + np.array([0.1, 0.05, 0.0])
+    points = np.vstack([fixed, handle])
+    disp = np.vstack([np.zeros_like(fixed), moved - handle])
+    return points, disp, free
+
+
+def bbox_diag(points: np.ndarray) -> float:
+    return float(np.linalg.norm(points.max(axis=0) - points.min(axis=0)))
+
+
+def test_affine_rhs_needs_no_centers_and_is_reproduced():
+    rng = np.random.default_rng(1)
+    pts = rng.normal(size=(200, 3)) * [1.0, 2.0, 0.5] + [10.0, -3.0, 2.0]
+    rhs = np.column_stack([np.ones(len(pts)), pts])  # [1, x, y, z]
+    fit = fit_incremental(pts, rhs, tolerance=1e-9)
+    assert fit.n_centers == 0 and fit.converged
+    assert fit.residuals.shape == (1, 4)
+    other = rng.normal(size=(500, 3)) * 3.0
+    expected = np.column_stack([np.ones(len(other)), other])
+    got = evaluate_field(other, fit)
+    assert np.allclose(got, expected, rtol=1e-9, atol=1e-9 * np.abs(expected).max())
+
+
+def test_constraints_met_and_history_monotone():
+    points, disp, _ = handle_setup(seed=2)
+    tol = 1e-4 * bbox_diag(points)
+    fit = fit_incremental(points, disp, tolerance=tol)
+    assert fit.converged
+    assert fit.residuals.shape == (1 + fit.n_centers, 3)
+    assert np.all(np.diff(fit.residuals, axis=0) <= 0)
+    assert np.all(fit.residuals[-1] <= tol)
+    assert np.any(fit.residuals[-2] > tol)  # stopped at the first column that met it
+    err = np.abs(evaluate_field(points, fit) - disp).max(axis=0)
+    assert np.all(err <= tol)
+
+
+@pytest.mark.parametrize("block", [1, 7, 64])
+def test_block_size_gives_the_same_incremental_result(block):
+    points, disp, free = handle_setup(seed=3, per_band=150)
+    tol = 1e-5 * bbox_diag(points)
+    ref = fit_incremental(points, disp, tolerance=tol, block=1)
+    fit = fit_incremental(points, disp, tolerance=tol, block=block)
+    assert fit.n_centers == ref.n_centers
+    np.testing.assert_allclose(fit.centers, ref.centers, rtol=0, atol=0)
+    np.testing.assert_allclose(fit.residuals, ref.residuals, rtol=1e-8, atol=1e-12)
+    scale = np.abs(disp).max()
+    assert np.abs(evaluate_field(free, fit) - evaluate_field(free, ref)).max() <= 1e-8 * scale
+
+
+def test_residual_equals_least_squares_residual_of_the_chosen_columns():
+    """Independent oracle: numpy lstsq on A = [1, x, phi(x, s_j)] with the fit's centers."""
+    points, disp, _ = handle_setup(seed=4, per_band=120)
+    fit = fit_incremental(points, disp, tolerance=1e-3 * bbox_diag(points))
+    x = fit.normalization.apply(points)
+    a = np.column_stack([np.ones(len(x)), x, kernel_matrix(x, fit.centers)])
+    w, *_ = np.linalg.lstsq(a, disp, rcond=None)
+    res = np.linalg.norm(a @ w - disp, axis=0)
+    np.testing.assert_allclose(fit.residuals[-1], res, rtol=1e-6, atol=1e-12)
+
+
+def test_max_centers_respected_and_not_converged():
+    points, disp, _ = handle_setup(seed=5, per_band=150)
+    fit = fit_incremental(points, disp, tolerance=1e-12, max_centers=10)
+    assert fit.n_centers == 10
+    assert not fit.converged
+    assert fit.residuals.shape == (11, 3)
+    fit0 = fit_incremental(points, disp, tolerance=1e-12, max_centers=0)
+    assert fit0.n_centers == 0 and not fit0.converged
+
+
+def test_centers_are_constraint_points_in_farthest_point_order():
+    points, disp, _ = handle_setup(seed=6, per_band=100)
+    fit = fit_incremental(points, disp, tolerance=1e-3 * bbox_diag(points))
+    x = fit.normalization.apply(points)
+    order = farthest_point_order(x, fit.n_centers)
+    np.testing.assert_array_equal(fit.centers, x[order])
+
+
+def test_given_normalization_is_used():
+    points, disp, free = handle_setup(seed=7, per_band=100)
+    norm = Normalization(center=np.array([1.0, 2.0, 3.0]), scale=5.0)
+    tol = 1e-6 * bbox_diag(points)
+    fit = fit_incremental(points, disp, tolerance=tol, normalization=norm)
+    assert fit.normalization is norm
+    assert np.abs(evaluate_field(points, fit) - disp).max() <= tol
+
+
+def test_matches_scipy_cubic_interpolant_on_handle_setup():
+    points, disp, free = handle_setup(seed=8)
+    fit = fit_incremental(points, disp, tolerance=1e-4 * bbox_diag(points))
+    assert fit.converged and fit.n_centers < len(points)
+    scipy_rbf = RBFInterpolator(points, disp, kernel="cubic", degree=1)
+    ours = evaluate_field(free, fit)
+    theirs = scipy_rbf(free)
+    largest = np.linalg.norm(disp, axis=1).max()
+    assert np.linalg.norm(ours - theirs, axis=1).max() <= 0.01 * largest
+
+
+def test_duplicate_points_stop_center_selection():
+    rng = np.random.default_rng(9)
+    base = rng.normal(size=(12, 3))
+    points = np.vstack([base, base])  # every point twice
+    rhs = rng.normal(size=(24, 2))
+    rhs[12:] = rhs[:12]  # consistent targets at the duplicates
+    fit = fit_incremental(points, rhs, tolerance=1e-12)
+    assert fit.n_centers <= 12
+    assert np.all(np.isfinite(fit.weights))
+
+
+def test_fps_order_properties():
+    rng = np.random.default_rng(10)
+    pts = rng.normal(size=(300, 3))
+    order = farthest_point_order(pts, 50)
+    assert order.shape == (50,) and len(set(order.tolist())) == 50
+    assert order[0] == np.argmax(np.linalg.norm(pts - pts.mean(axis=0), axis=1))
+    # every pick is the point farthest from the previous picks (brute force)
+    for i in range(1, 50):
+        d = np.min(np.linalg.norm(pts[:, None] - pts[order[:i]][None], axis=2), axis=1)
+        assert d[order[i]] == pytest.approx(d.max())
+    dup = np.vstack([pts[:5], pts[:5]])
+    assert len(farthest_point_order(dup)) == 5
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "name"),
+    [
+        ({"points": np.full((10, 3), np.nan), "rhs": np.zeros((10, 1))}, "points"),
+        ({"points": np.zeros((10, 2)), "rhs": np.zeros((10, 1))}, "points"),
+        ({"points": np.eye(3), "rhs": np.zeros((3, 1))}, "points"),
+        ({"points": np.random.default_rng(0).normal(size=(10, 3)), "rhs": np.zeros((9, 1))}, "rhs"),
+        ({"points": np.random.default_rng(0).normal(size=(10, 3)), "rhs": np.zeros(10)}, "rhs"),
+        ({"points": np.random.default_rng(0).normal(size=(10, 3)), "rhs": np.full((10, 1), np.inf)},
+         "rhs"),
+        ({"points": np.column_stack([np.arange(10.0), np.arange(10.0) ** 2, np.zeros(10)]),
+          "rhs": np.zeros((10, 1))}, "points"),
+    ],
+)
+def test_bad_inputs_raise_input_error_naming_the_argument(kwargs, name):
+    with pytest.raises(InputError, match=name):
+        fit_incremental(**kwargs, tolerance=1e-6)
+
+
+def test_bad_tolerance_and_max_centers():
+    pts = np.random.default_rng(0).normal(size=(10, 3))
+    with pytest.raises(InputError, match="tolerance"):
+        fit_incremental(pts, np.zeros((10, 1)), tolerance=-1.0)
+    with pytest.raises(InputError, match="max_centers"):
+        fit_incremental(pts, np.zeros((10, 1)), tolerance=1e-6, max_centers=-3)
