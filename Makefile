@@ -30,9 +30,16 @@ setup: $(STAMP)
 test: setup
 	$(PY) -m pytest -q
 
+# The demo runs without ../shared: it generates its scans, bends them with a handle and a curve
+# edit, and writes models plus before/after images to demo_out/.
 demo: setup
 	$(PY) -m data_tools.synth $(DEMO_DIR)/scans
 	$(VENV)/bin/splatdeform info $(DEMO_DIR)/scans/bar.ply
+	$(VENV)/bin/splatdeform deform configs/bend_bar.yaml
+	$(VENV)/bin/splatdeform deform configs/twist_sphere.yaml --render $(DEMO_DIR)/sphere_pulled.png
+	$(VENV)/bin/splatdeform deform configs/curve_bar.yaml
+	$(VENV)/bin/splatdeform deform configs/bend_bar.yaml --frames 12 --render $(DEMO_DIR)/bar_bend.gif
+	@echo "demo outputs in $(DEMO_DIR)/: bar_bent.ply/.png, sphere_pulled.ply/.png, bar_curve.ply/.png, bar_bend.gif"
 
 lint: setup
 	$(VENV)/bin/ruff check splatdeform tests data_tools benchmarks

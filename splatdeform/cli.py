@@ -45,7 +45,7 @@ def cmd_deform(args: argparse.Namespace) -> int:
     output = Path(args.output) if args.output else None
     reuse = args.reuse_file
     if args.reuse and reuse is None:
-        reuse = str((output or base / cfg.output)) + ".deform.npz"
+        reuse = str(output or base / cfg.output) + ".deform.npz"
     result = run_edit(cfg, base, output=output, drop_nonfinite=args.drop_nonfinite, reuse=reuse,
                       log=print)
     render_out = args.render or (str(base / cfg.render.output) if cfg.render else None)
@@ -54,6 +54,37 @@ def cmd_deform(args: argparse.Namespace) -> int:
 
         render_result(result, cfg, render_out, frames=args.frames)
     print(format_report(result))
+    return 0
+
+
+def _size(text: str) -> tuple[int, int]:
+    try:
+        w, h = (int(v) for v in text.lower().split("x"))
+        if w < 16 or h < 16 or w > 8192 or h > 8192:
+            raise ValueError
+    except ValueError:
+        raise InputError(
+            f"--size: expected WIDTHxHEIGHT between 16 and 8192, got {text!r}") from None
+    return w, h
+
+
+def cmd_render(args: argparse.Namespace) -> int:
+    from .io import check_output_path, load
+    from .render import render_comparison
+
+    size = _size(args.size)
+    models = [load(p, drop_nonfinite=args.drop_nonfinite) for p in args.models]
+    for m in models:
+        check_output_path(args.output, m.path)
+    if not args.output.lower().endswith(".png"):
+        raise InputError(f"-o/--output: expected a .png file, got {args.output!r}")
+    after = models[1] if len(models) > 1 else None
+    labels = tuple(args.labels.split(",")) if args.labels else (
+        (models[0].path, models[1].path) if after is not None else (models[0].path,))
+    per = (size[0] // 2, size[1]) if after is not None else size
+    render_comparison(models[0], after, args.output, size=per, azimuth=args.azimuth,
+                      elevation=args.elevation, fov=args.fov, labels=labels)
+    print(f"wrote {args.output}")
     return 0
 
 
@@ -86,6 +117,18 @@ def build_parser() -> argparse.ArgumentParser:
                    help="drop vertices with NaN/Inf coordinates instead of failing")
     p.set_defaults(func=cmd_deform)
 
+    from . import batch as _batch  # noqa: F401  (registers the batch verb)
+    p = sub.add_parser("render", help="render a model, or two side by side (before/after)")
+    p.add_argument("models", nargs="+", metavar="MODEL", help="one or two model files")
+    p.add_argument("-o", "--output", required=True, help="output PNG")
+    p.add_argument("--size", default="1200x600", help="image size WxH (default 1200x600)")
+    p.add_argument("--azimuth", type=float, default=30.0)
+    p.add_argument("--elevation", type=float, default=20.0)
+    p.add_argument("--fov", type=float, default=35.0)
+    p.add_argument("--labels", help="comma-separated labels (default: the file names)")
+    p.add_argument("--drop-nonfinite", action="store_true")
+    p.set_defaults(func=cmd_render)
+
     for register in _EXTRA_COMMANDS:
         register(sub)
     return parser
@@ -99,6 +142,8 @@ def main(argv: list[str] | None = None) -> int:
     debug = "--debug" in argv
     try:
         args = build_parser().parse_args(argv)
+        if args.command == "render" and len(args.models) > 2:
+            raise InputError("render: expected one or two model files")
         return int(args.func(args) or 0)
     except SplatdeformError as exc:
         if debug:

@@ -34,7 +34,8 @@ class Deformation:
     fixed / moving: (N,) bool masks. free_idx: (Nf,) int64. moving_idx: (Nh,) int64.
     moving_coords: (Nh, k) float64, a moving point's displacement is moving_coords @ delta_c.
     moving_gradients: (Nh, k, 3) float64, d coords / d x (constant rows for a handle).
-    constraint_idx: (m,) int64 ring points; constraint_points: (m, 3); constraint_rhs: (m, k) float64 (M, 0 rows for F).
+    constraint_idx: (m,) int64 ring points; constraint_points: (m, 3);
+    constraint_rhs: (m, k) float64 (M, 0 rows for F).
     control_points: (k, 3) float64 (C). frame: the handle's affine frame, or None (curves).
     fit: the RBF fit; basis: b and grad b for the free points (Nf rows).
     timings: seconds per stage. rings: ring sizes (fixed, moving).

@@ -1,0 +1,69 @@
+"""The deformation basis b(p), grad b(p) and the backend dispatcher.
+
+Backends: ``numpy`` (:mod:`.reference`, float64, the oracle), ``opencl`` (:mod:`.opencl`,
+float32 results accumulated in double) and ``auto`` (OpenCL when a device exists, else numpy
+with one warning).
+"""
+
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+
+from ..errors import InputError
+from ..rbf.result import RbfFit
+from .result import Basis
+
+BACKENDS = ("auto", "numpy", "opencl")
+
+__all__ = ["BACKENDS", "Basis", "compute_basis", "resolve_backend"]
+
+
+def resolve_backend(backend: str = "auto", device: str | None = None) -> str:
+    """The concrete backend ("numpy" or "opencl") that ``backend`` means on this machine.
+
+    "auto" falls back to "numpy" with one ``warnings.warn`` line when no OpenCL device exists;
+    "opencl" without a device raises DeviceError; anything else raises InputError.
+    """
+    if backend not in BACKENDS:
+        raise InputError(f"backend: expected one of {', '.join(BACKENDS)}, got {backend!r}")
+    if backend == "numpy":
+        return "numpy"
+    from . import opencl
+
+    if backend == "opencl":
+        opencl.describe_device(device)  # raises DeviceError with the install hint
+        return "opencl"
+    if opencl.opencl_available(device):
+        return "opencl"
+    warnings.warn(
+        f"backend 'auto': no OpenCL device found, using the numpy reference (slow); "
+        f"{opencl.NO_DEVICE_HINT}",
+        RuntimeWarning,
+        stacklevel=3,
+    )
+    return "numpy"
+
+
+def compute_basis(
+    points: np.ndarray,
+    fit: RbfFit,
+    *,
+    gradients: bool = True,
+    backend: str = "auto",
+    device: str | None = None,
+) -> Basis:
+    """Evaluate the basis of ``fit`` at ``points`` (N, 3) model units.
+
+    Returns Basis(values (N, k), gradients (N, k, 3) in model units or None): float64 from the
+    numpy backend, float32 from OpenCL. ``device`` selects the OpenCL device (ignored by numpy).
+    """
+    chosen = resolve_backend(backend, device)
+    if chosen == "opencl":
+        from .opencl import compute_basis as opencl_basis
+
+        return opencl_basis(points, fit, gradients=gradients, device=device)
+    from .reference import compute_basis as reference_basis
+
+    return reference_basis(points, fit, gradients=gradients)

@@ -115,7 +115,7 @@ def _split_lists(packed: np.ndarray, props: list[PlyProperty], byte_order: str) 
         if p.is_list:
             values = np.ascontiguousarray(packed[p.name])
             column = np.empty(packed.shape[0], dtype=object)
-            column[:] = list(values) if values.ndim == 2 else [values[i] for i in range(len(values))]
+            column[:] = list(values)
             out[p.name] = column
         else:
             out[p.name] = packed[p.name]

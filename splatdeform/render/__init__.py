@@ -1,0 +1,24 @@
+"""Rendering: splats and meshes through the deforming vertex stage (moderngl, headless EGL).
+
+Importing this package creates no GL context; the first render does (see :mod:`.context`).
+"""
+
+from __future__ import annotations
+
+from splatdeform.render.camera import Camera, frame_bbox, frame_points
+from splatdeform.render.compare import render_comparison, render_deformation_comparison
+from splatdeform.render.frames import render_frames
+from splatdeform.render.renderer import GpuModel, Renderer, render_image, save_png
+
+__all__ = [
+    "Camera",
+    "GpuModel",
+    "Renderer",
+    "frame_bbox",
+    "frame_points",
+    "render_comparison",
+    "render_deformation_comparison",
+    "render_frames",
+    "render_image",
+    "save_png",
+]

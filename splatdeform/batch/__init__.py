@@ -1,0 +1,180 @@
+"""``splatdeform batch BATCH.yaml``: one edit applied to many scans.
+
+Batch config (paths relative to the batch file)::
+
+    scans: scans/*.ply            # glob | list of globs/paths | folder (recursive) | .zip/.tar(.gz)
+    edit: bend_bar.yaml           # an edit file or an inline mapping; its input/output are ignored
+    overrides:                    # optional, applied in order to scans whose file name matches
+      - match: "sphere*"
+        edit: {regions: {handle: [{sphere: {center: [.5, .5, 1], radius: .3}}]}}   # deep-merged
+    output_dir: out/batch         # must not be inside a scanned folder / matched by the glob
+    render: {size: [256, 256], azimuth: 30, elevation: 20}   # optional thumbnails (per half)
+    workers: 2                    # optional; default: the number of cores
+    scheduler: tcp://host:8786    # optional; run on a Dask distributed cluster instead
+    memory_per_worker_mb: 4000    # optional; default: available memory / workers
+
+Per scan: ``output_dir/<stem>_deformed<ext>`` (same format and properties as the input),
+``<stem>.png`` with ``render:``, and ``<stem>_deformed<ext>.json`` (the sidecar with the config
+hash, written last). The run writes ``report.json``, ``report.csv`` and ``index.html``.
+A rerun skips scans whose sidecar holds the same config hash (edit, overrides, render options,
+input size/mtime, package version); ``--force`` redoes them. Exit code 1 when any scan failed.
+
+Local execution uses worker processes started with "spawn" (OpenCL/GL state is never forked).
+A Dask cluster runs the same task function; every worker must import ``splatdeform`` and see the
+scan and output paths (a shared file system)::
+
+    dask scheduler                                   # prints tcp://HOST:8786
+    dask worker tcp://HOST:8786 --nworkers 2 --nthreads 1 --memory-limit 8GB   # on each node
+    splatdeform batch batch.yaml --scheduler tcp://HOST:8786
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import os
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+from .config import Batch, BatchConfig, Job, load_batch
+
+__all__ = ["Batch", "BatchConfig", "Job", "load_batch", "run_batch", "register"]
+
+
+def _clean_stale_temps(output_dir: Path) -> None:
+    """Temporary files left by a killed run (``.<stem>.*.tmp*``) are never trusted: remove."""
+    if not output_dir.is_dir():
+        return
+    for p in output_dir.iterdir():
+        if p.name.startswith(".") and ".tmp" in p.name and p.is_file():
+            with contextlib.suppress(OSError):
+                p.unlink()
+
+
+class _Progress:
+    def __init__(self, total: int, quiet: bool) -> None:
+        self.total, self.quiet, self.n = total, quiet, 0
+        self.bar = None
+        if not quiet and sys.stderr.isatty():
+            from tqdm import tqdm
+
+            self.bar = tqdm(total=total, unit="scan", dynamic_ncols=True)
+
+    def __call__(self, row: dict[str, Any]) -> None:
+        self.n += 1
+        msg = f"{row['scan']}: {row['status']}"
+        if row["status"] == "failed" or row.get("error"):
+            msg += f": {row['error']}"
+        elif row.get("seconds") is not None:
+            msg += f" ({row['seconds']:.1f} s)"
+        if self.bar is not None:
+            self.bar.update(1)
+            if row["status"] == "failed":
+                self.bar.write(msg)
+        elif not self.quiet:
+            print(f"[{self.n}/{self.total}] {msg}", flush=True)
+
+    def close(self) -> None:
+        if self.bar is not None:
+            self.bar.close()
+
+
+def run_batch(path: str | Path, *, workers: int | None = None, scheduler: Any = None,
+              force: bool = False, quiet: bool = False) -> dict[str, Any]:
+    """Run a batch file; returns the report summary (``rows``, ``counts``, ``exit_code``).
+
+    ``scheduler`` may be an address or a Dask Cluster/Client object (tests)."""
+    from .report import write_reports
+    from .runner import run_dask, run_local
+    from .worker import available_memory, read_sidecar
+
+    t0 = time.perf_counter()
+    batch = load_batch(path)
+    scheduler = scheduler or batch.scheduler
+    if workers is not None and workers < 1:
+        from ..errors import InputError
+
+        raise InputError(f"--workers: expected a positive number, got {workers}")
+    workers = workers or batch.workers or os.cpu_count() or 1
+    batch.output_dir.mkdir(parents=True, exist_ok=True)
+    _clean_stale_temps(batch.output_dir)
+
+    rows: dict[int, dict[str, Any]] = {}
+    todo: list[Job] = []
+    for i, job in enumerate(batch.jobs):
+        side = None if force else read_sidecar(job)
+        if side is not None:
+            rows[i] = {**side.get("row", {}), "scan": job.scan.name, "status": "skipped"}
+        else:
+            todo.append(job)
+    index = {id(job): i for i, job in enumerate(batch.jobs)}
+    progress = _Progress(len(todo), quiet)
+    if not quiet and len(rows):
+        print(f"skipping {len(rows)} scan(s) already done with this config (--force redoes "
+              "them)", flush=True)
+    try:
+        if todo:
+            if scheduler:
+                budget = batch.memory_per_worker_mb * 2**20 if batch.memory_per_worker_mb else None
+                done = run_dask(todo, scheduler, progress, budget)
+            else:
+                budget = (batch.memory_per_worker_mb * 2**20 if batch.memory_per_worker_mb
+                          else available_memory() / min(workers, len(todo)))
+                for job in todo:
+                    job.memory_budget = budget
+                done = run_local(todo, workers, progress)
+            by_name = {job.scan.name: index[id(job)] for job in todo}
+            for row in done:
+                rows[by_name[row["scan"]]] = row
+    finally:
+        progress.close()
+    ordered = [rows[i] for i in sorted(rows)]
+    counts = {s: sum(r["status"] == s for r in ordered) for s in ("ok", "failed", "skipped")}
+    summary = {"batch": str(batch.source), "output_dir": str(batch.output_dir),
+               "workers": None if scheduler else workers,
+               "scheduler": scheduler if isinstance(scheduler, str) else
+               (None if scheduler is None else type(scheduler).__name__),
+               "seconds": time.perf_counter() - t0, "counts": counts,
+               "config": batch.config}
+    write_reports(batch.output_dir, ordered, summary)
+    summary["rows"] = ordered
+    summary["exit_code"] = 1 if counts["failed"] else 0
+    return summary
+
+
+def cmd_batch(args: argparse.Namespace) -> int:
+    summary = run_batch(args.config, workers=args.workers, scheduler=args.scheduler,
+                        force=args.force, quiet=args.quiet)
+    c = summary["counts"]
+    line = (f"{len(summary['rows'])} scans: {c['ok']} ok, {c['failed']} failed, "
+            f"{c['skipped']} skipped in {summary['seconds']:.1f} s; report "
+            f"{Path(summary['output_dir']) / 'index.html'}")
+    if c["failed"] and args.quiet:   # otherwise the progress lines showed them
+        for row in summary["rows"]:
+            if row["status"] == "failed":
+                print(f"splatdeform: failed: {row['scan']}: {row['error']}", file=sys.stderr)
+    if not args.quiet or c["failed"]:
+        print(line, file=sys.stderr if args.quiet else sys.stdout)
+    return summary["exit_code"]
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("batch", help="apply one edit to many scans (local workers or Dask)")
+    p.add_argument("config", help="batch YAML file")
+    p.add_argument("--workers", type=int, help="local worker processes (default: cores)")
+    p.add_argument("--scheduler", help="Dask scheduler address, e.g. tcp://host:8786")
+    p.add_argument("--force", action="store_true", help="redo scans already done")
+    p.add_argument("--quiet", action="store_true", help="no progress output")
+    p.set_defaults(func=cmd_batch)
+
+
+def _register_once() -> None:
+    from ..cli import _EXTRA_COMMANDS
+
+    if register not in _EXTRA_COMMANDS:
+        _EXTRA_COMMANDS.append(register)
+
+
+_register_once()

@@ -1,0 +1,188 @@
+"""Batch config: ``scans``, ``edit``, ``overrides``, ``output_dir``, ``render``, ``workers``,
+``scheduler``, ``memory_per_worker_mb`` -> a validated :class:`Batch`, one :class:`Job` a scan.
+
+The edit's ``input``/``output`` keys are optional in a batch and ignored: every scan is the
+input, and its output is ``output_dir/<stem>_deformed<ext>``. Paths inside the edit (e.g.
+``indices: {file: ...}``) are relative to the edit file, or to the batch file for an inline edit.
+"""
+
+from __future__ import annotations
+
+import copy
+import fnmatch
+import hashlib
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Annotated, Any
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
+
+from .. import __version__
+from ..config import format_validation_error, parse_edit, read_yaml
+from ..errors import ConfigError
+from .sources import Scan, find_scans, glob_base, is_glob
+
+PLACEHOLDER_IN = "__batch_input__.ply"
+PLACEHOLDER_OUT = "__batch_output__.ply"
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+
+class OverrideCfg(_Strict):
+    match: str = Field(min_length=1)
+    edit: dict[str, Any]
+
+
+class BatchRenderCfg(_Strict):
+    size: Annotated[list[int], Field(min_length=2, max_length=2)] = [512, 256]
+    azimuth: float = 30.0
+    elevation: float = 20.0
+    fov: float = 35.0
+
+
+class BatchConfig(_Strict):
+    scans: str | list[str]
+    edit: str | dict[str, Any]
+    overrides: list[OverrideCfg] = []
+    output_dir: str
+    render: BatchRenderCfg | None = None
+    workers: int | None = Field(default=None, ge=1, le=512)
+    scheduler: str | None = None
+    memory_per_worker_mb: float | None = Field(default=None, gt=0)
+
+
+@dataclass
+class Job:
+    """One scan's task, picklable (plain data only): what a worker needs."""
+
+    scan: Scan
+    edit: dict[str, Any]          # merged edit mapping, without input/output
+    base_dir: str                 # where the edit's relative paths start
+    output: str                   # output model path
+    png: str | None               # thumbnail path
+    render: dict[str, Any] | None
+    config_hash: str
+    memory_budget: float | None = None   # bytes; filled by the runner
+
+    @property
+    def sidecar(self) -> str:
+        return self.output + ".json"
+
+
+@dataclass
+class Batch:
+    source: Path
+    output_dir: Path
+    jobs: list[Job]
+    workers: int | None
+    scheduler: str | None
+    memory_per_worker_mb: float | None
+    config: dict[str, Any] = field(default_factory=dict)
+
+
+def deep_merge(base: dict[str, Any], extra: dict[str, Any]) -> dict[str, Any]:
+    """A copy of ``base`` with ``extra`` merged in: mappings recursively, anything else replaced."""
+    out = copy.deepcopy(base)
+    for key, value in extra.items():
+        if isinstance(value, dict) and isinstance(out.get(key), dict):
+            out[key] = deep_merge(out[key], value)
+        else:
+            out[key] = copy.deepcopy(value)
+    return out
+
+
+def _strip_io(edit: dict[str, Any]) -> dict[str, Any]:
+    out = {k: v for k, v in edit.items() if k not in ("input", "output")}
+    if isinstance(out.get("render"), dict):
+        out.pop("render")   # the batch's own render: key decides thumbnails
+    return out
+
+
+def validate_edit(edit: dict[str, Any], source: str, prefix: str) -> None:
+    parse_edit({**edit, "input": PLACEHOLDER_IN, "output": PLACEHOLDER_OUT}, source, prefix)
+
+
+def _hash(data: Any) -> str:
+    return hashlib.sha256(json.dumps(data, sort_keys=True, default=str).encode()).hexdigest()[:16]
+
+
+def load_batch(path: str | Path) -> Batch:
+    """Read and validate a batch file; ConfigError (exit 2) with one line on any problem."""
+    path = Path(path)
+    data = read_yaml(path)
+    src = str(path)
+    try:
+        cfg = BatchConfig.model_validate(data)
+    except ValidationError as exc:
+        raise ConfigError(format_validation_error(src, exc)) from None
+    base = path.resolve().parent
+
+    # the edit: a file or an inline mapping
+    if isinstance(cfg.edit, str):
+        edit_path = (base / cfg.edit).resolve()
+        edit_src = str(edit_path)
+        edit = _strip_io(read_yaml(edit_path))
+        edit_base = edit_path.parent
+        prefix = ""
+    else:
+        edit_src, edit, edit_base, prefix = src, _strip_io(cfg.edit), base, "edit"
+    validate_edit(edit, edit_src, prefix)
+    for i, ov in enumerate(cfg.overrides):
+        merged = deep_merge(edit, _strip_io(ov.edit))
+        validate_edit(merged, src, f"overrides[{i}].edit")
+
+    output_dir = (base / cfg.output_dir).resolve()
+    patterns = [cfg.scans] if isinstance(cfg.scans, str) else list(cfg.scans)
+    if not patterns:
+        raise ConfigError(f"{src}: scans: expected a glob, a folder, an archive or a list of them")
+    scans = find_scans(patterns, base, exclude=output_dir, source=src)
+    _check_output_dir(patterns, base, output_dir, scans, src)
+
+    render = cfg.render.model_dump() if cfg.render else None
+    jobs: list[Job] = []
+    by_output: dict[str, Scan] = {}
+    for scan in scans:
+        merged = edit
+        for ov in cfg.overrides:
+            if fnmatch.fnmatch(scan.filename, ov.match) or fnmatch.fnmatch(scan.name, ov.match):
+                merged = deep_merge(merged, _strip_io(ov.edit))
+        out = output_dir / f"{scan.stem}_deformed{scan.suffix}"
+        if str(out) in by_output:
+            raise ConfigError(f"{src}: scans: {scan.name} and {by_output[str(out)].name} would "
+                              f"both write {out.name}; rename one")
+        by_output[str(out)] = scan
+        png = str(output_dir / f"{scan.stem}.png") if render else None
+        digest = _hash({"edit": merged, "render": render, "source": scan.identity,
+                        "version": __version__})
+        jobs.append(Job(scan, merged, str(edit_base), str(out), png, render, digest))
+    return Batch(path, output_dir, jobs, cfg.workers, cfg.scheduler, cfg.memory_per_worker_mb,
+                 cfg.model_dump())
+
+
+def _inside(child: Path, parent: Path) -> bool:
+    try:
+        child.relative_to(parent)
+        return True
+    except ValueError:
+        return False
+
+
+def _check_output_dir(patterns: list[str], base: Path, output_dir: Path, scans: list[Scan],
+                      src: str) -> None:
+    """Refuse an output_dir that a rerun would scan again (outputs becoming inputs)."""
+    for pattern in patterns:
+        if is_glob(pattern):
+            pat = str(base / pattern)
+            probes = [str(output_dir / f"{s.stem}_deformed{s.suffix}") for s in scans[:50]]
+            recursive = "**" in pattern and _inside(output_dir, glob_base(pat))
+            if recursive or any(fnmatch.fnmatch(p, pat) for p in probes):
+                raise ConfigError(f"{src}: output_dir: {output_dir} would be matched by scans "
+                                  f"pattern {pattern!r}; choose a folder outside the inputs")
+        else:
+            p = (base / pattern).resolve()
+            if p.is_dir() and _inside(output_dir, p):
+                raise ConfigError(f"{src}: output_dir: {output_dir} is inside the scanned input "
+                                  f"folder {p}; choose a folder outside it")

@@ -1,0 +1,104 @@
+"""report.json, report.csv and index.html (before/after thumbnails with each scan's figures)."""
+
+from __future__ import annotations
+
+import csv
+import html
+import io
+import json
+import os
+from pathlib import Path
+from typing import Any
+
+from ..io import atomic_write
+
+COLUMNS = ("scan", "status", "points", "centers", "residual", "constraint_error",
+           "constraint_error_rel", "converged", "seconds", "load", "rings", "fit", "basis",
+           "apply", "save", "render", "output", "png", "error")
+
+
+def _flat(row: dict[str, Any]) -> dict[str, Any]:
+    flat = {k: row.get(k) for k in COLUMNS}
+    for stage, value in (row.get("timings") or {}).items():
+        if stage in flat:
+            flat[stage] = value
+    return {k: ("" if v is None else v) for k, v in flat.items()}
+
+
+def _write_text(path: Path, text: str) -> None:
+    with atomic_write(path) as f:
+        f.write(text.encode())
+
+
+def _fmt(value: Any, spec: str) -> str:
+    if value is None or value == "":
+        return "–"
+    try:
+        return format(value, spec)
+    except (TypeError, ValueError):
+        return html.escape(str(value))
+
+
+def write_reports(output_dir: Path, rows: list[dict[str, Any]], summary: dict[str, Any]) -> None:
+    output_dir.mkdir(parents=True, exist_ok=True)
+    _write_text(output_dir / "report.json",
+                json.dumps({**summary, "scans": rows}, indent=1, default=str))
+    buf = io.StringIO()
+    writer = csv.DictWriter(buf, fieldnames=COLUMNS)
+    writer.writeheader()
+    for row in rows:
+        writer.writerow(_flat(row))
+    _write_text(output_dir / "report.csv", buf.getvalue())
+    _write_text(output_dir / "index.html", _html(output_dir, rows, summary))
+
+
+def _rel(path: str | None, base: Path) -> str | None:
+    if not path or not Path(path).is_file():
+        return None
+    return os.path.relpath(path, base)
+
+
+def _html(output_dir: Path, rows: list[dict[str, Any]], summary: dict[str, Any]) -> str:
+    cards = []
+    for row in rows:
+        png = _rel(row.get("png"), output_dir)
+        img = (f'<img src="{html.escape(png)}" alt="before/after {html.escape(row["scan"])}">'
+               if png else '<div class="noimg">no thumbnail</div>')
+        t = row.get("timings") or {}
+        figures = (f"points {_fmt(row.get('points'), ',')} · "
+                   f"centers {_fmt(row.get('centers'), 'd')}"
+                   f"<br>residual {_fmt(row.get('residual'), '.3g')} · max constraint error "
+                   f"{_fmt(row.get('constraint_error_rel'), '.2e')} of the diagonal"
+                   f"<br>fit {_fmt(t.get('fit'), '.2f')} s · basis {_fmt(t.get('basis'), '.2f')} s"
+                   f" · total {_fmt(row.get('seconds'), '.2f')} s")
+        err = (f'<div class="err">{html.escape(row["error"])}</div>' if row.get("error") else "")
+        out = _rel(row.get("output"), output_dir)
+        link = f' · <a href="{html.escape(out)}">model</a>' if out else ""
+        cards.append(f'<div class="card {row["status"]}"><h3>{html.escape(row["scan"])}</h3>'
+                     f'<div class="status">{row["status"]}{link}</div>{img}'
+                     f'<div class="fig">{figures}</div>{err}</div>')
+    counts = summary.get("counts", {})
+    head = " · ".join(f"{k} {v}" for k, v in counts.items())
+    title = html.escape(str(summary.get("batch")))
+    return f"""<!doctype html>
+<html><head><meta charset="utf-8"><title>splatdeform batch {title}</title>
+<style>
+body {{ font-family: sans-serif; margin: 1.5em; background: #fafafa; }}
+.grid {{ display: flex; flex-wrap: wrap; gap: 1em; }}
+.card {{ background: white; border: 1px solid #ccc; border-radius: 6px;
+  padding: .6em; width: 540px; }}
+.card h3 {{ margin: 0 0 .3em 0; font-size: 1em; word-break: break-all; }}
+.card img {{ max-width: 100%; }}
+.failed {{ border-color: #c33; }} .failed .status {{ color: #c33; font-weight: bold; }}
+.skipped .status {{ color: #777; }} .ok .status {{ color: #282; }}
+.err {{ color: #c33; font-family: monospace; font-size: .85em; }}
+.fig {{ font-size: .85em; color: #333; }} .noimg {{ color: #999; padding: 2em; }}
+</style></head><body>
+<h1>splatdeform batch: {html.escape(str(summary.get('batch')))}</h1>
+<p>{html.escape(head)} · {_fmt(summary.get('seconds'), '.1f')} s · config hash per scan in
+<code>&lt;output&gt;.json</code> · <a href="report.csv">report.csv</a> ·
+<a href="report.json">report.json</a></p>
+<div class="grid">
+{chr(10).join(cards)}
+</div></body></html>
+"""

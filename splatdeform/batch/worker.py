@@ -1,0 +1,152 @@
+"""The per-scan task: runs in a local worker process or on a Dask worker.
+
+``process_scan(job) -> row`` never raises for a problem with the scan itself: it returns a row
+with status "failed" and a one-line message, so one broken scan cannot stop the others.
+Outputs are written atomically: the model, then the thumbnail, then the sidecar
+``<output>.json`` holding the config hash. Only a sidecar with the right hash makes a rerun skip
+the scan, so a run killed at any moment is redone where it was incomplete.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import re
+import threading
+import time
+import traceback
+from pathlib import Path
+from typing import Any
+
+from .config import Job
+
+BYTES_PER_POINT = 2048          # model copies, kNN graph, basis rows, render buffers
+BASE_BYTES = 150 * 2**20        # interpreter + numpy + fitting matrices
+
+
+def estimate_points(path: Path) -> int:
+    """Vertex count from a PLY header; elsewhere a bound from the file size (12 B a point)."""
+    if path.suffix.lower() == ".ply":
+        with open(path, "rb") as f:
+            head = f.read(65536)
+        m = re.search(rb"element\s+vertex\s+(\d+)", head)
+        if m:
+            return int(m.group(1))
+    return path.stat().st_size // 12
+
+
+def estimate_memory(points: int) -> int:
+    return BASE_BYTES + BYTES_PER_POINT * points
+
+
+def available_memory() -> int:
+    try:
+        import psutil
+
+        return int(psutil.virtual_memory().available)
+    except Exception:  # pragma: no cover - psutil ships with distributed
+        return int(os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE"))
+
+
+def read_sidecar(job: Job) -> dict[str, Any] | None:
+    """The sidecar when it matches this job (same hash, model and thumbnail present)."""
+    try:
+        data = json.loads(Path(job.sidecar).read_text())
+    except (OSError, ValueError):
+        return None
+    if not isinstance(data, dict) or data.get("config_hash") != job.config_hash:
+        return None
+    if not Path(job.output).is_file() or (job.png and not Path(job.png).is_file()):
+        return None
+    return data
+
+
+def _row(job: Job, status: str, **extra: Any) -> dict[str, Any]:
+    return {"scan": job.scan.name, "status": status, "output": job.output, "png": job.png,
+            "points": None, "centers": None, "residual": None, "constraint_error": None,
+            "constraint_error_rel": None, "converged": None, "timings": {}, "seconds": None,
+            "error": "", **extra}
+
+
+def _one_line(exc: BaseException) -> str:
+    msg = " ".join(str(exc).split()) or type(exc).__name__
+    return msg if len(msg) < 500 else msg[:497] + "..."
+
+
+def process_scan(job: Job) -> dict[str, Any]:
+    """Deform one scan; returns its report row (never raises for scan problems)."""
+    from ..config import RenderCfg, parse_edit
+    from ..edit import run_edit
+    from ..errors import SplatdeformError
+    from ..io import atomic_write
+    from .sources import materialize
+
+    t0 = time.perf_counter()
+    warning = ""
+    local: Path | None = None
+    try:
+        with materialize(job.scan) as local:
+            points = estimate_points(local)
+            need = estimate_memory(points)
+            if job.memory_budget is not None and need > job.memory_budget:
+                return _row(job, "failed", points=points, seconds=time.perf_counter() - t0,
+                            error=f"needs about {need / 2**20:.0f} MiB for {points:,} points, "
+                                  f"more than the {job.memory_budget / 2**20:.0f} MiB per "
+                                  "worker; use fewer workers or set memory_per_worker_mb")
+            cfg = parse_edit({**job.edit, "input": str(local), "output": job.output},
+                             job.scan.name, "edit")
+            result = run_edit(cfg, job.base_dir, output=job.output)
+            if job.png and job.render:
+                try:
+                    from ..edit_render import render_result
+
+                    r = job.render
+                    cfg.render = RenderCfg(output=job.png, size=[2 * r["size"][0], r["size"][1]],
+                                           azimuth=r["azimuth"], elevation=r["elevation"],
+                                           fov=r["fov"])
+                    out = Path(job.png)
+                    tmp = out.with_name(f".{out.stem}.{os.getpid()}.tmp.png")
+                    try:
+                        render_result(result, cfg, tmp)
+                        os.replace(tmp, out)
+                    finally:
+                        with contextlib.suppress(OSError):
+                            tmp.unlink()
+                except Exception as exc:  # a thumbnail must not fail the scan
+                    warning = f"thumbnail not rendered: {_one_line(exc)}"
+    except SplatdeformError as exc:
+        msg = _one_line(exc)
+        if local is not None and job.scan.member is not None:   # name the member, not the temp
+            msg = msg.replace(str(local), job.scan.name)
+        return _row(job, "failed", seconds=time.perf_counter() - t0, error=msg)
+    except MemoryError:
+        return _row(job, "failed", seconds=time.perf_counter() - t0, error="out of memory")
+    except Exception as exc:  # an unexpected bug: keep the batch going, say where
+        where = traceback.extract_tb(exc.__traceback__)[-1]
+        return _row(job, "failed", seconds=time.perf_counter() - t0,
+                    error=f"{type(exc).__name__}: {_one_line(exc)} "
+                          f"({Path(where.filename).name}:{where.lineno})")
+    s = result.stats
+    row = _row(job, "ok", points=s["points"], centers=s["centers"], residual=s["residual"],
+               constraint_error=s["constraint_error"],
+               constraint_error_rel=s["constraint_error_rel"], converged=s["converged"],
+               timings={k: round(v, 4) for k, v in result.timings.items()},
+               seconds=time.perf_counter() - t0, error=warning,
+               png=job.png if (job.png and not warning) else None)
+    sidecar = {"config_hash": job.config_hash, "scan": job.scan.name, "row": row}
+    with atomic_write(job.sidecar) as f:
+        f.write(json.dumps(sidecar, indent=1).encode())
+    return row
+
+
+def _watch_parent(parent: int) -> None:
+    while True:
+        time.sleep(0.5)
+        if os.getppid() != parent:
+            os._exit(1)   # the batch was killed: stop instead of finishing orphaned work
+
+
+def worker_init(parent: int) -> None:
+    """Local pool initializer: exit when the batch process dies."""
+    threading.Thread(target=_watch_parent, args=(parent,), daemon=True).start()

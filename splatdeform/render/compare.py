@@ -1,0 +1,114 @@
+"""Before/after images side by side, same camera, labelled (Pillow's default font)."""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+
+from splatdeform.model import PointModel
+from splatdeform.render.camera import frame_points
+from splatdeform.render.renderer import Renderer, deformed_positions, save_png
+
+LABEL_HEIGHT = 18
+LABEL_COLOR = (20, 20, 20)
+
+
+def side_by_side(images: Sequence[np.ndarray], labels: Sequence[str] | None = None) -> np.ndarray:
+    """Concatenate (H, W, 3) uint8 images left to right, each with its label in a strip above.
+    Returns (H + LABEL_HEIGHT, sum W, 3) uint8 (no strip when ``labels`` is None)."""
+    from PIL import Image, ImageDraw
+
+    if not images:
+        raise ValueError("images: expected at least one image, got none")
+    if labels is not None and len(labels) != len(images):
+        raise ValueError(f"labels: expected {len(images)} labels, got {len(labels)}")
+    height = max(im.shape[0] for im in images)
+    strip = LABEL_HEIGHT if labels is not None else 0
+    width = sum(im.shape[1] for im in images)
+    canvas = Image.new("RGB", (width, height + strip), (255, 255, 255))
+    draw = ImageDraw.Draw(canvas)
+    x = 0
+    for i, im in enumerate(images):
+        canvas.paste(Image.fromarray(np.asarray(im, dtype=np.uint8)[:, :, :3]), (x, strip))
+        if labels is not None:
+            draw.text((x + 4, 3), str(labels[i]), fill=LABEL_COLOR)
+        x += im.shape[1]
+    return np.asarray(canvas)
+
+
+def render_comparison(
+    before: PointModel,
+    after: PointModel | None,
+    out_path: str | os.PathLike[str] | None,
+    *,
+    size: tuple[int, int] = (512, 512),
+    azimuth: float = 30.0,
+    elevation: float = 20.0,
+    fov: float = 35.0,
+    labels: Sequence[str] = ("before", "after"),
+) -> np.ndarray:
+    """Render two CPU-side models with one camera (framing both) side by side, or ``before``
+    alone when ``after`` is None. ``size`` is one panel (W, H). Writes a PNG to ``out_path``
+    (atomically) when given; returns the composed (H', W', 3) uint8 image."""
+    models = [before] if after is None else [before, after]
+    renderer = Renderer(size)
+    try:
+        camera = frame_points(
+            [m.positions for m in models],
+            azimuth=azimuth,
+            elevation=elevation,
+            fov=fov,
+            aspect=renderer.size[0] / renderer.size[1],
+        )
+        images = []
+        for model in models:
+            gpu = renderer.upload(model)
+            try:
+                images.append(renderer.draw(gpu, camera))
+            finally:
+                gpu.release()
+    finally:
+        renderer.release()
+    image = side_by_side(images, list(labels)[: len(images)])
+    if out_path is not None:
+        save_png(image, out_path)
+    return image
+
+
+def render_deformation_comparison(
+    model: PointModel,
+    values: np.ndarray,
+    gradients: np.ndarray,
+    delta_c: np.ndarray,
+    out_path: str | os.PathLike[str] | None,
+    *,
+    size: tuple[int, int] = (512, 512),
+    azimuth: float = 30.0,
+    elevation: float = 20.0,
+    fov: float = 35.0,
+    labels: Sequence[str] = ("before", "after"),
+) -> np.ndarray:
+    """Before (delta C = 0) and after (``delta_c`` (k, 3)) from ONE upload of the basis
+    ``values`` (N, k) / ``gradients`` (N, k, 3): the shader deforms, the CPU only frames.
+    Writes a PNG to ``out_path`` when given; returns the composed image."""
+    renderer = Renderer(size)
+    gpu = renderer.upload(model, values, gradients)
+    try:
+        camera = frame_points(
+            [model.positions, deformed_positions(model, values, delta_c)],
+            azimuth=azimuth,
+            elevation=elevation,
+            fov=fov,
+            aspect=renderer.size[0] / renderer.size[1],
+        )
+        images = [renderer.draw(gpu, camera, None), renderer.draw(gpu, camera, delta_c)]
+    finally:
+        gpu.release()
+        renderer.release()
+    image = side_by_side(images, list(labels))
+    if out_path is not None:
+        save_png(image, Path(out_path))
+    return image

@@ -1,0 +1,76 @@
+"""Animations: the handle moving from identity to its target in N steps.
+
+delta C is interpolated linearly, t = 0 .. 1; the basis is uploaded ONCE and each frame only
+changes the 12-float uniform. Output: an animated GIF (``*.gif``) or a folder of PNGs
+(``frame_0000.png`` ...) for any other path without a suffix.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+
+from splatdeform.model import PointModel
+from splatdeform.render.camera import frame_points
+from splatdeform.render.renderer import Renderer, deformed_positions, save_pil, save_png
+
+
+def render_frames(
+    model: PointModel,
+    values: np.ndarray,
+    gradients: np.ndarray,
+    delta_c: np.ndarray,
+    n_frames: int,
+    out_path: str | os.PathLike[str],
+    *,
+    size: tuple[int, int] = (256, 256),
+    azimuth: float = 30.0,
+    elevation: float = 20.0,
+    fov: float = 35.0,
+    duration_ms: int = 80,
+) -> list[Path]:
+    """Render ``n_frames`` (>= 2) frames with delta C = t * ``delta_c`` (k, 3), t = i / (n - 1),
+    one camera framing the whole motion. ``out_path``: ``*.gif`` (one animated GIF, looping,
+    ``duration_ms`` per frame) or a folder (PNG sequence). Returns the written paths."""
+    if int(n_frames) < 2:
+        raise ValueError(f"n_frames: expected an integer >= 2, got {n_frames}")
+    out = Path(out_path)
+    if out.suffix and out.suffix.lower() != ".gif":
+        raise ValueError(f"out_path: expected a .gif file or a folder, got {out}")
+    renderer = Renderer(size)
+    gpu = renderer.upload(model, values, gradients)
+    try:
+        camera = frame_points(
+            [model.positions, deformed_positions(model, values, delta_c)],
+            azimuth=azimuth,
+            elevation=elevation,
+            fov=fov,
+            aspect=renderer.size[0] / renderer.size[1],
+        )
+        d = np.asarray(delta_c, dtype=np.float64)
+        frames = [
+            renderer.draw(gpu, camera, d * (i / (n_frames - 1))) for i in range(int(n_frames))
+        ]
+    finally:
+        gpu.release()
+        renderer.release()
+    if out.suffix.lower() == ".gif":
+        from PIL import Image
+
+        pil = [
+            Image.fromarray(f).quantize(colors=256, method=Image.Quantize.MEDIANCUT) for f in frames
+        ]
+        save_pil(
+            pil[0],
+            out,
+            format="GIF",
+            save_all=True,
+            append_images=pil[1:],
+            duration=int(duration_ms),
+            loop=0,
+        )
+        return [out]
+    out.mkdir(parents=True, exist_ok=True)
+    return [save_png(f, out / f"frame_{i:04d}.png") for i, f in enumerate(frames)]

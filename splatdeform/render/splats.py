@@ -1,0 +1,169 @@
+"""Per-point splat geometry for rendering: unit normals, tangent axes (u, v) and colors.
+
+Sources, in order of preference:
+- surfel axes (``model.axes``) as stored;
+- surfel radius with normals: :func:`splatdeform.apply.radius_to_axes`;
+  stored surfels smaller than the local sample spacing are enlarged (``fill_holes``);
+- 3D Gaussians: the two largest principal axes of each Gaussian, ``GAUSSIAN_EXTENT`` standard
+  deviations long, normal along the smallest one (rendered as opaque ellipses for now);
+- anything else: round splats sized from the k-nearest-neighbour spacing (scipy cKDTree) so a
+  dense scan renders without holes; missing normals are estimated by local PCA.
+Meshes need no splat axes (they render as triangles); missing mesh normals are area-weighted
+face normals.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from splatdeform.apply import axes_to_radius, normalize_rows, radius_to_axes
+from splatdeform.model import PointModel
+
+DEFAULT_COLOR = (190, 190, 190)
+GAUSSIAN_EXTENT = 1.5  # ellipse semi-axes in standard deviations
+SH_C0 = 0.28209479177387814
+SPACING_NEIGHBORS = 8  # kNN used to estimate the sampling spacing
+SPACING_FACTOR = 1.0  # splat radius = factor * mean distance to the SPACING_NEIGHBORS nearest
+SPACING_CAP = 4.0  # outliers: spacing capped at this multiple of the median spacing
+PCA_NEIGHBORS = 12
+
+
+@dataclass
+class SplatGeometry:
+    """What the renderer uploads besides positions.
+
+    normals: (N, 3) float32 unit (zero where unknown). axes: (N, 2, 3) float32 tangent axes, or
+    None for meshes. colors: (N, 3) uint8.
+    """
+
+    normals: np.ndarray
+    axes: np.ndarray | None
+    colors: np.ndarray
+
+
+def model_colors(model: PointModel) -> np.ndarray:
+    """(N, 3) uint8 colors: stored colors, 3DGS DC colors, or a light grey."""
+    if model.colors is not None:
+        return np.asarray(model.colors, dtype=np.uint8)
+    g = model.gaussians
+    if g is not None and g.sh_dc is not None:
+        rgb = 0.5 + SH_C0 * np.asarray(g.sh_dc, dtype=np.float64)
+        return np.clip(np.round(rgb * 255.0), 0, 255).astype(np.uint8)
+    return np.tile(np.array(DEFAULT_COLOR, dtype=np.uint8), (model.n_points, 1))
+
+
+def quaternion_matrices(wxyz: np.ndarray) -> np.ndarray:
+    """(N, 4) quaternions (w, x, y, z), not necessarily unit -> (N, 3, 3) rotation matrices."""
+    q = np.asarray(wxyz, dtype=np.float64)
+    length = np.linalg.norm(q, axis=1, keepdims=True)
+    q = np.divide(q, length, out=np.tile([1.0, 0.0, 0.0, 0.0], (q.shape[0], 1)), where=length > 0)
+    w, x, y, z = q.T
+    return np.stack(
+        [
+            np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
+            np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
+            np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1),
+        ],
+        axis=1,
+    )
+
+
+def gaussian_axes(scale_log: np.ndarray, rotation: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Ellipse of each Gaussian: (N, 2, 3) axes along its two largest principal directions,
+    ``GAUSSIAN_EXTENT`` sigma long, and (N, 3) unit normals along the smallest one."""
+    rot = quaternion_matrices(rotation)  # columns are the principal directions
+    sigma = np.exp(np.asarray(scale_log, dtype=np.float64))
+    order = np.argsort(-sigma, axis=1)  # largest first
+    idx = np.arange(sigma.shape[0])[:, None]
+    dirs = np.take_along_axis(rot, order[:, None, :], axis=2)  # (N, 3, 3) columns sorted
+    s = sigma[idx, order]
+    axes = np.stack([dirs[:, :, 0] * s[:, 0:1], dirs[:, :, 1] * s[:, 1:2]], axis=1)
+    return axes * GAUSSIAN_EXTENT, dirs[:, :, 2]
+
+
+def knn_spacing(positions: np.ndarray, k: int = SPACING_NEIGHBORS) -> np.ndarray:
+    """(N,) mean distance of each point to its k nearest neighbours (cKDTree), capped at
+    ``SPACING_CAP`` times the median."""
+    from scipy.spatial import cKDTree
+
+    pts = np.asarray(positions, dtype=np.float64)
+    kk = min(k, pts.shape[0] - 1)
+    if kk < 1:
+        return np.ones(pts.shape[0])
+    dist, _ = cKDTree(pts).query(pts, k=kk + 1, workers=-1)
+    spacing = dist[:, 1:].mean(axis=1)
+    # isolated outliers would become huge discs: cap at a multiple of the median spacing
+    return np.minimum(spacing, SPACING_CAP * np.median(spacing))
+
+
+def pca_normals(positions: np.ndarray, k: int = PCA_NEIGHBORS) -> np.ndarray:
+    """(N, 3) unit normals by local PCA (smallest-eigenvalue direction of the kNN covariance).
+    Orientation is arbitrary (the shading is two-sided)."""
+    from scipy.spatial import cKDTree
+
+    pts = np.asarray(positions, dtype=np.float64)
+    kk = min(k, pts.shape[0])
+    if kk < 3:
+        return np.tile([0.0, 0.0, 1.0], (pts.shape[0], 1))
+    _, nbr = cKDTree(pts).query(pts, k=kk, workers=-1)
+    normals = np.empty_like(pts)
+    for start in range(0, pts.shape[0], 200_000):  # bounded memory for large scans
+        nb = pts[nbr[start : start + 200_000]]
+        centered = nb - nb.mean(axis=1, keepdims=True)
+        cov = np.einsum("nki,nkj->nij", centered, centered)
+        _, vecs = np.linalg.eigh(cov)
+        normals[start : start + 200_000] = vecs[:, :, 0]
+    return normalize_rows(normals)
+
+
+def mesh_normals(positions: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """(N, 3) unit vertex normals: area-weighted sums of the (F, 3) faces' normals."""
+    p = np.asarray(positions, dtype=np.float64)
+    f = np.asarray(faces, dtype=np.int64)
+    face_n = np.cross(p[f[:, 1]] - p[f[:, 0]], p[f[:, 2]] - p[f[:, 0]])
+    normals = np.zeros_like(p)
+    for corner in range(3):
+        np.add.at(normals, f[:, corner], face_n)
+    return normalize_rows(normals)
+
+
+def splat_geometry(model: PointModel, *, fill_holes: bool = True) -> SplatGeometry:
+    """Normals, splat axes (None for meshes) and colors of ``model`` for rendering.
+
+    fill_holes: enlarge stored surfels (radius or axes) whose area-equivalent radius is below
+    ``SPACING_FACTOR`` times the kNN spacing, so the splats overlap. Scanner surfel radii are
+    often smaller than that (head_surfels: median 0.43 x the spacing) and leave holes.
+    """
+    colors = model_colors(model)
+    if model.faces is not None and model.n_faces > 0 and model.gaussians is None:
+        normals = model.normals
+        if normals is None:
+            normals = mesh_normals(model.positions, model.faces)
+        return SplatGeometry(_f32(normalize_rows(np.asarray(normals, float))), None, colors)
+    if model.gaussians is not None:
+        axes, normals = gaussian_axes(model.gaussians.scale_log, model.gaussians.rotation)
+        return SplatGeometry(_f32(normals), _f32(axes), colors)
+    normals = model.normals
+    if normals is None or not np.any(normals):
+        normals = pca_normals(model.positions)
+    normals = normalize_rows(np.asarray(normals, dtype=np.float64))
+    cover = SPACING_FACTOR * knn_spacing(model.positions) if fill_holes else None
+    if model.axes is not None:
+        axes = np.asarray(model.axes, dtype=np.float64)
+        if cover is not None:  # scale each ellipse up (shape kept) to the covering radius
+            grow = np.maximum(1.0, cover / np.maximum(axes_to_radius(axes), 1e-300))
+            axes = axes * grow[:, None, None]
+        return SplatGeometry(_f32(normals), _f32(axes), colors)
+    if model.radius is not None:
+        radius = np.asarray(model.radius, dtype=np.float64)
+        if cover is not None:
+            radius = np.maximum(radius, cover)
+    else:
+        radius = SPACING_FACTOR * knn_spacing(model.positions) if cover is None else cover
+    return SplatGeometry(_f32(normals), _f32(radius_to_axes(normals, radius)), colors)
+
+
+def _f32(a: np.ndarray) -> np.ndarray:
+    return np.ascontiguousarray(a, dtype=np.float32)
