@@ -36,7 +36,8 @@ def _file_digest(path: Path) -> str:
 
 def edit_key(cfg: EditConfig, input_path: str | Path) -> str:
     """Hash of the parts of an edit that determine the precomputed basis."""
-    parts = cfg.model_dump(include={"regions", "boundary", "fit", "normals"})
+    parts = cfg.model_dump(include={"regions", "boundary", "fit", "normals", "backend",
+                                    "device"})
     if cfg.curve is not None:
         parts["curve"] = cfg.curve.model_dump(exclude={"moved_to"})
     parts["metaphor"] = "curve" if cfg.curve is not None else "handle"

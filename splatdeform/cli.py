@@ -46,8 +46,15 @@ def cmd_deform(args: argparse.Namespace) -> int:
     reuse = args.reuse_file
     if args.reuse and reuse is None:
         reuse = str(output or base / cfg.output) + ".deform.npz"
-    result = run_edit(cfg, base, output=output, drop_nonfinite=args.drop_nonfinite, reuse=reuse,
-                      log=print)
+    try:
+        result = run_edit(cfg, base, output=output, drop_nonfinite=args.drop_nonfinite,
+                          reuse=reuse, log=print)
+    except InputError as exc:
+        # region/curve/transform errors name the key; add the config file they came from
+        if str(exc).split(":")[0].split(".")[0] in ("regions", "handle", "curve", "boundary",
+                                                     "fit"):
+            raise type(exc)(f"{args.config}: {exc}") from exc
+        raise
     render_out = args.render or (str(base / cfg.render.output) if cfg.render else None)
     if render_out:
         from .edit_render import render_result

@@ -34,7 +34,7 @@ def read_model(path: str | Path, *, drop_nonfinite: bool = False) -> PointModel:
     bad = ~np.isfinite(positions).all(axis=1)
     if bad.any():
         if not drop_nonfinite:
-            raise FormatError(f"{path}: {int(bad.sum())} points have NaN/Inf coordinates (first "
+            raise FormatError(f"{path}: {int(bad.sum())} point(s) with NaN/Inf coordinates (first "
                               f"at index {int(np.flatnonzero(bad)[0])}); fix the file or load "
                               "with drop_nonfinite=True (CLI: --drop-nonfinite)")
         positions = positions[~bad]

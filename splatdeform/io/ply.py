@@ -76,7 +76,7 @@ def model_from_source(source: PlySource, path: str | Path, *,
     if bad.any():
         if not drop_nonfinite:
             raise FormatError(
-                f"{path}: {int(bad.sum())} vertices have NaN/Inf coordinates (first at index "
+                f"{path}: {int(bad.sum())} vertex(es) with NaN/Inf coordinates (first at index "
                 f"{int(np.flatnonzero(bad)[0])}); fix the file or load with drop_nonfinite=True "
                 "(CLI: --drop-nonfinite)")
         source = _drop_vertices(source, path, bad)
