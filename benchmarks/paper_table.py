@@ -26,9 +26,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from data_tools.synth import bumpy_bar  # noqa: E402
 from splatdeform import deform as df  # noqa: E402
-from splatdeform.apply import deform_frame  # noqa: E402
 from splatdeform.basis import compute_basis  # noqa: E402
 from splatdeform.basis.opencl import describe_device  # noqa: E402
+from splatdeform.frame import deform_frame  # noqa: E402
 from splatdeform.handle import compose_transform, delta_for_transform  # noqa: E402
 from splatdeform.rbf import Normalization, fit_incremental  # noqa: E402
 from splatdeform.regions import Box, select  # noqa: E402

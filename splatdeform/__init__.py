@@ -17,45 +17,46 @@ Python API in a few lines::
 
 from __future__ import annotations
 
-from functools import partial
+import importlib
+from typing import TYPE_CHECKING, Any
 
-import numpy as np
-
-from .deform import Deformation, apply, full_basis
 from .errors import ConfigError, FormatError, InputError, ProcessingError, SplatdeformError
-from .handle import compose_transform, delta_for_transform
-from .io import load, save
-from .model import PointModel
-from .normals import estimate_normals
-from .regions import Box, Indices, Plane, Property, Sphere, select
 
 __version__ = "0.1.0"
 
+# Public names are imported on first use so that `splatdeform info` starts without loading scipy,
+# the fitter or the renderer.
+_LAZY = {
+    "Deformation": "deform", "apply": "deform", "full_basis": "deform",
+    "compose_transform": "handle", "delta_for_transform": "handle",
+    "load": "io", "save": "io", "PointModel": "model", "estimate_normals": "normals",
+    "Box": "regions", "Indices": "regions", "Plane": "regions", "Property": "regions",
+    "Sphere": "regions", "select": "regions",
+    "prepare_handle": "api", "delta_for": "api",
+}
 
-def prepare_handle(model: PointModel, fixed: np.ndarray, handle: np.ndarray, *,
-                   tolerance: float = 1e-4, max_centers: int = 2000, continuity: int = 2,
-                   neighbors: int = 10, backend: str = "auto",
-                   device: str | None = None) -> Deformation:
-    """Fit and precompute a handle deformation for masks ``fixed``/``handle`` (N,) bool."""
-    from . import deform
-    from .basis import compute_basis
-    from .rbf import Normalization, fit_incremental
-
-    fit_fn = partial(fit_incremental, tolerance=tolerance, max_centers=max_centers,
-                     normalization=Normalization.of(model.positions))
-    basis_fn = partial(compute_basis, gradients=True, backend=backend, device=device)
-    return deform.prepare_handle(model, fixed, handle, fit_fn=fit_fn, basis_fn=basis_fn,
-                                 continuity=continuity, neighbors=neighbors)
+if TYPE_CHECKING:  # pragma: no cover
+    from .api import delta_for, prepare_handle
+    from .deform import Deformation, apply, full_basis
+    from .handle import compose_transform, delta_for_transform
+    from .io import load, save
+    from .model import PointModel
+    from .normals import estimate_normals
+    from .regions import Box, Indices, Plane, Property, Sphere, select
 
 
-def delta_for(deformation: Deformation, matrix: np.ndarray) -> np.ndarray:
-    """delta_c (4, 3) that moves the handle frame by the 4x4 affine ``matrix``."""
-    return delta_for_transform(deformation.control_points, matrix)
+def __getattr__(name: str) -> Any:
+    module = _LAZY.get(name)
+    if module is None:
+        raise AttributeError(f"module 'splatdeform' has no attribute {name!r}")
+    value = getattr(importlib.import_module(f".{module}", __name__), name)
+    globals()[name] = value
+    return value
 
 
 __all__ = [
     "Box", "ConfigError", "Deformation", "FormatError", "Indices", "InputError", "Plane",
     "PointModel", "ProcessingError", "Property", "Sphere", "SplatdeformError", "apply",
-    "compose_transform", "delta_for", "estimate_normals", "full_basis", "load",
-    "prepare_handle", "save", "select",
+    "compose_transform", "delta_for", "delta_for_transform", "estimate_normals", "full_basis",
+    "load", "prepare_handle", "save", "select",
 ]

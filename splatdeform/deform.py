@@ -17,7 +17,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from . import apply as ap
+from . import frame as ap
 from .basis.result import Basis
 from .errors import RegionError
 from .handle import AffineFrame, apply_affine, handle_frame

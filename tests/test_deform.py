@@ -23,10 +23,10 @@ from scipy.spatial import cKDTree
 
 import splatdeform as sd
 from data_tools.synth import bumpy_bar, sphere
-from splatdeform.apply import jacobians
 from splatdeform.basis import compute_basis
 from splatdeform.basis.reference import compute_basis as reference_basis
 from splatdeform.deform import constraint_error
+from splatdeform.frame import jacobians
 from splatdeform.rbf import Normalization, fit_incremental
 
 TOL = 1e-4

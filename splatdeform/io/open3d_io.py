@@ -15,12 +15,34 @@ EXTENSIONS = (".pcd", ".xyz", ".xyzn", ".pts")
 def _o3d():
     import open3d  # imported lazily: it takes a second
 
+    # Open3D prints warnings on stdout, which would corrupt `info --json`; errors are ours to report
+    open3d.utility.set_verbosity_level(open3d.utility.VerbosityLevel.Error)
     return open3d
+
+
+def _check_pcd_ascii(path: Path) -> None:
+    """Open3D loads a truncated ascii PCD body as uninitialised memory: count the rows first."""
+    points = None
+    with open(path, "rb") as f:
+        for line in f:
+            words = line.split()
+            if words[:1] == [b"POINTS"] and len(words) == 2 and words[1].isdigit():
+                points = int(words[1])
+            elif words[:1] == [b"DATA"]:
+                if words[1:2] != [b"ascii"] or points is None:
+                    return
+                rows = sum(1 for row in f if row.strip())
+                if rows < points:
+                    raise FormatError(f"{path}: truncated PCD body: header says POINTS {points}, "
+                                      f"{rows} rows present")
+                return
 
 
 def read_model(path: str | Path, *, drop_nonfinite: bool = False) -> PointModel:
     """Load a point cloud through Open3D (positions, normals and colors when present)."""
     o3d = _o3d()
+    if Path(path).suffix.lower() == ".pcd":
+        _check_pcd_ascii(Path(path))
     cloud = o3d.io.read_point_cloud(str(path), remove_nan_points=False,
                                     remove_infinite_points=False)
     positions = np.asarray(cloud.points, dtype=np.float64)
@@ -31,6 +53,9 @@ def read_model(path: str | Path, *, drop_nonfinite: bool = False) -> PointModel:
     colors = None
     if cloud.has_colors():
         colors = np.clip(np.asarray(cloud.colors) * 255 + 0.5, 0, 255).astype(np.uint8)
+    tiny = (positions != 0) & (np.abs(positions) < np.finfo(np.float64).tiny)
+    if tiny.any():  # denormals: what Open3D returns for rows it could not read
+        raise FormatError(f"{path}: malformed or truncated {Path(path).suffix} body")
     bad = ~np.isfinite(positions).all(axis=1)
     if bad.any():
         if not drop_nonfinite:

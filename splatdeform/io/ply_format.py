@@ -276,7 +276,7 @@ def read_ply(path: str | Path) -> PlySource:
             data, offset = _read_binary_element(path, buf, offset, name, count, props,
                                                 header.byte_order)
             elements.append(PlyElementData(name, props, data))
-        if len(raw) - offset > 16 and raw[offset:].strip():
+        if raw[offset:].strip():
             raise FormatError(f"{path}: {len(raw) - offset} bytes after the last element; "
                               "the header's element counts do not match the body")
     return PlySource(elements, header.comments, header.obj_info, header.text,
@@ -352,24 +352,22 @@ def _format_ascii_column(values: np.ndarray, dtype: str) -> np.ndarray:
 def _write_ascii_element(out: io.BufferedIOBase, el: PlyElementData) -> None:
     if el.count == 0:
         return
-    columns: list[np.ndarray] = []
+    columns: list[np.ndarray] = []  # one string per row and property
     for p in el.properties:
         if p.is_list:
-            lengths = _list_lengths(el.data[p.name])
-            if (lengths == lengths[0]).all():
-                columns.append(np.char.mod("%d", lengths))
-                if lengths[0] > 0:
-                    values = np.stack(el.data[p.name]).reshape(el.count, -1)
-                    columns += [_format_ascii_column(values[:, j], p.dtype)
-                                for j in range(values.shape[1])]
+            lists = el.data[p.name]
+            lengths = _list_lengths(lists)
+            if (lengths == lengths[0]).all() and lengths[0] > 0:
+                values = _format_ascii_column(np.stack(lists).reshape(el.count, -1), p.dtype)
+                text = [f"{n} " + " ".join(row)
+                        for n, row in zip(lengths, values.tolist(), strict=True)]
             else:
-                columns.append(np.array([" ".join([str(len(v))] + list(
-                    _format_ascii_column(np.asarray(v), p.dtype))) for v in el.data[p.name]]))
+                text = [" ".join([str(len(v))] + _format_ascii_column(np.asarray(v), p.dtype)
+                                 .tolist()) for v in lists]
+            columns.append(np.asarray(text, dtype=object))
         else:
-            columns.append(_format_ascii_column(el.data[p.name], p.dtype))
-    rows = columns[0].astype(object)
-    for col in columns[1:]:
-        rows = rows + " " + col.astype(object)
+            columns.append(_format_ascii_column(el.data[p.name], p.dtype).astype(object))
+    rows = [" ".join(parts) for parts in zip(*columns, strict=True)]
     out.write(("\n".join(rows) + "\n").encode("ascii"))
 
 

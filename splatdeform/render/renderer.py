@@ -348,7 +348,7 @@ def deformed_positions(
     """(N, 3) float64 positions after ``delta_c`` (CPU, for camera framing only)."""
     if values is None or delta_c is None:
         return model.positions
-    from splatdeform.apply import displace
+    from splatdeform.frame import displace
 
     return displace(model.positions, np.asarray(values, dtype=np.float64), delta_c)
 

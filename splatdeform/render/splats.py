@@ -2,7 +2,7 @@
 
 Sources, in order of preference:
 - surfel axes (``model.axes``) as stored;
-- surfel radius with normals: :func:`splatdeform.apply.radius_to_axes`;
+- surfel radius with normals: :func:`splatdeform.frame.radius_to_axes`;
   stored surfels smaller than the local sample spacing are enlarged (``fill_holes``);
 - 3D Gaussians: the two largest principal axes of each Gaussian, ``GAUSSIAN_EXTENT`` standard
   deviations long, normal along the smallest one (rendered as opaque ellipses for now);
@@ -18,7 +18,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from splatdeform.apply import axes_to_radius, normalize_rows, radius_to_axes
+from splatdeform.frame import axes_to_radius, normalize_rows, radius_to_axes
 from splatdeform.model import PointModel
 
 DEFAULT_COLOR = (190, 190, 190)
