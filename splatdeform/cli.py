@@ -10,7 +10,6 @@ import argparse
 import json
 import sys
 import traceback
-from collections.abc import Callable
 
 from .errors import InputError, SplatdeformError
 
@@ -124,7 +123,6 @@ def build_parser() -> argparse.ArgumentParser:
                    help="drop vertices with NaN/Inf coordinates instead of failing")
     p.set_defaults(func=cmd_deform)
 
-    from . import batch as _batch  # noqa: F401  (registers the batch verb)
     p = sub.add_parser("render", help="render a model, or two side by side (before/after)")
     p.add_argument("models", nargs="+", metavar="MODEL", help="one or two model files")
     p.add_argument("-o", "--output", required=True, help="output PNG")
@@ -136,12 +134,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--drop-nonfinite", action="store_true")
     p.set_defaults(func=cmd_render)
 
-    for register in _EXTRA_COMMANDS:
-        register(sub)
+    from .batch import register as register_batch
+
+    register_batch(sub)
     return parser
-
-
-_EXTRA_COMMANDS: list[Callable[[argparse._SubParsersAction], None]] = []
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -53,6 +53,12 @@ def _clean_stale_temps(output_dir: Path) -> None:
                 p.unlink()
 
 
+def _strip_name(row: dict[str, Any]) -> str:
+    """The error without a leading repeat of the scan's name."""
+    err, name = row.get("error") or "", row["scan"]
+    return err[len(name) + 2:] if err.startswith(name + ": ") else err
+
+
 class _Progress:
     def __init__(self, total: int, quiet: bool) -> None:
         self.total, self.quiet, self.n = total, quiet, 0
@@ -66,7 +72,7 @@ class _Progress:
         self.n += 1
         msg = f"{row['scan']}: {row['status']}"
         if row["status"] == "failed" or row.get("error"):
-            msg += f": {row['error']}"
+            msg += f": {_strip_name(row)}"
         elif row.get("seconds") is not None:
             msg += f" ({row['seconds']:.1f} s)"
         if self.bar is not None:
@@ -154,7 +160,8 @@ def cmd_batch(args: argparse.Namespace) -> int:
     if c["failed"] and args.quiet:   # otherwise the progress lines showed them
         for row in summary["rows"]:
             if row["status"] == "failed":
-                print(f"splatdeform: failed: {row['scan']}: {row['error']}", file=sys.stderr)
+                print(f"splatdeform: failed: {row['scan']}: {_strip_name(row)}",
+                      file=sys.stderr)
     if not args.quiet or c["failed"]:
         print(line, file=sys.stderr if args.quiet else sys.stdout)
     return summary["exit_code"]
@@ -168,13 +175,3 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--force", action="store_true", help="redo scans already done")
     p.add_argument("--quiet", action="store_true", help="no progress output")
     p.set_defaults(func=cmd_batch)
-
-
-def _register_once() -> None:
-    from ..cli import _EXTRA_COMMANDS
-
-    if register not in _EXTRA_COMMANDS:
-        _EXTRA_COMMANDS.append(register)
-
-
-_register_once()
