@@ -39,7 +39,9 @@ demo: setup
 	$(VENV)/bin/splatdeform deform configs/twist_sphere.yaml --render $(DEMO_DIR)/sphere_pulled.png
 	$(VENV)/bin/splatdeform deform configs/curve_bar.yaml
 	$(VENV)/bin/splatdeform deform configs/bend_bar.yaml --frames 12 --render $(DEMO_DIR)/bar_bend.gif
-	@echo "demo outputs in $(DEMO_DIR)/: bar_bent.ply/.png, sphere_pulled.ply/.png, bar_curve.ply/.png, bar_bend.gif"
+	$(PY) -m data_tools.make_archive $(DEMO_DIR)/batch --scans 4 --points 20000
+	$(VENV)/bin/splatdeform batch configs/batch_bars.yaml --workers 2
+	@echo "demo outputs in $(DEMO_DIR)/: bar_bent.ply/.png, sphere_pulled.ply/.png, bar_curve.ply/.png, bar_bend.gif, batch/out/index.html"
 
 lint: setup
 	$(VENV)/bin/ruff check splatdeform tests data_tools benchmarks
