@@ -90,6 +90,11 @@ def prepare_curve(model: PointModel, fixed: np.ndarray, cfg: CurveCfg, units: st
         raise RegionError("curve.capture_radius: captures no point of the model; raise it")
     if band_idx.size == model.n_points:
         raise RegionError("curve.capture_radius: captures every point of the model; lower it")
+    influence = curve.weights(band_t).max(axis=0)
+    if (influence < 1e-3).any():
+        lost = ", ".join(str(i) for i in np.flatnonzero(influence < 1e-3))
+        raise RegionError(f"curve.capture_radius: captures {band_idx.size} points, none of them "
+                          f"under the influence of control point(s) {lost}; raise it")
     band = np.zeros(model.n_points, dtype=bool)
     band[band_idx] = True
     param = np.zeros(model.n_points)

@@ -82,14 +82,33 @@ def test_block_size_gives_the_same_incremental_result(block):
 
 
 def test_residual_equals_least_squares_residual_of_the_chosen_columns():
-    """Independent oracle: numpy lstsq on A = [1, x, phi(x, s_j)] with the fit's centers."""
+    """Independent oracle: numpy lstsq on A = [1, x, phi(x, s_j)] with the fit's centers, with
+    and without the 4 weighted side-condition rows [0 | lam (1, s_j)] (right-hand side 0)."""
     points, disp, _ = handle_setup(seed=4, per_band=120)
-    fit = fit_incremental(points, disp, tolerance=1e-3 * bbox_diag(points))
-    x = fit.normalization.apply(points)
-    a = np.column_stack([np.ones(len(x)), x, kernel_matrix(x, fit.centers)])
-    w, *_ = np.linalg.lstsq(a, disp, rcond=None)
-    res = np.linalg.norm(a @ w - disp, axis=0)
-    np.testing.assert_allclose(fit.residuals[-1], res, rtol=1e-6, atol=1e-12)
+    for lam in (0.0, 1.0):
+        fit = fit_incremental(points, disp, tolerance=1e-3 * bbox_diag(points), side_weight=lam)
+        x = fit.normalization.apply(points)
+        a = np.column_stack([np.ones(len(x)), x, kernel_matrix(x, fit.centers)])
+        rhs = disp
+        if lam:
+            side = np.zeros((4, a.shape[1]))
+            side[:, 4:] = lam * np.vstack([np.ones(fit.n_centers), fit.centers.T])
+            a, rhs = np.vstack([a, side]), np.vstack([disp, np.zeros((4, disp.shape[1]))])
+        w, *_ = np.linalg.lstsq(a, rhs, rcond=None)
+        res = np.linalg.norm(a @ w - rhs, axis=0)
+        np.testing.assert_allclose(fit.residuals[-1], res, rtol=1e-6, atol=1e-12)
+        np.testing.assert_allclose(fit.weights, w, rtol=1e-6, atol=1e-8 * np.abs(w).max())
+
+
+def test_all_centers_with_side_conditions_is_scipys_interpolant():
+    """With every constraint a center, the fit is the triharmonic interpolant itself: equal to
+    scipy's RBFInterpolator(kernel="cubic", degree=1) everywhere, not just at the constraints."""
+    points, disp, free = handle_setup(seed=8, per_band=60)
+    fit = fit_incremental(points, disp, tolerance=1e-14, max_centers=len(points))
+    assert fit.n_centers == len(points)
+    ours = evaluate_field(free, fit)
+    oracle = RBFInterpolator(points, disp, kernel="cubic", degree=1)(free)
+    assert np.abs(ours - oracle).max() <= 1e-6 * np.abs(oracle).max()
 
 
 def test_max_centers_respected_and_not_converged():

@@ -185,6 +185,7 @@ def fit_incremental(
     max_centers: int = 2000,
     normalization: Normalization | None = None,
     block: int = 64,
+    side_weight: float = 1.0,
 ) -> RbfFit:
     """Fit b(x) = [1, x, |x - s_j|^3] . W to ``rhs`` at ``points`` by incremental QR.
 
@@ -197,6 +198,18 @@ def fit_incremental(
     normalization: model -> normalised coordinates; default ``Normalization.of(points)``.
     block: most center columns generated and factored per blocked step (blocks grow 16, 32, ..
         up to ``block`` so an early stop wastes few columns).
+    side_weight: weight of the polyharmonic side conditions P^T w = 0 (sum_j w_j = 0,
+        sum_j w_j s_j = 0), appended as 4 extra least-squares rows with right-hand side 0; 0
+        disables them.
+
+    Why side conditions: without them the least-squares weights are unconstrained in the
+    polynomial directions, and as the center count nears the constraint count the system turns
+    nearly square with huge, cancelling weights (1e7 seen) that make the field fly off far from
+    the constraints (a curve bend moved free points 100x more than any control point). With them,
+    n = m centers reproduce exactly the triharmonic interpolant (scipy's RBFInterpolator with
+    kernel="cubic", degree=1), and fewer centers give its constrained least-squares
+    approximation. The residual read from Q^T rhs then includes the side rows, so it still bounds
+    every constraint error.
 
     Returns an :class:`RbfFit` with centers (n, 3) and weights (4 + n, k) in normalised
     coordinates and the residual history (1 + n, k): one row after the polynomial block (0
@@ -218,15 +231,27 @@ def fit_incremental(
     norm = normalization if normalization is not None else Normalization.of(pts)
     x = norm.apply(pts)
     m, k = b.shape
-    n_max = min(int(max_centers), m - 4)
+    lam = float(side_weight)
+    side = 4 if lam > 0 else 0
+    n_max = min(int(max_centers), m - 4 + side)
     block = int(block)
 
-    state = _BlockedQR(m, 4 + min(n_max, max(block, 256)))
-    poly = np.empty((m, 4), dtype=np.float64, order="F")
-    poly[:, 0] = 1.0
-    poly[:, 1:4] = x
-    qtb = np.asfortranarray(b)
+    rows = m + side
+    state = _BlockedQR(rows, 4 + min(n_max, max(block, 256)))
+    poly = np.zeros((rows, 4), dtype=np.float64, order="F")
+    poly[:m, 0] = 1.0
+    poly[:m, 1:4] = x
+    qtb = np.zeros((rows, k), dtype=np.float64, order="F")
+    qtb[:m] = b
     state.add_block(poly, qtb)
+
+    def center_columns(idx: list[int]) -> np.ndarray:
+        cols_ = np.empty((rows, len(idx)), dtype=np.float64, order="F")
+        cols_[:m] = triharmonic(cdist(x, x[idx]))
+        if side:
+            cols_[m] = lam
+            cols_[m + 1:] = lam * x[idx].T
+        return cols_
 
     history = [np.linalg.norm(qtb[4:], axis=0)]
     order: list[int] = []
@@ -240,7 +265,7 @@ def fit_incremental(
             break  # only duplicates of picked centers remain
         nb = len(new)
         cols = state.cols
-        state.add_block(triharmonic(cdist(x, x[new])), qtb)
+        state.add_block(center_columns(new), qtb)
         res = _tail_residuals(qtb[cols:])[:nb]
         ok = np.all(res <= tol, axis=1)
         used = int(np.argmax(ok)) + 1 if ok.any() else nb
