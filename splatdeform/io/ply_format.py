@@ -108,6 +108,18 @@ def _empty(props: list[PlyProperty], count: int, byte_order: str) -> np.ndarray:
     return np.empty(count, dtype=_object_dtype(props, byte_order))
 
 
+def _packed_dtype(props: list[PlyProperty], lengths: dict[str, int], bo: str) -> np.dtype:
+    """Record dtype of rows whose list properties all have fixed ``lengths`` (count + values)."""
+    fields = []
+    for p in props:
+        if p.is_list:
+            fields.append((p.name + "\nlen", bo + p.len_dtype))
+            fields.append((p.name, bo + p.dtype, (lengths[p.name],)))
+        else:
+            fields.append((p.name, bo + p.dtype))
+    return np.dtype(fields)
+
+
 def _split_lists(packed: np.ndarray, props: list[PlyProperty], byte_order: str) -> np.ndarray:
     """Packed fixed-length records -> the object-field layout."""
     out = _empty(props, packed.shape[0], byte_order)
@@ -152,14 +164,7 @@ def _read_binary_element(path: Path, buf: memoryview, offset: int, name: str, co
             pos += size + n * np.dtype(p.dtype).itemsize
         else:
             pos += np.dtype(p.dtype).itemsize
-    fields = []
-    for p in props:
-        if p.is_list:
-            fields.append((p.name + "\nlen", bo + p.len_dtype))
-            fields.append((p.name, bo + p.dtype, (lengths[p.name],)))
-        else:
-            fields.append((p.name, bo + p.dtype))
-    packed_dtype = np.dtype(fields)
+    packed_dtype = _packed_dtype(props, lengths, bo)
     if offset + packed_dtype.itemsize * count <= total:
         packed = np.frombuffer(buf, dtype=packed_dtype, count=count, offset=offset)
         if all((packed[n + "\nlen"] == L).all() for n, L in lengths.items()):
@@ -314,14 +319,8 @@ def _write_binary_element(out: io.BufferedIOBase, el: PlyElementData, bo: str) -
         return
     lengths = {p.name: _list_lengths(el.data[p.name]) for p in props if p.is_list}
     if all((v == v[0]).all() for v in lengths.values()):
-        fields = []
-        for p in props:
-            if p.is_list:
-                fields.append((p.name + "\nlen", bo + p.len_dtype))
-                fields.append((p.name, bo + p.dtype, (int(lengths[p.name][0]),)))
-            else:
-                fields.append((p.name, bo + p.dtype))
-        packed = np.empty(el.count, dtype=np.dtype(fields))
+        packed = np.empty(el.count, dtype=_packed_dtype(
+            props, {n: int(v[0]) for n, v in lengths.items()}, bo))
         for p in props:
             if p.is_list:
                 packed[p.name + "\nlen"] = lengths[p.name]
