@@ -8,14 +8,14 @@ from pathlib import Path
 from .config import EditConfig, RenderCfg
 from .deform import full_basis
 from .edit import EditResult
-from .errors import InputError
 
 
 def render_result(result: EditResult, cfg: EditConfig, out: str | Path, *,
                   frames: int = 0) -> Path:
     """Write the before/after PNG (or, with frames >= 2, a GIF/PNG sequence of the handle
-    moving from identity to the target). The vertex shader deforms; one basis upload."""
-    from .render import render_comparison, render_deformation_comparison, render_frames
+    moving from identity to the target). The vertex shader deforms, for any number of control
+    DOFs k (k > 4, e.g. curves, reads the basis from a storage buffer); one basis upload."""
+    from .render import render_deformation_comparison, render_frames
 
     opts = cfg.render or RenderCfg(output=str(out))
     frames = frames or opts.frames
@@ -23,15 +23,7 @@ def render_result(result: EditResult, cfg: EditConfig, out: str | Path, *,
     t0 = time.perf_counter()
     view = dict(azimuth=opts.azimuth, elevation=opts.elevation, fov=opts.fov)
     out = Path(out)
-    if result.deformation.k > 4:
-        # the vertex stage takes 16 basis floats per point (k <= 4); larger k (curves with more
-        # control points) render the CPU-deformed model with the plain shader instead
-        if frames >= 2:
-            raise InputError(f"--frames: needs k <= 4 control points, this edit has "
-                             f"{result.deformation.k}")
-        render_comparison(result.model, result.deformed, out,
-                          size=(opts.size[0] // 2, opts.size[1]), **view)
-    elif frames >= 2:
+    if frames >= 2:
         target = out if out.suffix.lower() == ".gif" or not out.suffix else out.with_suffix(".gif")
         render_frames(result.model, values, gradients, result.delta_c, frames, target,
                       size=(opts.size[0] // 2, opts.size[1]), **view)

@@ -89,9 +89,9 @@ def cpu_deformed(model: PointModel, values, gradients, delta_c) -> PointModel:
     return out
 
 
-def check_vertex_stage(renderer: Renderer, model: PointModel, seed: int) -> None:
-    values, gradients = smooth_basis(model.positions, seed=seed)
-    delta_c = random_delta(model, seed=seed + 1)
+def check_vertex_stage(renderer: Renderer, model: PointModel, seed: int, k: int = 4) -> None:
+    values, gradients = smooth_basis(model.positions, k=k, seed=seed)
+    delta_c = random_delta(model, k=k, seed=seed + 1)
     gpu = renderer.upload(model, values, gradients)
     try:
         got = renderer.transform(gpu, delta_c)
@@ -117,6 +117,34 @@ def test_vertex_stage_matches_numpy_on_real_scan(renderer, head):
 
 def test_vertex_stage_matches_numpy_on_generated_scan(renderer, bar):
     check_vertex_stage(renderer, bar, seed=20)
+
+
+def test_vertex_stage_storage_buffer_k7_matches_numpy(renderer, bar):
+    # k > 4 (curve edits): the basis comes from a shader storage buffer, u_delta[7]
+    check_vertex_stage(renderer, bar, seed=25, k=7)
+
+
+def test_storage_buffer_k7_deformation_equals_cpu_deformation_image(renderer, bar):
+    k = 7
+    values, gradients = smooth_basis(bar.positions, k=k, seed=35)
+    delta_c = random_delta(bar, k=k, seed=36, size=0.03)
+    after_cpu = cpu_deformed(bar, values, gradients, delta_c)
+    camera = frame_points([bar.positions, after_cpu.positions], azimuth=30, elevation=20)
+    gpu = renderer.upload(bar, values, gradients)
+    cpu = renderer.upload(after_cpu, fill_holes=False)
+    try:
+        assert gpu.k == k and gpu.storage is not None
+        shader_img = renderer.draw(gpu, camera, delta_c).astype(int)
+        cpu_img = renderer.draw(cpu, camera).astype(int)
+        before = renderer.draw(gpu, camera, None).astype(int)
+    finally:
+        gpu.release()
+        cpu.release()
+    diff = np.abs(shader_img - cpu_img).max(axis=2)
+    assert (diff > DIFF_LEVEL).mean() <= MAX_DIFF_FRACTION, (diff > DIFF_LEVEL).mean()
+    assert np.abs(shader_img - cpu_img).mean() < MAX_MEAN_DIFF
+    assert (np.abs(shader_img - 255).max(axis=2) > 0).mean() > 0.05
+    assert (np.abs(before - shader_img).max(axis=2) > DIFF_LEVEL).mean() > 0.02
 
 
 def test_shader_deformation_equals_cpu_deformation_image(renderer, head):

@@ -6,9 +6,11 @@ deformation basis ONCE; :meth:`Renderer.draw` then renders it for any delta C wi
 12-float uniform changing per frame. Without a basis (or with ``plain=True``) the plain
 program renders the stored geometry (the comparison path for CPU-deformed models).
 
-Basis layout on the GPU: 16 float32 per point as vertex attributes, values b_0..b_3 then
-gradients grad b_0 .. grad b_3; k < 4 is zero-padded. k > 4 needs the storage-buffer path
-sketched in ``shaders/deform.vert`` (not implemented yet: a ValueError says so).
+Basis layout on the GPU: for k <= 4, 16 float32 per point as vertex attributes, values
+b_0..b_3 then gradients grad b_0 .. grad b_3; k < 4 is zero-padded. For 4 < k <= MAX_STORAGE_K
+(curve edits), a shader storage buffer (GL 4.3+) of 4k float32 per point, k values then 3k
+gradient components, read by ``gl_VertexID``; delta C is then ``uniform vec3 u_delta[K]`` with
+K a compile-time define (one cached program per K). See ``shaders/deform.vert``.
 
 Positions are uploaded relative to an ``origin`` (the bounding-box centre, float64) so that
 scans with large coordinate offsets keep float32 precision; the deformation is translation
@@ -25,13 +27,16 @@ from typing import Any
 
 import numpy as np
 
+from splatdeform.errors import DeviceError
 from splatdeform.model import PointModel
 from splatdeform.render.camera import Camera, frame_points, gl_bytes
 from splatdeform.render.context import get_context
 from splatdeform.render.splats import splat_geometry
 from splatdeform.resources import resource_path
 
-MAX_K = 4
+MAX_K = 4  # the vertex-attribute path
+MAX_STORAGE_K = 128  # the storage-buffer path (u_delta[K] must fit the uniform limits)
+STORAGE_GL_VERSION = 430
 BACKGROUND = (255, 255, 255)
 FEEDBACK_VARYINGS = ("v_position", "v_normal", "v_axis_u", "v_axis_v")
 
@@ -42,25 +47,40 @@ def _shader(name: str) -> str:
     return resource_path("shaders", name).read_text()
 
 
-def _source(name: str, *, deform: bool | None = None, shading: bool = False) -> str:
-    parts = ["#version 330 core\n"]
+def _source(name: str, *, deform: bool | None = None, shading: bool = False, k: int = 0) -> str:
+    """Shader source with the host header; ``k > MAX_K`` selects the storage-buffer path
+    (GLSL 4.30, ``#define K k``)."""
+    storage = bool(deform) and k > MAX_K
+    parts = ["#version 430 core\n" if storage else "#version 330 core\n"]
     if deform is not None:
         parts.append(f"#define DEFORM {int(deform)}\n")
+    if storage:
+        parts.append(f"#define K {int(k)}\n")
     if shading:
         parts.append(_shader("shading.glsl"))
     parts.append(_shader(name))
     return "".join(parts)
 
 
-def program(name: str) -> Any:
+def program(name: str, k: int = 0) -> Any:
     """A compiled program by name, cached: ``splat_plain``, ``splat_deform``, ``mesh_plain``,
     ``mesh_deform``, ``feedback_plain``, ``feedback_deform`` (vertex stage only, with the
-    deformed position, normal and axes captured by transform feedback)."""
-    if name not in _programs:
-        ctx = get_context()
-        kind, mode = name.split("_")
-        deform = {"plain": False, "deform": True}[mode]
-        vert = _source("deform.vert", deform=deform)
+    deformed position, normal and axes captured by transform feedback).
+
+    k: basis columns of a ``*_deform`` program; k > 4 compiles the storage-buffer variant
+    (cached per k), k <= 4 the attribute variant."""
+    ctx = get_context()
+    kind, mode = name.split("_")
+    deform = {"plain": False, "deform": True}[mode]
+    k = int(k) if deform and int(k) > MAX_K else 0
+    key = f"{name}:{k}" if k else name
+    if key not in _programs:
+        if k and ctx.version_code < STORAGE_GL_VERSION:
+            raise DeviceError(
+                f"render: k = {k} control DOFs need shader storage buffers (OpenGL 4.3), this "
+                f"context is OpenGL {ctx.version_code // 100}.{ctx.version_code // 10 % 10}"
+            )
+        vert = _source("deform.vert", deform=deform, k=k)
         if kind == "splat":
             prog = ctx.program(
                 vertex_shader=vert,
@@ -75,8 +95,8 @@ def program(name: str) -> Any:
             prog = ctx.program(vertex_shader=vert, varyings=list(FEEDBACK_VARYINGS))
         else:  # pragma: no cover - internal names only
             raise ValueError(f"program: unknown name {name!r}")
-        _programs[name] = prog
-    return _programs[name]
+        _programs[key] = prog
+    return _programs[key]
 
 
 def pack_basis(values: np.ndarray, gradients: np.ndarray, n_points: int) -> np.ndarray:
@@ -99,9 +119,28 @@ def pack_basis(values: np.ndarray, gradients: np.ndarray, n_points: int) -> np.n
     return packed
 
 
+def pack_basis_storage(values: np.ndarray, gradients: np.ndarray, n_points: int) -> np.ndarray:
+    """(N, 4k) float32 for the storage-buffer path: per point the k values, then the 3k
+    gradient components (grad b_0, grad b_1, ...). Any 1 <= k <= MAX_STORAGE_K."""
+    vals = np.asarray(values)
+    grads = np.asarray(gradients)
+    if vals.ndim != 2 or vals.shape[0] != n_points:
+        raise ValueError(f"values: expected shape ({n_points}, k), got {vals.shape}")
+    k = vals.shape[1]
+    if not 1 <= k <= MAX_STORAGE_K:
+        raise ValueError(f"values: expected 1 <= k <= {MAX_STORAGE_K} control DOFs, got k = {k}")
+    if grads.shape != (n_points, k, 3):
+        raise ValueError(f"gradients: expected shape ({n_points}, {k}, 3), got {grads.shape}")
+    packed = np.empty((n_points, 4 * k), dtype=np.float32)
+    packed[:, :k] = vals
+    packed[:, k:] = grads.reshape(n_points, 3 * k)
+    return packed
+
+
 def pad_delta(delta_c: np.ndarray | None, k: int) -> np.ndarray:
-    """(4, 3) float32 delta C for the shader: ``delta_c`` (k, 3) zero-padded; None -> zeros."""
-    out = np.zeros((MAX_K, 3), dtype=np.float32)
+    """(max(k, 4), 3) float32 delta C for the shader: ``delta_c`` (k, 3), zero-padded to 4 rows
+    for the attribute path (k <= 4); None -> zeros."""
+    out = np.zeros((max(int(k), MAX_K), 3), dtype=np.float32)
     if delta_c is None:
         return out
     d = np.asarray(delta_c, dtype=np.float64)
@@ -118,6 +157,7 @@ class GpuModel:
     origin: (3,) float64 subtracted from positions before upload. k: basis columns (0: none).
     kind: "splat" (points expanded to ellipses) or "mesh" (indexed triangles).
     lo, hi: (3,) float64 bounding box of the undeformed positions. n_points, n_faces: counts.
+    storage: the basis storage buffer (k > 4; bound to binding 0 for each deforming draw).
     """
 
     origin: np.ndarray
@@ -129,6 +169,11 @@ class GpuModel:
     kind: str
     buffers: list[Any]
     vaos: dict[str, Any]
+    storage: Any = None
+
+    def bind_storage(self) -> None:
+        if self.storage is not None:
+            self.storage.bind_to_storage_buffer(binding=0)
 
     def release(self) -> None:
         for vao in self.vaos.values():
@@ -137,6 +182,7 @@ class GpuModel:
             buf.release()
         self.vaos.clear()
         self.buffers.clear()
+        self.storage = None
 
 
 class Renderer:
@@ -174,7 +220,8 @@ class Renderer:
     ) -> GpuModel:
         """Send ``model`` and (optionally) its basis to the GPU once.
 
-        values: (N, k) and gradients: (N, k, 3) float32 (k <= 4), both or neither.
+        values: (N, k) and gradients: (N, k, 3) float32, both or neither. k <= 4 goes into
+        vertex attributes, 4 < k <= MAX_STORAGE_K into a shader storage buffer (GL 4.3+).
         fill_holes: enlarge stored surfels smaller than the sample spacing
         (:func:`splatdeform.render.splats.splat_geometry`); False renders stored axes as they are.
         """
@@ -200,19 +247,28 @@ class Renderer:
             (buffers[1], "3f1 1x", "in_color"),
         ]
         k = 0
+        basis: tuple[Any, ...] | None = None
+        storage = None
         if values is not None:
-            packed = pack_basis(values, gradients, n)
-            k = int(np.asarray(values).shape[1])
-            buffers.append(ctx.buffer(packed.tobytes()))
-            basis = (
-                buffers[2],
-                "4f 3f 3f 3f 3f",
-                "in_basis",
-                "in_grad0",
-                "in_grad1",
-                "in_grad2",
-                "in_grad3",
-            )
+            k = int(np.asarray(values).shape[1]) if np.ndim(values) == 2 else 0
+            if k > MAX_K:
+                packed = pack_basis_storage(values, gradients, n)
+                program("feedback_deform", k)  # compile early: DeviceError below GL 4.3
+                storage = ctx.buffer(packed.tobytes())
+                buffers.append(storage)
+            else:
+                packed = pack_basis(values, gradients, n)
+                k = int(np.asarray(values).shape[1])
+                buffers.append(ctx.buffer(packed.tobytes()))
+                basis = (
+                    buffers[2],
+                    "4f 3f 3f 3f 3f",
+                    "in_basis",
+                    "in_grad0",
+                    "in_grad1",
+                    "in_grad2",
+                    "in_grad3",
+                )
         index = None
         n_faces = 0
         if geom.axes is None:
@@ -224,16 +280,16 @@ class Renderer:
         vaos: dict[str, Any] = {}
         modes = ["plain"] + (["deform"] if k else [])
         for mode in modes:
-            full = content + ([basis] if mode == "deform" else [])
+            full = content + ([basis] if mode == "deform" and basis is not None else [])
             for prefix in (kind, "feedback"):
                 vaos[f"{prefix}_{mode}"] = ctx.vertex_array(
-                    program(f"{prefix}_{mode}"),
+                    program(f"{prefix}_{mode}", k),
                     full,
                     index_buffer=index if prefix == "mesh" else None,
                     index_element_size=4,
                     skip_errors=True,
                 )
-        return GpuModel(origin, k, lo, hi, n, n_faces, kind, buffers, vaos)
+        return GpuModel(origin, k, lo, hi, n, n_faces, kind, buffers, vaos, storage)
 
     # -- draw ---------------------------------------------------------------------------------
     def draw_rgba(
@@ -258,6 +314,7 @@ class Renderer:
         prog["u_proj"].write(gl_bytes(camera.projection(self.size[0] / self.size[1])))
         if mode == "deform":
             prog["u_delta"].write(pad_delta(delta_c, gpu.k).tobytes())
+            gpu.bind_storage()
         self._ms.use()
         ctx.viewport = (0, 0, *self.size)
         self._ms.clear(*self.background, 0.0, depth=1.0)
@@ -298,6 +355,7 @@ class Renderer:
         prog["u_proj"].write(eye)
         if mode == "deform":
             prog["u_delta"].write(pad_delta(delta_c, gpu.k).tobytes())
+            gpu.bind_storage()
         out = self.ctx.buffer(reserve=gpu.n_points * 12 * 4)
         self._ms.use()  # a surfaceless EGL context has no default framebuffer: draws need one
         try:
