@@ -10,7 +10,8 @@ import numpy as np
 
 from splatdeform.model import PointModel
 from splatdeform.render.camera import frame_points
-from splatdeform.render.renderer import Renderer, deformed_positions, save_png
+from splatdeform.render.renderer import Renderer, save_png
+from splatdeform.render.session import deformation_session
 
 LABEL_HEIGHT = 18
 LABEL_COLOR = (20, 20, 20)
@@ -94,20 +95,9 @@ def render_deformation_comparison(
     """Before (delta C = 0) and after (``delta_c`` (k, 3)) from ONE upload of the basis
     ``values`` (N, k) / ``gradients`` (N, k, 3): the shader deforms, the CPU only frames.
     Writes a PNG to ``out_path`` when given; returns the composed image."""
-    renderer = Renderer(size)
-    gpu = renderer.upload(model, values, gradients)
-    try:
-        camera = frame_points(
-            [model.positions, deformed_positions(model, values, delta_c)],
-            azimuth=azimuth,
-            elevation=elevation,
-            fov=fov,
-            aspect=renderer.size[0] / renderer.size[1],
-        )
+    with deformation_session(model, values, gradients, delta_c, size=size, azimuth=azimuth,
+                             elevation=elevation, fov=fov) as (renderer, gpu, camera):
         images = [renderer.draw(gpu, camera, None), renderer.draw(gpu, camera, delta_c)]
-    finally:
-        gpu.release()
-        renderer.release()
     image = side_by_side(images, list(labels))
     if out_path is not None:
         save_png(image, Path(out_path))

@@ -13,8 +13,8 @@ from pathlib import Path
 import numpy as np
 
 from splatdeform.model import PointModel
-from splatdeform.render.camera import frame_points
-from splatdeform.render.renderer import Renderer, deformed_positions, save_pil, save_png
+from splatdeform.render.renderer import save_pil, save_png
+from splatdeform.render.session import deformation_session
 
 
 def render_frames(
@@ -39,23 +39,12 @@ def render_frames(
     out = Path(out_path)
     if out.suffix and out.suffix.lower() != ".gif":
         raise ValueError(f"out_path: expected a .gif file or a folder, got {out}")
-    renderer = Renderer(size)
-    gpu = renderer.upload(model, values, gradients)
-    try:
-        camera = frame_points(
-            [model.positions, deformed_positions(model, values, delta_c)],
-            azimuth=azimuth,
-            elevation=elevation,
-            fov=fov,
-            aspect=renderer.size[0] / renderer.size[1],
-        )
-        d = np.asarray(delta_c, dtype=np.float64)
+    d = np.asarray(delta_c, dtype=np.float64)
+    with deformation_session(model, values, gradients, delta_c, size=size, azimuth=azimuth,
+                             elevation=elevation, fov=fov) as (renderer, gpu, camera):
         frames = [
             renderer.draw(gpu, camera, d * (i / (n_frames - 1))) for i in range(int(n_frames))
         ]
-    finally:
-        gpu.release()
-        renderer.release()
     if out.suffix.lower() == ".gif":
         from PIL import Image
 
