@@ -10,8 +10,7 @@ import numpy as np
 
 from splatdeform.model import PointModel
 from splatdeform.render.camera import frame_points
-from splatdeform.render.renderer import Renderer, save_png
-from splatdeform.render.session import deformation_session
+from splatdeform.render.renderer import Renderer, deformation_session, save_png
 
 LABEL_HEIGHT = 18
 LABEL_COLOR = (20, 20, 20)

@@ -13,8 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from splatdeform.model import PointModel
-from splatdeform.render.renderer import save_pil, save_png
-from splatdeform.render.session import deformation_session
+from splatdeform.render.renderer import deformation_session, save_pil, save_png
 
 
 def render_frames(

@@ -19,8 +19,10 @@ invariant (p' - p and J do not depend on where the origin is).
 
 from __future__ import annotations
 
+import contextlib
 import os
 import tempfile
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -411,6 +413,39 @@ def deformed_positions(
     return displace(model.positions, np.asarray(values, dtype=np.float64), delta_c)
 
 
+@contextlib.contextmanager
+def deformation_session(
+    model: PointModel,
+    values: np.ndarray | None,
+    gradients: np.ndarray | None,
+    delta_c: np.ndarray | None,
+    *,
+    size: tuple[int, int],
+    azimuth: float,
+    elevation: float,
+    fov: float,
+    camera: Camera | None = None,
+) -> Iterator[tuple[Renderer, GpuModel, Camera]]:
+    """Upload ``model`` with its basis (values (N, k), gradients (N, k, 3), or None) once,
+    frame a camera on the undeformed and the ``delta_c`` (k, 3)-deformed positions (unless
+    ``camera`` is given), and release the GL objects on exit. Yields (renderer, gpu, camera)."""
+    renderer = Renderer(size)
+    gpu = renderer.upload(model, values, gradients)
+    try:
+        if camera is None:
+            camera = frame_points(
+                [model.positions, deformed_positions(model, values, delta_c)],
+                azimuth=azimuth,
+                elevation=elevation,
+                fov=fov,
+                aspect=renderer.size[0] / renderer.size[1],
+            )
+        yield renderer, gpu, camera
+    finally:
+        gpu.release()
+        renderer.release()
+
+
 def render_image(
     model: PointModel,
     *,
@@ -429,18 +464,6 @@ def render_image(
     camera: None frames the union of the bounding boxes before and after the deformation
     from ``azimuth`` / ``elevation`` / ``fov`` (degrees).
     """
-    renderer = Renderer(size)
-    gpu = renderer.upload(model, values, gradients)
-    try:
-        if camera is None:
-            camera = frame_points(
-                [model.positions, deformed_positions(model, values, delta_c)],
-                azimuth=azimuth,
-                elevation=elevation,
-                fov=fov,
-                aspect=renderer.size[0] / renderer.size[1],
-            )
-        return renderer.draw(gpu, camera, delta_c)
-    finally:
-        gpu.release()
-        renderer.release()
+    with deformation_session(model, values, gradients, delta_c, size=size, azimuth=azimuth,
+                             elevation=elevation, fov=fov, camera=camera) as (renderer, gpu, cam):
+        return renderer.draw(gpu, cam, delta_c)
