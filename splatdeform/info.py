@@ -23,8 +23,8 @@ def describe(model: PointModel) -> dict[str, Any]:
     }
     if model.source is not None:
         src = model.source
-        info["format"] = "ascii" if src.text else (
-            "binary_big_endian" if src.byte_order == ">" else "binary_little_endian")
+        info["format"] = getattr(src, "format_name", None) or ("ascii" if src.text else (
+            "binary_big_endian" if src.byte_order == ">" else "binary_little_endian"))
         info["elements"] = [
             {"name": el.name, "count": el.count, "properties": [
                 {"name": p.name,

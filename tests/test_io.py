@@ -465,7 +465,7 @@ def test_open3d_to_ply(tmp_path: Path) -> None:
 
 
 def test_registry_lists_all_formats() -> None:
-    assert set(sio.SUPPORTED) == {".ply", ".pcd", ".xyz", ".xyzn", ".pts"}
+    assert set(sio.SUPPORTED) == {".ply", ".pcd", ".xyz", ".xyzn", ".pts", ".las", ".laz"}
 
 
 # --------------------------------------------------------------------------------------------

@@ -7,14 +7,16 @@ model was loaded from.
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 
 from ..errors import FormatError, InputError
 from ..model import PointModel
-from . import open3d_io, ply
+from . import las, open3d_io, ply
 from .atomic import atomic_path, atomic_write, check_output_path
 
 READERS = {".ply": ply.read_model, **{ext: open3d_io.read_model for ext in open3d_io.EXTENSIONS}}
+READERS.update({ext: las.read_model for ext in las.EXTENSIONS})
 SUPPORTED = tuple(READERS)
 
 
@@ -27,7 +29,7 @@ def _extension(path: Path, what: str) -> str:
 
 
 def load(path: str | Path, *, drop_nonfinite: bool = False) -> PointModel:
-    """Load a model file (.ply, .pcd, .xyz, .xyzn, .pts).
+    """Load a model file (.ply, .las, .laz, .pcd, .xyz, .xyzn, .pts).
 
     drop_nonfinite: drop vertices with NaN/Inf coordinates (and the faces using them) instead of
     raising. Raises InputError/FormatError with one line naming the file.
@@ -53,9 +55,15 @@ def save(model: PointModel, path: str | Path, *, text: bool | None = None) -> Pa
     ``text`` is given). Refuses to overwrite ``model.path``. Returns the written path."""
     path = check_output_path(path, model.path)
     ext = _extension(path, "output")
+    if isinstance(model.source, las.LasSource) and ext not in las.EXTENSIONS:
+        model = replace(model, source=las.ply_source_from_las(model.source)
+                        if ext == ".ply" else None)
     if ext == ".ply":
         with atomic_write(path) as stream:
             ply.write_model(model, stream, text=text)
+    elif ext in las.EXTENSIONS:
+        with atomic_path(path) as tmp:
+            las.write_model(model, tmp)
     else:
         with atomic_path(path) as tmp:
             open3d_io.write_model(model, tmp)

@@ -1,0 +1,420 @@
+"""LAS/LAZ files <-> :class:`PointModel` (laspy; LAZ through the lazrs backend).
+
+A LAS file stores points as fixed-size records (point formats 0-10) with scaled int32
+coordinates ``x = X * scale + offset``. The model keeps the whole file (:class:`LasSource`):
+the header (version, point format, scale, offset, every header field), VLRs and EVLRs (CRS,
+extra-bytes descriptions, anything else) and the raw point records, so a save writes every
+standard and extra-bytes dimension back bit for bit, in the same point order; only X, Y and Z
+are re-quantised from the model's positions (with the input's scale and offset; unchanged
+points keep their integers exactly). When a deformed coordinate would not fit int32, the
+offset is moved by a whole number of scale steps (no precision lost), and only when the
+extent itself does not fit is the scale widened, with a warning naming the file.
+
+Models not read from LAS are written as LAS 1.4 point format 6 (7 with colours), with normals
+and other numeric per-point properties as extra-bytes dimensions.
+
+Chunked access for the streaming and Dask paths: :func:`iter_chunks` and :class:`LasWriter`.
+"""
+
+from __future__ import annotations
+
+import warnings
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import FormatError, ProcessingError
+from ..model import PlyElementData, PlyProperty, PlySource, PointModel, classify
+
+EXTENSIONS = (".las", ".laz")
+INT32_MIN, INT32_MAX = -(2**31), 2**31 - 1
+NORMAL_NAMES = ("nx", "ny", "nz")
+_PLY_TYPE_NAMES = {"i1": "char", "u1": "uchar", "i2": "short", "u2": "ushort", "i4": "int",
+                   "u4": "uint", "f4": "float", "f8": "double"}
+
+
+def _laspy():
+    import laspy
+
+    return laspy
+
+
+@dataclass
+class LasSource:
+    """Everything a LAS/LAZ file held, kept for a lossless save.
+
+    header: the ``laspy.LasHeader`` (version, point format, scales, offsets, VLRs, all fields).
+    points: (N,) raw point records, the point format's structured dtype (X Y Z int32 ...).
+    evlrs: extended VLRs (LAS 1.4), or None. compressed: the input was LAZ.
+
+    It also answers like a :class:`PlySource` (``element('vertex')``, ``elements``,
+    ``comments``) with the decoded dimensions, so ``info`` and the ``property`` selector see
+    every LAS dimension (e.g. ``{property: {name: classification, equals: 2}}``).
+    """
+
+    header: object
+    points: np.ndarray
+    evlrs: list | None = None
+    compressed: bool = False
+    obj_info: list[str] = field(default_factory=list)
+    text: bool = False
+    byte_order: str = "<"
+
+    @property
+    def point_format_id(self) -> int:
+        return int(self.header.point_format.id)
+
+    @property
+    def format_name(self) -> str:
+        return (f"LAS {self.header.version} point format {self.point_format_id}"
+                + (" (LAZ)" if self.compressed else ""))
+
+    @property
+    def comments(self) -> list[str]:
+        h = self.header
+        return [self.format_name,
+                f"scale {list(map(float, h.scales))} offset {list(map(float, h.offsets))}",
+                f"vlrs {len(h.vlrs)} evlrs {len(self.evlrs or [])}"]
+
+    def element(self, name: str) -> PlyElementData | None:
+        if name != "vertex":
+            return None
+        return decoded_element(self.header, self.points)
+
+    @property
+    def elements(self) -> list[PlyElementData]:
+        return [self.element("vertex")]
+
+
+def _record(header, points: np.ndarray):
+    laspy = _laspy()
+    return laspy.ScaleAwarePointRecord(points, header.point_format, header.scales, header.offsets)
+
+
+def decoded_element(header, points: np.ndarray) -> PlyElementData:
+    """The decoded dimensions as one PLY-like vertex element: x y z (float64, scaled), then
+    every other dimension; multi-value extra bytes become ``name_0 ..``; bit flags uchar;
+    64-bit integers double (PLY has no 64-bit integer type)."""
+    record = _record(header, points)
+    columns: list[tuple[str, np.ndarray]] = [(a, np.asarray(record[a], dtype=np.float64))
+                                             for a in "xyz"]
+    for dim in header.point_format.dimensions:
+        if dim.name in ("X", "Y", "Z"):
+            continue
+        values = np.asarray(record[dim.name])
+        if values.dtype == bool:
+            values = values.astype(np.uint8)
+        if values.dtype.itemsize == 8 and values.dtype.kind in "iu":
+            values = values.astype(np.float64)
+        if values.ndim == 2:
+            columns += [(f"{dim.name}_{i}", values[:, i]) for i in range(values.shape[1])]
+        else:
+            columns.append((dim.name, values))
+    data = np.empty(points.shape[0], dtype=[(n, v.dtype) for n, v in columns])
+    props = []
+    for n, v in columns:
+        data[n] = v
+        code = v.dtype.str[1:]
+        props.append(PlyProperty(n, code, _PLY_TYPE_NAMES[code]))
+    return PlyElementData("vertex", props, data)
+
+
+def positions_of(header, points: np.ndarray) -> np.ndarray:
+    """(N, 3) float64 model coordinates X * scale + offset of raw records (N,)."""
+    scales, offsets = np.asarray(header.scales), np.asarray(header.offsets)
+    out = np.empty((points.shape[0], 3), dtype=np.float64)
+    for i, axis in enumerate("XYZ"):
+        out[:, i] = points[axis] * scales[i] + offsets[i]
+    return out
+
+
+def _colors(header, points: np.ndarray) -> np.ndarray | None:
+    names = points.dtype.names or ()
+    if not all(c in names for c in ("red", "green", "blue")):
+        return None
+    rgb = np.stack([points[c] for c in ("red", "green", "blue")], axis=1)
+    if rgb.size and rgb.max() > 255:  # 16-bit colour (the LAS convention); else 8-bit values
+        rgb = rgb >> 8
+    return rgb.astype(np.uint8)
+
+
+def _normals(points: np.ndarray) -> np.ndarray | None:
+    names = points.dtype.names or ()
+    if not all(n in names for n in NORMAL_NAMES):
+        return None
+    normals = np.stack([points[n].astype(np.float64) for n in NORMAL_NAMES], axis=1)
+    return normals if np.any(normals) else None
+
+
+def model_from_las(header, points: np.ndarray, path: str | Path, *, evlrs=None,
+                   compressed: bool = False, drop_nonfinite: bool = False) -> PointModel:
+    """Build a PointModel from raw LAS records (N,); LAS coordinates are always finite."""
+    if points.shape[0] == 0:
+        raise FormatError(f"{path}: the LAS file holds no points")
+    source = LasSource(header=header, points=points, evlrs=evlrs, compressed=compressed)
+    normals = _normals(points)
+    kind = classify(has_faces=False, has_normals=normals is not None, has_radius=False,
+                    has_axes=False, has_gaussians=False)
+    return PointModel(positions=positions_of(header, points), normals=normals,
+                      colors=_colors(header, points), kind=kind, source=source, path=str(path))
+
+
+def _check_signature(path: Path) -> None:
+    with open(path, "rb") as f:
+        magic = f.read(4)
+    if magic != b"LASF":
+        raise FormatError(f"{path}: not a LAS/LAZ file (it does not start with 'LASF')")
+
+
+def read_model(path: str | Path, *, drop_nonfinite: bool = False) -> PointModel:
+    """Load a .las/.laz file as a PointModel (raises FormatError naming the file)."""
+    path = Path(path)
+    _check_signature(path)
+    laspy = _laspy()
+    try:
+        las = laspy.read(path)
+    except laspy.errors.LaspyException as exc:
+        raise FormatError(f"{path}: cannot read LAS/LAZ: {exc}") from exc
+    points = np.asarray(las.points.array)
+    compressed = bool(las.header.are_points_compressed) or path.suffix.lower() == ".laz"
+    return model_from_las(las.header, points, path, evlrs=getattr(las, "evlrs", None),
+                          compressed=compressed, drop_nonfinite=drop_nonfinite)
+
+
+# ---- writing ---------------------------------------------------------------------------------
+
+def fit_offsets(header, lo: np.ndarray, hi: np.ndarray, path: str | Path) -> tuple[
+        np.ndarray, np.ndarray, np.ndarray]:
+    """Scales, offsets and integer shift (3,) int64 that make coordinates in [lo, hi] fit
+    int32. The input's scale and offset are kept when they fit; else the offset moves by a
+    whole number of scale steps (shift, so unchanged points keep their exact coordinates);
+    only an extent beyond 2^32 steps widens the scale (with a warning)."""
+    scales = np.asarray(header.scales, dtype=np.float64).copy()
+    offsets = np.asarray(header.offsets, dtype=np.float64).copy()
+    shift = np.zeros(3, dtype=np.int64)
+    for i, axis in enumerate("xyz"):
+        ilo = np.floor((lo[i] - offsets[i]) / scales[i])
+        ihi = np.ceil((hi[i] - offsets[i]) / scales[i])
+        if ilo >= INT32_MIN and ihi <= INT32_MAX:
+            continue
+        if ihi - ilo <= INT32_MAX:  # move the offset by whole steps
+            shift[i] = int((ilo + ihi) // 2)
+            offsets[i] = offsets[i] + shift[i] * scales[i]
+            warnings.warn(f"{path}: deformed {axis} coordinates overflow the LAS int32 range "
+                          f"with offset {header.offsets[i]}; moved the {axis} offset to "
+                          f"{offsets[i]} (scale {scales[i]} kept)", stacklevel=3)
+            continue
+        old = scales[i]
+        while (hi[i] - lo[i]) / scales[i] > INT32_MAX - 2:
+            scales[i] *= 10.0
+        offsets[i] = (lo[i] + hi[i]) / 2.0
+        shift[i] = 0
+        warnings.warn(f"{path}: deformed {axis} extent {hi[i] - lo[i]:.6g} does not fit int32 "
+                      f"with scale {old}; widened the {axis} scale to {scales[i]} (coarser "
+                      "precision)", stacklevel=3)
+    return scales, offsets, shift
+
+
+def quantize(positions: np.ndarray, original: np.ndarray | None, original_xyz: np.ndarray | None,
+             scales: np.ndarray, offsets: np.ndarray, shift: np.ndarray,
+             keep_ints: bool) -> np.ndarray:
+    """(N, 3) int32 X Y Z of positions (N, 3). Points whose position equals ``original`` keep
+    their input integers (minus ``shift``) exactly, when ``keep_ints`` (same scale)."""
+    ints = np.rint((positions - offsets) / scales)
+    if keep_ints and original is not None:
+        same = positions == original
+        ints = np.where(same, original_xyz.astype(np.float64) - shift, ints)
+    if ints.size and (ints.min() < INT32_MIN or ints.max() > INT32_MAX):
+        raise ProcessingError("LAS coordinates overflow int32 after quantisation")
+    return ints.astype(np.int32)
+
+
+def _original_xyz(points: np.ndarray) -> np.ndarray:
+    return np.stack([points[a] for a in "XYZ"], axis=1)
+
+
+def las_records_for(model: PointModel, path: str | Path):
+    """(header, raw records (N,)) to write for ``model``: its LAS source with re-quantised
+    coordinates, or a new LAS 1.4 file for models from other formats."""
+    laspy = _laspy()
+    src = model.source if isinstance(model.source, LasSource) else None
+    if src is None:
+        return _new_las(model)
+    if src.points.shape[0] != model.n_points:
+        raise FormatError(f"model has {model.n_points} points but its LAS source "
+                          f"{src.points.shape[0]}; cannot save it verbatim")
+    header = src.header
+    lo, hi = model.positions.min(axis=0), model.positions.max(axis=0)
+    scales, offsets, shift = fit_offsets(header, lo, hi, path)
+    same_scale = bool(np.all(scales == np.asarray(header.scales)))
+    original_xyz = _original_xyz(src.points)
+    ints = quantize(model.positions, positions_of(header, src.points), original_xyz,
+                    scales, offsets, shift, same_scale)
+    points = src.points.copy()
+    for i, axis in enumerate("XYZ"):
+        points[axis] = ints[:, i]
+    if model.normals is not None and all(n in (points.dtype.names or ()) for n in NORMAL_NAMES):
+        for i, n in enumerate(NORMAL_NAMES):
+            points[n] = model.normals[:, i].astype(points.dtype[n])
+    if np.any(shift) or not same_scale:
+        header = _copy_header(header)
+        header.offsets = offsets
+        header.scales = scales
+    del laspy
+    return header, points
+
+
+def _copy_header(header):
+    import copy
+
+    return copy.deepcopy(header)
+
+
+def _new_las(model: PointModel):
+    """A LAS 1.4 header and records for a model from another format."""
+    laspy = _laspy()
+    fmt = 7 if model.colors is not None else 6
+    header = laspy.LasHeader(version="1.4", point_format=fmt)
+    extra: list[tuple[str, np.ndarray]] = []
+    if model.normals is not None:
+        extra += [(n, model.normals[:, i].astype(np.float32)) for i, n in enumerate(NORMAL_NAMES)]
+    vertex = model.source.element("vertex") if isinstance(model.source, PlySource) else None
+    if vertex is not None:
+        skip = {"x", "y", "z", "red", "green", "blue", *NORMAL_NAMES}
+        for p in vertex.properties:
+            if not p.is_list and p.name not in skip:
+                extra.append((p.name, np.asarray(vertex.data[p.name])))
+    taken = {d.name for d in header.point_format.dimensions}
+    extra = [(n, v) for n, v in extra if n not in taken]
+    if extra:
+        header.add_extra_dims([laspy.ExtraBytesParams(name=n, type=v.dtype) for n, v in extra])
+    lo, hi = model.positions.min(axis=0), model.positions.max(axis=0)
+    extent = float(np.max(hi - lo)) or 1.0
+    step = 10.0 ** np.ceil(np.log10(extent / 2**30))  # ~1e-9 of the extent, a power of ten
+    header.scales = np.full(3, max(step, 1e-9))
+    header.offsets = np.round((lo + hi) / 2.0 / step) * step
+    record = laspy.ScaleAwarePointRecord.zeros(model.n_points, header=header)
+    points = np.asarray(record.array)
+    ints = np.rint((model.positions - header.offsets) / header.scales).astype(np.int32)
+    for i, axis in enumerate("XYZ"):
+        points[axis] = ints[:, i]
+    if model.colors is not None:
+        for i, c in enumerate(("red", "green", "blue")):
+            points[c] = model.colors[:, i].astype(np.uint16) * 257
+    for n, v in extra:
+        points[n] = v
+    return header, points
+
+
+def _vlr_bytes(header) -> list[tuple[str, int, bytes]]:
+    return [(v.user_id, v.record_id, bytes(v.record_data_bytes())) for v in header.vlrs]
+
+
+def restore_vlrs(out: Path, original) -> None:
+    """Put the input's VLR payloads back verbatim where laspy regenerated them on write (it
+    rewrites the extra-bytes descriptions' statistics fields): same-length payloads only, in
+    the header area of ``out``."""
+    laspy = _laspy()
+    want = _vlr_bytes(original)
+    with laspy.open(out) as reader:
+        got = _vlr_bytes(reader.header)
+        head_size = int(reader.header.offset_to_point_data)
+    patches = [(g[2], w[2]) for w, g in zip(want, got, strict=False)
+               if w[:2] == g[:2] and w[2] != g[2] and len(w[2]) == len(g[2])]
+    if not patches:
+        return
+    with open(out, "r+b") as f:
+        head = bytearray(f.read(head_size))
+        for generated, verbatim in patches:
+            at = head.find(generated)
+            if at >= 0:
+                head[at:at + len(verbatim)] = verbatim
+        f.seek(0)
+        f.write(head)
+
+
+def _write_records(header, points: np.ndarray, out: Path, evlrs=None) -> None:
+    laspy = _laspy()
+    do_compress = out.suffix.lower() == ".laz"
+    original = header
+    header = _copy_header(header)
+    with laspy.open(out, mode="w", header=header, do_compress=do_compress) as writer:
+        writer.write_points(laspy.PackedPointRecord(points, header.point_format))
+        if evlrs:
+            writer.write_evlrs(evlrs)
+    restore_vlrs(out, original)
+
+
+def write_model(model: PointModel, out: str | Path) -> None:
+    """Write ``model`` to ``out`` (.las or .laz by the suffix; call through an atomic path)."""
+    out = Path(out)
+    header, points = las_records_for(model, out)
+    evlrs = model.source.evlrs if isinstance(model.source, LasSource) else None
+    _write_records(header, points, out, evlrs)
+
+
+def ply_source_from_las(source: LasSource) -> PlySource:
+    """A PLY source holding every decoded LAS dimension (for LAS -> PLY conversion)."""
+    return PlySource(elements=[source.element("vertex")],
+                     comments=[f"converted from {source.format_name}"])
+
+
+# ---- chunked access (streaming, Dask) ----------------------------------------------------
+
+def read_header(path: str | Path):
+    """(header, compressed, evlrs) of a LAS/LAZ file without reading its points."""
+    path = Path(path)
+    _check_signature(path)
+    laspy = _laspy()
+    try:
+        with laspy.open(path) as reader:
+            evlrs = getattr(reader, "evlrs", None)
+            return reader.header, bool(reader.header.are_points_compressed), evlrs
+    except laspy.errors.LaspyException as exc:
+        raise FormatError(f"{path}: cannot read LAS/LAZ: {exc}") from exc
+
+
+def iter_chunks(path: str | Path, chunk: int, start: int = 0,
+                stop: int | None = None) -> Iterator[np.ndarray]:
+    """Raw point records of points [start, stop) in chunks of at most ``chunk`` rows."""
+    laspy = _laspy()
+    with laspy.open(path) as reader:
+        total = reader.header.point_count
+        stop = total if stop is None else min(stop, total)
+        if start:
+            reader.seek(start)
+        pos = start
+        while pos < stop:
+            n = min(chunk, stop - pos)
+            record = reader.read_points(n)
+            if len(record) == 0:
+                raise FormatError(f"{path}: truncated LAS point data at point {pos}")
+            pos += len(record)
+            yield np.asarray(record.array)
+
+
+class LasWriter:
+    """Append raw records chunk by chunk to ``out`` (compressed for .laz); the header is the
+    input's (point count and bounds are updated by laspy at close)."""
+
+    def __init__(self, header, out: str | Path, evlrs=None) -> None:
+        laspy = _laspy()
+        self._laspy = laspy
+        self._original = header
+        self.header = _copy_header(header)
+        self.out = Path(out)
+        self._evlrs = evlrs
+        self._writer = laspy.open(self.out, mode="w", header=self.header,
+                                  do_compress=self.out.suffix.lower() == ".laz")
+
+    def write(self, points: np.ndarray) -> None:
+        self._writer.write_points(self._laspy.PackedPointRecord(points,
+                                                                self.header.point_format))
+
+    def close(self) -> None:
+        if self._evlrs:
+            self._writer.write_evlrs(self._evlrs)
+        self._writer.close()
+        restore_vlrs(self.out, self._original)
