@@ -23,7 +23,7 @@ from .io.atomic import atomic_path
 from .model import PointModel
 from .rbf.result import Normalization, RbfFit
 
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2  # 2: fit max/rms error and method
 
 
 def _file_digest(path: Path) -> str:
@@ -38,6 +38,7 @@ def edit_key(cfg: EditConfig, input_path: str | Path) -> str:
     """Hash of the parts of an edit that determine the precomputed basis."""
     parts = cfg.model_dump(include={"regions", "boundary", "fit", "normals", "backend",
                                     "device"})
+    parts["fit"].pop("on_not_converged", None)  # what to do about a miss, not what is fitted
     if cfg.curve is not None:
         parts["curve"] = cfg.curve.model_dump(exclude={"moved_to"})
     parts["metaphor"] = "curve" if cfg.curve is not None else "handle"
@@ -57,6 +58,8 @@ def save_deformation(path: str | Path, key: str, d: Deformation) -> Path:
         "constraint_rhs": d.constraint_rhs, "control_points": d.control_points,
         "centers": d.fit.centers, "weights": d.fit.weights, "residuals": d.fit.residuals,
         "converged": np.array(d.fit.converged), "tolerance": np.array(d.fit.tolerance),
+        "max_error": np.array(d.fit.max_error), "rms_error": np.array(d.fit.rms_error),
+        "method": np.array(d.fit.method),
         "norm_center": d.fit.normalization.center,
         "norm_scale": np.array(d.fit.normalization.scale),
         "values": d.basis.values,
@@ -81,7 +84,8 @@ def load_deformation(path: str | Path, key: str, model: PointModel) -> Deformati
         fit = RbfFit(centers=z["centers"], weights=z["weights"],
                      normalization=Normalization(z["norm_center"], float(z["norm_scale"])),
                      residuals=z["residuals"], converged=bool(z["converged"]),
-                     tolerance=float(z["tolerance"]))
+                     tolerance=float(z["tolerance"]), max_error=float(z["max_error"]),
+                     rms_error=float(z["rms_error"]), method=str(z["method"]))
         grads = z["gradients"]
         frame = None
         if z["frame_inverse"].size:

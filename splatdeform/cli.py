@@ -29,6 +29,11 @@ def cmd_info(args: argparse.Namespace) -> int:
     return 0
 
 
+def _warn(message: str) -> None:
+    """One warning line on stderr (e.g. a fit that stopped above its tolerance)."""
+    print(f"splatdeform: warning: {message}", file=sys.stderr, flush=True)
+
+
 def cmd_deform(args: argparse.Namespace) -> int:
     from pathlib import Path
 
@@ -47,7 +52,7 @@ def cmd_deform(args: argparse.Namespace) -> int:
         reuse = str(output or base / cfg.output) + ".deform.npz"
     try:
         result = run_edit(cfg, base, output=output, drop_nonfinite=args.drop_nonfinite,
-                          reuse=reuse, log=print)
+                          reuse=reuse, log=print, warn=_warn)
     except InputError as exc:
         # region/curve/transform errors name the key; add the config file they came from
         if str(exc).split(":")[0].split(".")[0] in ("regions", "handle", "curve", "boundary",

@@ -13,6 +13,7 @@ import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from .errors import ConfigError
+from .rbf.fit import DEFAULT_MAX_CENTERS, DEFAULT_TOLERANCE
 from .regions import Box, Indices, Plane, Property, Selector, Sphere
 
 Vec3 = Annotated[list[float], Field(min_length=3, max_length=3)]
@@ -120,8 +121,15 @@ class BoundaryCfg(_Strict):
 
 
 class FitCfg(_Strict):
-    tolerance: float = Field(default=1e-4, gt=0, lt=1)
-    max_centers: int = Field(default=2000, ge=0, le=20000)
+    """``fit:``. tolerance bounds the largest constraint error |r_ic| in the dimensionless
+    coordinates of M (a ring point then misses its target by at most k * tolerance * the
+    largest control-point move); defaults from the measured table in the README."""
+
+    tolerance: float = Field(default=DEFAULT_TOLERANCE, gt=0, lt=1)
+    max_centers: int = Field(default=DEFAULT_MAX_CENTERS, ge=0, le=20000)
+    method: Literal["incremental", "exact"] = "incremental"
+    selection: Literal["greedy", "fps"] = "greedy"
+    on_not_converged: Literal["warn", "error"] = "warn"
 
 
 class RenderCfg(_Strict):

@@ -136,15 +136,18 @@ def prepare_handle(model: PointModel, fixed: np.ndarray, handle: np.ndarray, *,
 
 def _deform_gaussians(model: PointModel, out: PointModel, idx: np.ndarray,
                       jac: np.ndarray) -> None:
-    """Sigma' = J Sigma J^T for 3DGS splats ``idx``; scale and rotation re-extracted."""
-    from .gaussians import covariance_to_scale_rotation, scale_rotation_to_factor
+    """Sigma' = J Sigma J^T for 3DGS splats ``idx`` (similarities composed directly, else J R S
+    re-factored by a relatively accurate SVD) and SH bands 1..3 rotated by the polar R of J.
+    Splats whose J is exactly I are left bit-identical (see :mod:`splatdeform.gaussians`)."""
+    from .gaussians import deform_gaussians
 
     g = model.gaussians
-    factor = scale_rotation_to_factor(g.scale_log[idx], g.rotation[idx])  # (M, 3, 3) = R S
-    deformed = jac @ factor
-    scale_log, rotation = covariance_to_scale_rotation(deformed @ deformed.transpose(0, 2, 1))
-    out.gaussians.scale_log[idx] = scale_log
-    out.gaussians.rotation[idx] = rotation
+    sh_rest = None if g.sh_rest is None else g.sh_rest[idx]
+    new = deform_gaussians(g.scale_log[idx], g.rotation[idx], sh_rest, jac)
+    out.gaussians.scale_log[idx] = new.scale_log
+    out.gaussians.rotation[idx] = new.rotation
+    if new.sh_rest is not None:
+        out.gaussians.sh_rest[idx] = new.sh_rest
 
 
 def _transform_attributes(model: PointModel, out: PointModel, idx: np.ndarray,
@@ -206,13 +209,20 @@ def full_basis(deformation: Deformation) -> tuple[np.ndarray, np.ndarray]:
     return values, grads
 
 
-def constraint_error(deformation: Deformation, delta_c: np.ndarray,
-                     basis_fn: BasisFn) -> float:
-    """Largest |d(c) - prescribed(c)| over the constraint points for this delta_c (model units):
-    how well the fitted field meets the constraints it was fitted to."""
+def constraint_errors(deformation: Deformation, delta_c: np.ndarray,
+                      basis_fn: BasisFn) -> tuple[float, float]:
+    """Largest and RMS |d(c) - prescribed(c)| over the constraint points for this delta_c (model
+    units): how well the fitted field meets the constraints it was fitted to."""
     if deformation.constraint_idx.size == 0:
-        return 0.0
+        return 0.0, 0.0
     basis = basis_fn(deformation.constraint_points, deformation.fit)
     delta = np.asarray(delta_c, dtype=np.float64)
     error = (basis.values.astype(np.float64) - deformation.constraint_rhs) @ delta
-    return float(np.linalg.norm(error, axis=1).max())
+    dist = np.linalg.norm(error, axis=1)
+    return float(dist.max()), float(np.sqrt(np.mean(dist * dist)))
+
+
+def constraint_error(deformation: Deformation, delta_c: np.ndarray,
+                     basis_fn: BasisFn) -> float:
+    """Largest |d(c) - prescribed(c)| over the constraint points (see constraint_errors)."""
+    return constraint_errors(deformation, delta_c, basis_fn)[0]

@@ -16,11 +16,11 @@ import numpy as np
 from . import deform as df
 from .basis import compute_basis
 from .config import EditConfig, TransformCfg
-from .errors import ConfigError, InputError
+from .errors import ConfigError, InputError, ProcessingError
 from .handle import compose_transform, delta_for_transform
 from .io import check_output_path, load, save
 from .model import PointModel
-from .rbf import Normalization, fit_incremental
+from .rbf import Normalization, RbfFit, fit_incremental
 from .regions import select, to_model_point, to_model_vector
 
 
@@ -59,10 +59,26 @@ def handle_matrix(cfg: EditConfig, model: PointModel, handle: np.ndarray) -> np.
 
 
 def make_fit_fn(cfg: EditConfig, model: PointModel) -> Callable:
-    """The fitter with the config's tolerance/max_centers, normalised on the model's bbox."""
+    """The fitter of ``fit.method`` with the config's settings, normalised on the model's bbox
+    (both limit BLAS threads themselves)."""
+    norm = Normalization.of(model.positions)
+    if cfg.fit.method == "exact":
+        from .rbf.exact import fit_exact
+
+        return partial(fit_exact, normalization=norm)
     return partial(fit_incremental, tolerance=cfg.fit.tolerance,
-                   max_centers=cfg.fit.max_centers,
-                   normalization=Normalization.of(model.positions))
+                   max_centers=cfg.fit.max_centers, selection=cfg.fit.selection,
+                   normalization=norm)
+
+
+def not_converged_message(fit: RbfFit, cfg: EditConfig) -> str | None:
+    """One line when the fit stopped at fit.max_centers above fit.tolerance, else None."""
+    if fit.converged:
+        return None
+    return (f"fit: did not converge: largest constraint error {fit.max_error:.3g} > "
+            f"fit.tolerance {fit.tolerance:.3g} after {fit.n_centers} centers "
+            f"(fit.max_centers {cfg.fit.max_centers}); raise fit.max_centers or fit.tolerance, "
+            "or use fit.method: exact")
 
 
 def make_basis_fn(cfg: EditConfig) -> Callable:
@@ -112,12 +128,28 @@ def control_displacement(cfg: EditConfig, model: PointModel, deformation: df.Def
     return delta_for_transform(deformation.control_points, matrix), matrix
 
 
+def check_converged(fit: RbfFit, cfg: EditConfig,
+                    warn: Callable[[str], None] | None) -> None:
+    """Never a silent miss: warn (or raise, ``fit.on_not_converged: error``) when the fit
+    stopped at ``fit.max_centers`` above the tolerance."""
+    message = not_converged_message(fit, cfg)
+    if message is None:
+        return
+    if cfg.fit.on_not_converged == "error":
+        raise ProcessingError(message)
+    if warn is not None:
+        warn(message)
+
+
 def run_edit(cfg: EditConfig, base_dir: str | Path = ".", *, output: str | Path | None = None,
              save_output: bool = True, drop_nonfinite: bool = False,
              reuse: str | Path | None = None,
-             log: Callable[[str], None] | None = None) -> EditResult:
+             log: Callable[[str], None] | None = None,
+             warn: Callable[[str], None] | None = None) -> EditResult:
     """Run one edit. ``output`` overrides ``cfg.output``; ``reuse`` names a precomputed
-    deformation file to load when it matches this edit (and to write otherwise)."""
+    deformation file to load when it matches this edit (and to write otherwise). ``warn``
+    receives the one-line warning of a fit that stopped above the tolerance (with
+    ``fit.on_not_converged: error`` that is a ProcessingError instead, before any output)."""
     base_dir = Path(base_dir)
     out_path = Path(output) if output is not None else base_dir / cfg.output
     in_path = base_dir / cfg.input
@@ -136,12 +168,14 @@ def run_edit(cfg: EditConfig, base_dir: str | Path = ".", *, output: str | Path 
     if deformation is None:
         deformation = precompute(cfg, model, base_dir)
         timings.update(deformation.timings)
+        check_converged(deformation.fit, cfg, warn)
         if reuse is not None:
             from .cache import save_deformation
 
             save_deformation(reuse, key, deformation)
     else:
         timings.update({"rings": 0.0, "fit": 0.0, "basis": 0.0})
+        check_converged(deformation.fit, cfg, warn)
     delta_c, matrix = control_displacement(cfg, model, deformation)
     t0 = time.perf_counter()
     deformed = df.apply(deformation, model, delta_c, moving_matrix=matrix)
@@ -149,17 +183,22 @@ def run_edit(cfg: EditConfig, base_dir: str | Path = ".", *, output: str | Path 
     if not np.isfinite(deformed.positions).all():
         raise InputError("the deformation produced non-finite positions; check the regions "
                          "and the transform")
-    err = df.constraint_error(deformation, delta_c, partial(compute_basis, gradients=False,
-                                                            backend="numpy"))
+    err, err_rms = df.constraint_errors(deformation, delta_c,
+                                        partial(compute_basis, gradients=False,
+                                                backend="numpy"))
     fit = deformation.fit
     stats = {
         "points": model.n_points,
         "free_points": int(deformation.free_idx.size),
         "constraints": int(deformation.constraint_idx.size),
         "centers": fit.n_centers,
-        "residual": float(fit.residuals[-1].max()) if fit.residuals.size else 0.0,
-        "converged": str(bool(fit.converged)).lower(),
+        "residual": fit.max_error,
+        "residual_rms": fit.rms_error,
+        "tolerance": fit.tolerance,
+        "method": fit.method,
+        "converged": bool(fit.converged),
         "constraint_error": err,
+        "constraint_error_rms": err_rms,
         "constraint_error_rel": err / max(model.diagonal(), 1e-300),
     }
     result = EditResult(model, deformed, deformation, delta_c, matrix, None, stats, timings)
@@ -176,8 +215,11 @@ def format_report(result: EditResult) -> str:
     lines = [
         f"points {s['points']:,}  free {s['free_points']:,}  constraints {s['constraints']:,}  "
         f"centers {s['centers']}",
-        f"fit residual {s['residual']:.3g} (converged: {s['converged']}); max constraint "
-        f"error {s['constraint_error']:.3g} ({s['constraint_error_rel']:.2e} of the diagonal)",
+        f"fit ({s['method']}): largest |r| {s['residual']:.3g}, RMS {s['residual_rms']:.3g} "
+        f"(tolerance {s['tolerance']:.3g}, converged: {str(s['converged']).lower()})",
+        f"constraint error for this transform: max {s['constraint_error']:.3g}, RMS "
+        f"{s['constraint_error_rms']:.3g} model units ({s['constraint_error_rel']:.2e} of the "
+        "diagonal)",
     ]
     for stage in ("load", "rings", "fit", "basis", "apply", "save", "render"):
         if stage in result.timings:

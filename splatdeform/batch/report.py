@@ -72,9 +72,13 @@ def _html(output_dir: Path, rows: list[dict[str, Any]], summary: dict[str, Any])
                    f"<br>fit {_fmt(t.get('fit'), '.2f')} s · basis {_fmt(t.get('basis'), '.2f')} s"
                    f" · total {_fmt(row.get('seconds'), '.2f')} s")
         err = (f'<div class="err">{html.escape(row["error"])}</div>' if row.get("error") else "")
+        if row.get("converged") is False:
+            err += ('<div class="warn">fit not converged: largest constraint error above '
+                    'fit.tolerance at fit.max_centers</div>')
         out = _rel(row.get("output"), output_dir)
         link = f' · <a href="{html.escape(out)}">model</a>' if out else ""
-        cards.append(f'<div class="card {row["status"]}"><h3>{html.escape(row["scan"])}</h3>'
+        flag = " unconverged" if row.get("converged") is False else ""
+        cards.append(f'<div class="card {row["status"]}{flag}"><h3>{html.escape(row["scan"])}</h3>'
                      f'<div class="status">{row["status"]}{link}</div>{img}'
                      f'<div class="fig">{figures}</div>{err}</div>')
     counts = summary.get("counts", {})
@@ -92,6 +96,7 @@ body {{ font-family: sans-serif; margin: 1.5em; background: #fafafa; }}
 .failed {{ border-color: #c33; }} .failed .status {{ color: #c33; font-weight: bold; }}
 .skipped .status {{ color: #777; }} .ok .status {{ color: #282; }}
 .err {{ color: #c33; font-family: monospace; font-size: .85em; }}
+.unconverged {{ border-color: #d80; }} .warn {{ color: #b60; font-size: .85em; }}
 .fig {{ font-size: .85em; color: #333; }} .noimg {{ color: #999; padding: 2em; }}
 </style></head><body>
 <h1>splatdeform batch: {html.escape(str(summary.get('batch')))}</h1>

@@ -2,22 +2,26 @@
 
 A = [Pi | Phi] with Pi = (1, x, y, z) at the m constraint points and one column
 phi(|x_i - s_j|) = |x_i - s_j|^3 per center s_j; centers are constraint points taken in
-farthest-point order. Householder QR adds one column (one reflection) at a time; after column j
-the least-squares residual of every right-hand-side column is the norm of the rows > j of
-Q^T rhs. Stop at the first column where every residual meets the tolerance, then solve
+farthest-point order (or residual-weighted farthest-point order). Householder QR adds one
+column (one reflection) at a time; after column j the least-squares residual of every
+right-hand-side column is Q [0; rows > j of Q^T rhs]. The tolerance bounds the largest constraint
+error max_ic |r_ic| (DESIGN.md section 1, "Fitting"): the tail 2-norm of Q^T rhs is a cheap
+running bound, and r itself is recovered from the stored reflections once per block of columns.
+Stop at the first block that meets the tolerance (at its first column that does), then solve
 R W = Q1^T rhs once.
 """
 
 from __future__ import annotations
 
-import itertools
+from collections.abc import Iterator
+from contextlib import AbstractContextManager, nullcontext
+from typing import Literal
 
 import numpy as np
 from scipy.linalg import lapack, solve_triangular
 from scipy.spatial.distance import cdist
 
 from splatdeform.errors import InputError, ProcessingError
-from splatdeform.rbf.fps import iter_farthest_points
 from splatdeform.rbf.kernel import triharmonic
 from splatdeform.rbf.result import Normalization, RbfFit
 
@@ -162,6 +166,21 @@ class _BlockedQR:
         """Keep the leading ``cols`` columns (an earlier state of the same incremental QR)."""
         self.cols = cols
 
+    def residual(self, qtb: np.ndarray, keep: int, m: int) -> np.ndarray:
+        """The least-squares residual rhs - A W (m, k) using the leading ``keep`` columns.
+
+        Q [0; rows >= keep of Q^T rhs] with all ``cols`` stored reflections: reflections after
+        ``keep`` touch rows >= keep only, so this equals Q_keep [0; rows >= keep of Q_keep^T rhs]
+        (the residual of the earlier state with ``keep`` columns). The m constraint rows are
+        returned (the side rows below them are not constraints). Cost O(rows * cols * k).
+        """
+        z = np.zeros_like(qtb)
+        z[keep:] = qtb[keep:]
+        if self.cols:
+            v, t = self.v[:, : self.cols], self.t[: self.cols, : self.cols]
+            z -= v @ (t @ (v.T @ z))
+        return z[:m]
+
 
 def _tail_residuals(rows: np.ndarray) -> np.ndarray:
     """Norms of rows[i + 1:] per column for i = 0 .. len(rows) - 1: (len(rows), k).
@@ -177,64 +196,147 @@ def _tail_residuals(rows: np.ndarray) -> np.ndarray:
     return np.sqrt(after)
 
 
+Selection = Literal["greedy", "fps"]
+
+#: Centers and tolerance chosen from the measured table in the README (``fit.tolerance`` and
+#: ``fit.max_centers`` defaults; benchmarks/fit_table.py re-measures it).
+DEFAULT_TOLERANCE = 1.5e-4
+DEFAULT_MAX_CENTERS = 2000
+
+
+def blas_threads(threads: int | None) -> AbstractContextManager:
+    """Limit the BLAS thread pool to ``threads`` inside the block (None: leave it alone).
+
+    The fitter makes many small BLAS calls; on a busy machine an unlimited OpenBLAS pool spins
+    threads against other processes (measured 8x slower on 2 cores), so it limits itself.
+    """
+    if threads is None:
+        return nullcontext()
+    from threadpoolctl import threadpool_limits
+
+    return threadpool_limits(limits=int(threads), user_api="blas")
+
+
+class _Centers:
+    """Picks the next centers among the constraint points x (m, 3).
+
+    "fps": farthest point order (deterministic start: the point farthest from the centroid).
+    "greedy": residual-weighted farthest points: the first block is farthest-point order, then
+    each pick maximises |r_i|_1 * d_i, the constraint's current residual (sum over the k
+    columns, the factor that bounds its error in model units) times its distance to the
+    nearest chosen center, so picks go where the field misses most while staying spread out.
+    """
+
+    def __init__(self, x: np.ndarray, selection: Selection) -> None:
+        self.x = x
+        self.selection = selection
+        diff = x - x.mean(axis=0)
+        self._first = int(np.argmax(np.einsum("ij,ij->i", diff, diff)))
+        self.dist2 = np.full(x.shape[0], np.inf)
+        self.count = 0
+
+    def _take(self, i: int) -> None:
+        d = self.x - self.x[i]
+        np.minimum(self.dist2, np.einsum("ij,ij->i", d, d), out=self.dist2)
+        self.count += 1
+
+    def next_block(self, size: int, residual: np.ndarray | None) -> list[int]:
+        """Up to ``size`` new center indices (fewer when only duplicates remain)."""
+        out: list[int] = []
+        score = None
+        if self.selection == "greedy" and residual is not None and self.count >= 16:
+            score = np.abs(residual).sum(axis=1)
+        for _ in range(size):
+            if self.count == 0:
+                i = self._first
+            else:
+                key = self.dist2 if score is None else score * np.sqrt(self.dist2)
+                i = int(np.argmax(key))
+                if not self.dist2[i] > 0.0 or not key[i] > 0.0:
+                    i = int(np.argmax(self.dist2))  # residual 0 there: fall back to farthest
+                    if not self.dist2[i] > 0.0:
+                        break  # only duplicates of chosen centers remain
+            out.append(i)
+            self._take(i)
+        return out
+
+
+def _block_sizes(block: int) -> Iterator[int]:
+    size = min(block, 16)  # grow 16, 32, .. up to `block`: little overshoot for early stops
+    while True:
+        yield size
+        size = min(block, 2 * size)
+
+
 def fit_incremental(
     points: np.ndarray,
     rhs: np.ndarray,
     *,
-    tolerance: float,
-    max_centers: int = 2000,
+    tolerance: float = DEFAULT_TOLERANCE,
+    max_centers: int = DEFAULT_MAX_CENTERS,
     normalization: Normalization | None = None,
     block: int = 64,
     side_weight: float = 1.0,
+    selection: Selection = "greedy",
+    threads: int | None = 1,
 ) -> RbfFit:
     """Fit b(x) = [1, x, |x - s_j|^3] . W to ``rhs`` at ``points`` by incremental QR.
 
     points: (m, 3) constraint points in model units, m >= 4, spanning 3D.
-    rhs: (m, k) float64 right-hand sides (affine coordinates M for a handle, or displacements).
-    tolerance: ABSOLUTE bound on the least-squares residual ||Q2^T rhs[:, c]||_2 of every column c;
-        it bounds the largest constraint error of that column.
-    max_centers: most centers to add (also capped at m - 4); when reached unconverged the fit is
-        returned with ``converged=False``.
+    rhs: (m, k) float64 right-hand sides (affine coordinates M for a handle, spline coordinates
+        for a curve, or displacements).
+    tolerance: bound on the largest constraint error max_ic |r_ic|, r = rhs - A W, in the units
+        of ``rhs`` (dimensionless for M). A constraint's error in model units for a later delta_c
+        (k, 3) is then at most sum_c |r_ic| * max_c |delta_c[c]| <= k * tolerance * (largest
+        control-point move). It is checked once per block of added columns on r recovered from
+        the stored reflections; the fit stops at the first column of the first block that meets
+        it.
+    max_centers: most centers to add (also capped at m); when reached above the tolerance the
+        fit is returned with ``converged=False``.
     normalization: model -> normalised coordinates; default ``Normalization.of(points)``.
     block: most center columns generated and factored per blocked step (blocks grow 16, 32, ..
-        up to ``block`` so an early stop wastes few columns).
+        up to ``block``).
     side_weight: weight of the polyharmonic side conditions P^T w = 0 (sum_j w_j = 0,
         sum_j w_j s_j = 0), appended as 4 extra least-squares rows with right-hand side 0; 0
         disables them.
+    selection: "greedy" (residual-weighted farthest points, the default: same deviation from the
+        exact interpolant with fewer centers, see the README's fit table) or "fps" (farthest
+        point order, independent of the residual).
+    threads: BLAS threads inside the fit (None leaves the pool alone); see :func:`blas_threads`.
 
     Why side conditions: without them the least-squares weights are unconstrained in the
     polynomial directions, and as the center count nears the constraint count the system turns
     nearly square with huge, cancelling weights (1e7 seen) that make the field fly off far from
-    the constraints (a curve bend moved free points 100x more than any control point). With them,
-    n = m centers reproduce exactly the triharmonic interpolant (scipy's RBFInterpolator with
-    kernel="cubic", degree=1), and fewer centers give its constrained least-squares
-    approximation. The residual read from Q^T rhs then includes the side rows, so it still bounds
-    every constraint error.
+    the constraints. With them, n = m centers reproduce exactly the triharmonic interpolant
+    (scipy's RBFInterpolator with kernel="cubic", degree=1), and fewer centers give its
+    constrained least-squares approximation.
+
+    Why blocked: the next ``block`` columns are generated ahead (from the residual at the start
+    of the block for "greedy"). Each block applies all earlier reflections at once in compact-WY
+    form (Q^T C = C - V T^T V^T C: three BLAS-3 products), factors its lower part with LAPACK
+    ``dgeqrf`` and extends V and T, instead of a Python loop of one rank-1 reflection per column.
+    It is numerically the same incremental Householder algorithm: stopping mid-block truncates R
+    and Q^T rhs to the leading columns/rows, exactly the state the one-column loop reaches there.
 
     Returns an :class:`RbfFit` with centers (n, 3) and weights (4 + n, k) in normalised
-    coordinates and the residual history (1 + n, k): one row after the polynomial block (0
-    centers is a valid result, e.g. for an affine rhs), one per added center, non-increasing.
-
-    Why blocked: the center order (farthest point sampling among the constraint points) does not
-    depend on the QR, so the next ``block`` columns can be generated ahead. Each block applies all
-    earlier reflections at once in compact-WY form (Q^T C = C - V T^T V^T C: three BLAS-3
-    products), factors its lower part with LAPACK ``dgeqrf`` and extends V and T (dlarft
-    recurrence), instead of a Python loop of one rank-1 reflection per column. It is numerically
-    the same incremental Householder algorithm: column j of R and rows < j of Q^T rhs are final
-    once reflection j is applied (later reflections touch rows >= their own index only), and the
-    residual after each column of the block is read from reverse cumulative sums of squares of
-    the rows of Q^T rhs. Stopping mid-block truncates R and Q^T rhs to the leading columns/rows,
-    which is exactly the state the one-column-at-a-time loop would have reached there.
+    coordinates, the history of the tail 2-norms (1 + n, k), and the achieved max / RMS |r|.
     """
     pts, b = _check_inputs(points, rhs, tolerance, max_centers, block, normalization)
-    tol = float(tolerance)
+    if selection not in ("greedy", "fps"):
+        raise InputError(f"selection: expected 'greedy' or 'fps', got {selection!r}")
+    with blas_threads(threads):
+        return _fit(pts, b, float(tolerance), int(max_centers), normalization, int(block),
+                    float(side_weight), selection)
+
+
+def _fit(pts: np.ndarray, b: np.ndarray, tol: float, max_centers: int,
+         normalization: Normalization | None, block: int, lam: float,
+         selection: Selection) -> RbfFit:
     norm = normalization if normalization is not None else Normalization.of(pts)
     x = norm.apply(pts)
     m, k = b.shape
-    lam = float(side_weight)
     side = 4 if lam > 0 else 0
-    n_max = min(int(max_centers), m - 4 + side)
-    block = int(block)
+    n_max = min(max_centers, m - 4 + side)
 
     rows = m + side
     state = _BlockedQR(rows, 4 + min(n_max, max(block, 256)))
@@ -253,31 +355,37 @@ def fit_incremental(
             cols_[m + 1:] = lam * x[idx].T
         return cols_
 
+    def max_error(cols: int) -> tuple[float, np.ndarray]:
+        r = state.residual(qtb, cols, m)
+        return float(np.abs(r).max()), r
+
     history = [np.linalg.norm(qtb[4:], axis=0)]
     order: list[int] = []
-    converged = bool(np.all(history[0] <= tol))
-    picks = iter_farthest_points(x)
-    size = min(block, 16)  # grow 16, 32, .. up to `block`: little overshoot for early stops
+    err, resid = max_error(state.cols)
+    converged = err <= tol
+    picker = _Centers(x, selection)
+    sizes = _block_sizes(block)
     while not converged and len(order) < n_max:
-        new = list(itertools.islice(picks, min(size, n_max - len(order))))
-        size = min(block, 2 * size)
+        new = picker.next_block(min(next(sizes), n_max - len(order)), resid)
         if not new:
             break  # only duplicates of picked centers remain
-        nb = len(new)
-        cols = state.cols
+        start = state.cols
         state.add_block(center_columns(new), qtb)
-        res = _tail_residuals(qtb[cols:])[:nb]
-        ok = np.all(res <= tol, axis=1)
-        used = int(np.argmax(ok)) + 1 if ok.any() else nb
-        history.extend(res[:used])
+        tails = _tail_residuals(qtb[start:])[: len(new)]
+        err, resid = max_error(state.cols)
+        used = len(new)
+        if err <= tol:
+            used, err, resid = _first_meeting(max_error, start, len(new), tol, tails,
+                                              (err, resid))
+            converged = True
+        history.extend(tails[:used])
         order.extend(new[:used])
-        state.truncate(cols + used)
-        converged = bool(ok.any())
+        state.truncate(start + used)
 
     cols = state.cols
     hist = np.minimum.accumulate(np.vstack(history), axis=0)  # rounding-level monotonicity
-    r = np.triu(state.r[:cols, :cols])
-    weights = solve_triangular(r, qtb[:cols], lower=False, check_finite=False)
+    r_tri = np.triu(state.r[:cols, :cols])
+    weights = solve_triangular(r_tri, qtb[:cols], lower=False, check_finite=False)
     if not np.all(np.isfinite(weights)):
         raise ProcessingError("fit: the triangular solve produced non-finite weights")
     idx = np.asarray(order, dtype=np.int64)
@@ -286,6 +394,32 @@ def fit_incremental(
         weights=np.ascontiguousarray(weights),
         normalization=norm,
         residuals=hist,
-        converged=bool(np.all(hist[-1] <= tol)),
+        converged=bool(err <= tol),
         tolerance=tol,
+        max_error=err,
+        rms_error=float(np.sqrt(np.mean(resid * resid))),
     )
+
+
+def _first_meeting(max_error, start: int, count: int, tol: float, tails: np.ndarray,
+                   at_end: tuple[float, np.ndarray]) -> tuple[int, float, np.ndarray]:
+    """Fewest leading columns of the last block (1..count) whose max |r| meets ``tol``.
+
+    The max-norm is at most the tail 2-norm, so columns whose tail norm already meets the
+    tolerance are an upper bound; below it, bisection on recovered residuals (the max error is
+    non-increasing in practice; whatever is returned was checked). Returns (used, err, r).
+    """
+    lo, hi = 0, count  # hi meets the tolerance, lo is not known to
+    best = (count, *at_end)
+    ok_tail = np.flatnonzero(np.all(tails <= tol, axis=1))
+    if ok_tail.size and ok_tail[0] + 1 < hi:
+        hi = int(ok_tail[0]) + 1
+        best = (hi, *max_error(start + hi))
+    while hi - lo > 1:
+        mid = (lo + hi) // 2
+        e, r = max_error(start + mid)
+        if e <= tol:
+            hi, best = mid, (mid, e, r)
+        else:
+            lo = mid
+    return best

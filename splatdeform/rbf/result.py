@@ -40,8 +40,13 @@ class RbfFit:
     normalization: how model coordinates map to normalised ones.
     residuals: (n_steps, k) float64 history of ||Q2^T rhs|| per right-hand-side column, one row
                after the polynomial block and one after each added center.
-    converged: True when the last residual met the tolerance (False: stopped at max_centers).
-    tolerance: the absolute per-column residual the fit aimed for.
+    converged: True when the largest constraint error met the tolerance (False: stopped at
+               max_centers above it).
+    tolerance: the bound on max_ic |r_ic| the fit aimed for (units of the right-hand side).
+    max_error: the achieved max_ic |r_ic|, r = rhs - A W over the constraint rows (nan: unknown).
+    rms_error: the achieved RMS of r over all constraints and columns (nan: unknown).
+    method: "incremental" (least squares on chosen centers) or "exact" (every constraint a
+               center, the dense interpolation solve).
     """
 
     centers: np.ndarray
@@ -50,6 +55,9 @@ class RbfFit:
     residuals: np.ndarray
     converged: bool
     tolerance: float
+    max_error: float = float("nan")
+    rms_error: float = float("nan")
+    method: str = "incremental"
 
     @property
     def n_centers(self) -> int:
