@@ -1,0 +1,522 @@
+"""The editor's logic as a plain Python object: no web imports, usable from a notebook.
+
+State: the model, the fixed region and a list of handles (each a list of selectors and its
+current 4x4 pose), the fit settings, the precomputed deformation and whether it is stale.
+Actions: add / move / resize / remove selectors, :meth:`EditorController.fit`,
+:meth:`EditorController.set_pose` (delta_c applied to the precomputed basis, the per-frame path)
+and :meth:`EditorController.save` (deformed model, edit YAML, before/after PNG).
+
+Everything goes through the same pipeline as ``splatdeform deform``: the config models
+(:mod:`splatdeform.config`), :func:`splatdeform.edit.precompute` for rings, fit and basis, and
+:func:`splatdeform.deform.apply` for the saved model, so the saved YAML reproduces the saved model
+byte for byte. One handle per edit today; the state is a list so several can come.
+
+Example::
+
+    from splatdeform.editor import EditorController
+    from splatdeform.regions import Box
+    ed = EditorController.open("bar.ply")
+    ed.add_selector("fixed", Box((-1, -1, -1), (1, 1, 1)))
+    ed.add_selector("handle", Box((3, -1, -1), (5, 1, 1)))
+    ed.fit()
+    frame = ed.set_pose(matrix)          # (4, 4) affine -> new positions / normals / ...
+    ed.save()                            # bar_edited.ply, bar_edit.yaml, bar_edit.png
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+
+from .. import deform as df
+from .. import frame as ap
+from ..basis import resolve_backend
+from ..config import EditConfig, load_edit, parse_edit
+from ..errors import ConfigError, InputError, RegionError
+from ..handle import delta_for_transform
+from ..io import check_output_path, save
+from ..model import PointModel
+from ..regions import Selector, check_regions, select
+from . import selectors as sl
+
+ROLES = ("fixed", "handle")
+FREE, FIXED, HANDLE = 0, 1, 2
+
+
+class StaleFitError(InputError):
+    """An action needs a fit that matches the current regions (none yet, or regions changed)."""
+
+
+@dataclass
+class HandleState:
+    """One handle: its region (a union of selectors) and its pose, a (4, 4) float64 affine
+    matrix in model coordinates (identity = not moved)."""
+
+    selectors: list[Selector] = field(default_factory=list)
+    matrix: np.ndarray = field(default_factory=lambda: np.eye(4))
+
+
+@dataclass
+class Frame:
+    """What one pose change produces for the viewer (float32, ``local`` coordinates: model
+    coordinates minus :attr:`EditorController.origin`, so large scan offsets stay precise).
+
+    positions: (N, 3) float32. normals: (N, 3) float32 unit or None. axes: (N, 2, 3) float32
+    surfel/splat tangent axes or None. covariances: (N, 3, 3) float32 Gaussian covariances or
+    None. delta_c: (k, 3) float64 control displacements. seconds: compute time.
+    """
+
+    positions: np.ndarray
+    normals: np.ndarray | None
+    axes: np.ndarray | None
+    covariances: np.ndarray | None
+    delta_c: np.ndarray
+    seconds: float = 0.0
+
+
+@dataclass
+class SaveResult:
+    """Paths written by :meth:`EditorController.save` (image None when not asked)."""
+
+    model: Path
+    config: Path
+    image: Path | None
+
+
+def _gaussian_covariances(model: PointModel) -> np.ndarray:
+    """(N, 3, 3) float32 covariances R S^2 R^T of a 3DGS model."""
+    from ..gaussians import scale_rotation_to_factor
+
+    g = model.gaussians
+    f = scale_rotation_to_factor(g.scale_log, g.rotation)
+    return (f @ f.transpose(0, 2, 1)).astype(np.float32)
+
+
+class EditorController:
+    """Editor state and actions over one model (see the module docstring).
+
+    model: the loaded model (never modified). base_dir: the folder paths in the config are
+    relative to. config: the edit's other settings (boundary, fit, normals, backend, device,
+    render) as an :class:`EditConfig`; its regions and handle are rebuilt from the editor state
+    by :meth:`to_config`. model_path: the input file. config_path: the EDIT.yaml it came from.
+    """
+
+    def __init__(self, model: PointModel, *, model_path: str | Path, base_dir: str | Path,
+                 config: EditConfig | None = None, config_path: str | Path | None = None,
+                 units: str = "model") -> None:
+        self.model = model
+        self.model_path = Path(model_path).resolve()
+        self.base_dir = Path(base_dir).resolve()
+        self.config_path = None if config_path is None else Path(config_path).resolve()
+        self.units = units
+        self.fixed: list[Selector] = []
+        self.handles: list[HandleState] = [HandleState()]
+        self.settings = config if config is not None else parse_edit(
+            _bare_settings(self.model_path), str(self.model_path))
+        lo, hi = model.bbox()
+        self.origin = (lo + hi) / 2.0
+        self.deformation: df.Deformation | None = None
+        self.fit_stats: dict[str, Any] = {}
+        self._fit_key: Any = None
+        self._frame_data: dict[str, Any] | None = None
+        self._masks_cache: tuple[Any, tuple[np.ndarray, list[np.ndarray]]] | None = None
+
+    # ---- construction -------------------------------------------------------------------
+    @classmethod
+    def open(cls, path: str | Path) -> EditorController:
+        """From a model file (empty regions) or an edit YAML (its regions and handle pose)."""
+        path = Path(path)
+        if path.suffix.lower() in (".yaml", ".yml"):
+            return cls.from_config(path)
+        from ..edit import prepare_model
+
+        settings = parse_edit(_bare_settings(path.resolve()), str(path))
+        model = prepare_model(settings, path.resolve().parent, {})
+        return cls(model, model_path=path, base_dir=path.resolve().parent, config=settings)
+
+    @classmethod
+    def from_config(cls, path: str | Path) -> EditorController:
+        """Load an edit YAML (handle edits) into the editor state."""
+        from ..edit import handle_matrix, prepare_model
+
+        path = Path(path)
+        cfg = load_edit(path)
+        if cfg.curve is not None:
+            raise ConfigError(f"{path}: curve: the editor edits handle edits only (regions.fixed "
+                              "+ regions.handle + handle)")
+        base = path.resolve().parent
+        model = prepare_model(cfg, base, {})
+        ed = cls(model, model_path=base / cfg.input, base_dir=base, config=cfg,
+                 config_path=path, units=cfg.regions.units)
+        ed.fixed = [s.to_selector() for s in cfg.regions.fixed]
+        ed.handles = [HandleState([s.to_selector() for s in cfg.regions.handle or []])]
+        handle_mask = ed.masks()[1][0]
+        try:
+            ed.handles[0].matrix = handle_matrix(cfg, model, handle_mask)
+        except InputError as exc:
+            raise type(exc)(f"{path}: {exc}") from exc
+        if not handle_mask.any():
+            ed.handles[0].matrix = np.eye(4)
+        return ed
+
+    # ---- regions -----------------------------------------------------------------------
+    def _region(self, role: str, handle: int = 0) -> list[Selector]:
+        if role == "fixed":
+            return self.fixed
+        if role == "handle":
+            if not 0 <= handle < len(self.handles):
+                raise InputError(f"handle: expected an index below {len(self.handles)}, got "
+                                 f"{handle}")
+            return self.handles[handle].selectors
+        raise InputError(f"role: expected 'fixed' or 'handle', got {role!r}")
+
+    def add_selector(self, role: str, selector: Selector | str, *, handle: int = 0,
+                     center=None) -> int:
+        """Append a selector to the fixed region or to handle ``handle``; a kind name
+        ("box", "sphere", "plane") makes a default one at ``center`` (model coordinates).
+        Returns its index in that region."""
+        region = self._region(role, handle)
+        if isinstance(selector, str):
+            selector = sl.default_selector(selector, self.model, self.units, center=center)
+        region.append(selector)
+        return len(region) - 1
+
+    def set_selector(self, role: str, index: int, selector: Selector, *,
+                     handle: int = 0) -> None:
+        """Replace selector ``index`` of a region."""
+        region = self._region(role, handle)
+        self._check_index(region, role, index)
+        region[index] = selector
+
+    def move_selector(self, role: str, index: int, *, center=None, size=None, normal=None,
+                      handle: int = 0) -> Selector:
+        """Move / resize selector ``index``: new model-space centre (3,), size (box extent (3,)
+        or sphere radius), plane normal (3,). Returns the new selector."""
+        region = self._region(role, handle)
+        self._check_index(region, role, index)
+        if size is not None and np.ndim(size) == 0:
+            size = np.full(3, float(size))
+        region[index] = sl.with_shape(region[index], self.model, self.units, center=center,
+                                      size=size, normal=normal)
+        return region[index]
+
+    def resize_selector(self, role: str, index: int, factor: float, *, handle: int = 0
+                        ) -> Selector:
+        """Scale selector ``index`` about its centre by ``factor`` (> 0)."""
+        if not factor > 0:
+            raise InputError(f"factor: expected a positive number, got {factor}")
+        shape = self.shape(role, index, handle=handle)
+        return self.move_selector(role, index, size=shape.size * factor, handle=handle)
+
+    def remove_selector(self, role: str, index: int, *, handle: int = 0) -> None:
+        region = self._region(role, handle)
+        self._check_index(region, role, index)
+        del region[index]
+
+    def shape(self, role: str, index: int, *, handle: int = 0) -> sl.Shape:
+        """Model-space shape of selector ``index`` (for gizmos and outlines)."""
+        region = self._region(role, handle)
+        self._check_index(region, role, index)
+        return sl.shape_of(region[index], self.model, self.units)
+
+    @staticmethod
+    def _check_index(region: list, role: str, index: int) -> None:
+        if not 0 <= index < len(region):
+            raise InputError(f"{role}: no selector {index} (the region has {len(region)})")
+
+    def _regions_key(self) -> tuple:
+        return (self.units, tuple(self.fixed), tuple(tuple(h.selectors) for h in self.handles))
+
+    def masks(self) -> tuple[np.ndarray, list[np.ndarray]]:
+        """(fixed (N,) bool, [handle (N,) bool per handle]) for the current selectors."""
+        key = self._regions_key()
+        if self._masks_cache is not None and self._masks_cache[0] == key:
+            return self._masks_cache[1]
+        fixed = select(self.model, self.fixed, self.units, self.base_dir)
+        handles = [select(self.model, h.selectors, self.units, self.base_dir)
+                   for h in self.handles]
+        self._masks_cache = (key, (fixed, handles))
+        return fixed, handles
+
+    def labels(self) -> np.ndarray:
+        """(N,) uint8: 0 free, 1 fixed, 2 + i handle i (a point in both shows as fixed)."""
+        fixed, handles = self.masks()
+        out = np.zeros(self.model.n_points, dtype=np.uint8)
+        for i in reversed(range(len(handles))):
+            out[handles[i]] = HANDLE + i
+        out[fixed] = FIXED
+        return out
+
+    def counts(self) -> dict[str, int]:
+        """Point counts: fixed, handle (all handles), free, overlap (in both)."""
+        fixed, handles = self.masks()
+        moving = np.logical_or.reduce(handles) if handles else np.zeros_like(fixed)
+        return {"fixed": int(fixed.sum()), "handle": int(moving.sum()),
+                "free": int((~(fixed | moving)).sum()), "overlap": int((fixed & moving).sum())}
+
+    def problem(self) -> str | None:
+        """The error a fit would stop on for the regions alone (empty, overlapping, no free
+        region), as the one line the CLI prints; None when the regions look fine."""
+        try:
+            self._check_regions()
+        except InputError as exc:
+            return str(exc)
+        return None
+
+    def _check_regions(self) -> None:
+        if len(self.handles) != 1:
+            raise RegionError(f"handles: this version fits one handle per edit, the editor has "
+                              f"{len(self.handles)}")
+        fixed, handles = self.masks()
+        check_regions(fixed, handles[0])
+
+    # ---- fit and pose ------------------------------------------------------------------
+    def _settings_key(self) -> tuple:
+        s = self.settings
+        return (s.boundary.model_dump_json(), s.fit.model_dump_json(), s.normals, s.backend,
+                s.device)
+
+    @property
+    def stale(self) -> bool:
+        """True when there is no fit or the regions / fit settings changed since it."""
+        return self.deformation is None or self._fit_key != (self._regions_key(),
+                                                              self._settings_key())
+
+    def fit(self, progress: Callable[[str, float], None] | None = None) -> dict[str, Any]:
+        """Rings, fit and basis for the current regions (``splatdeform.edit.precompute``).
+        ``progress(stage, fraction)`` is called as stages start. Returns the figures shown
+        (counts, centers, residual, seconds per stage). Region errors are the CLI's lines."""
+        from ..edit import precompute
+
+        report = progress or (lambda stage, fraction: None)
+        report("regions", 0.0)
+        self._check_regions()
+        cfg = self.to_config()
+        key = (self._regions_key(), self._settings_key())
+        report("rings, fit and basis", 0.1)
+        t0 = time.perf_counter()
+        deformation = precompute(cfg, self.model, self.base_dir)
+        report("viewer buffers", 0.9)
+        self.deformation = deformation
+        self._fit_key = key
+        self._frame_data = self._prepare_frames(deformation)
+        fit = deformation.fit
+        self.fit_stats = {
+            "points": self.model.n_points, "free_points": int(deformation.free_idx.size),
+            "constraints": int(deformation.constraint_idx.size), "centers": fit.n_centers,
+            "converged": bool(fit.converged), "seconds": time.perf_counter() - t0,
+            **{f"{k}_s": v for k, v in deformation.timings.items()},
+        }
+        report("done", 1.0)
+        return dict(self.fit_stats)
+
+    def _prepare_frames(self, d: df.Deformation) -> dict[str, Any]:
+        """Per-frame arrays over the non-fixed points (fixed points never move)."""
+        m = self.model
+        active = np.flatnonzero(~d.fixed)
+        values, grads = df.full_basis(d)
+        need_grads = any(a is not None for a in (m.normals, m.axes, m.gaussians))
+        data: dict[str, Any] = {
+            "active": active,
+            "base": (m.positions - self.origin).astype(np.float32),
+            "values": np.ascontiguousarray(values[active]),
+            "grads": np.ascontiguousarray(grads[active]) if need_grads else None,
+        }
+        data["base_active"] = np.ascontiguousarray(data["base"][active])
+        if m.normals is not None:
+            data["normals"] = m.normals.astype(np.float32)
+        if m.axes is not None:
+            data["axes"] = m.axes.astype(np.float32)
+        if m.gaussians is not None:
+            data["cov"] = _gaussian_covariances(m)
+            data["cov_active"] = np.ascontiguousarray(data["cov"][active])
+        return data
+
+    def base_frame(self) -> Frame:
+        """The undeformed model as a :class:`Frame` (what the viewer shows before a fit)."""
+        m = self.model
+        return Frame(
+            positions=(m.positions - self.origin).astype(np.float32),
+            normals=None if m.normals is None else m.normals.astype(np.float32),
+            axes=None if m.axes is None else m.axes.astype(np.float32),
+            covariances=None if m.gaussians is None else _gaussian_covariances(m),
+            delta_c=np.zeros((4, 3)))
+
+    def delta_c(self, handle: int = 0) -> np.ndarray:
+        """delta_c (k, 3) = T(C) - C of the current pose (needs a fit: C is the fit's frame)."""
+        if self.deformation is None:
+            raise StaleFitError("fit: no fit yet; fit the regions first")
+        return delta_for_transform(self.deformation.control_points, self.handles[handle].matrix)
+
+    def set_pose(self, matrix: np.ndarray, handle: int = 0) -> Frame:
+        """Set handle ``handle``'s pose (4, 4) affine and deform: delta_c applied to the
+        precomputed basis (:func:`splatdeform.frame.deform_frame`); returns the new positions
+        and normals / axes / covariances. Raises StaleFitError when the fit is stale."""
+        m4 = np.asarray(matrix, dtype=np.float64)
+        if m4.shape != (4, 4) or not np.allclose(m4[3], [0, 0, 0, 1]) or \
+                not np.isfinite(m4).all():
+            raise InputError("pose: expected a finite 4x4 affine matrix (last row 0 0 0 1)")
+        if self.stale:
+            raise StaleFitError("fit: the regions changed since the last fit (or there is none);"
+                                " fit again before moving the handle")
+        self._region("handle", handle)
+        t0 = time.perf_counter()
+        self.handles[handle].matrix = m4.copy()
+        delta = self.delta_c(handle)
+        fd = self._frame_data
+        active = fd["active"]
+        normals = fd.get("normals")
+        p_act, n_act = ap.deform_frame(fd["base_active"],
+                                       None if normals is None else normals[active],
+                                       fd["values"], fd["grads"], delta)
+        positions = fd["base"].copy()
+        positions[active] = p_act
+        out_n = None
+        if normals is not None:
+            out_n = normals.copy()
+            out_n[active] = n_act
+        out_axes = out_cov = None
+        if "axes" in fd or "cov" in fd:
+            jac = ap.jacobians(fd["grads"], delta.astype(np.float32))
+            if "axes" in fd:
+                out_axes = fd["axes"].copy()
+                out_axes[active] = ap.transform_axes(jac, fd["axes"][active])
+            if "cov" in fd:
+                out_cov = fd["cov"].copy()
+                out_cov[active] = jac @ fd["cov_active"] @ jac.transpose(0, 2, 1)
+        return Frame(positions, out_n, out_axes, out_cov, delta, time.perf_counter() - t0)
+
+    def reset_pose(self, handle: int = 0) -> None:
+        """Back to the identity pose (no deformation)."""
+        self._region("handle", handle)
+        self.handles[handle].matrix = np.eye(4)
+
+    # ---- config and save ---------------------------------------------------------------
+    def resolved_backend(self) -> str:
+        """The concrete basis backend ('numpy' or 'opencl') 'auto' means here."""
+        return resolve_backend(self.settings.backend, self.settings.device)
+
+    def to_config(self, *, output: str | Path | None = None,
+                  config_dir: str | Path | None = None) -> EditConfig:
+        """The edit config of the current state: regions in the editor's units, the handle pose
+        as ``matrix`` rows, the backend written out. Paths are relative to ``config_dir``
+        (default: the editor's base folder) when they are inside it."""
+        return parse_edit(self.to_yaml_dict(output=output, config_dir=config_dir),
+                          "editor state")
+
+    def to_yaml_dict(self, *, output: str | Path | None = None,
+                     config_dir: str | Path | None = None) -> dict[str, Any]:
+        """The edit config mapping (what :meth:`save` writes as YAML)."""
+        cdir = Path(config_dir).resolve() if config_dir is not None else self.base_dir
+        out = Path(output) if output is not None else self.default_paths()[0]
+        s = self.settings
+        if len(self.handles) != 1:
+            raise RegionError(f"handles: this version fits one handle per edit, the editor has "
+                              f"{len(self.handles)}")
+        data: dict[str, Any] = {
+            "input": _relative(self.model_path, cdir),
+            "output": _relative(out.resolve(), cdir),
+            "regions": {
+                "units": self.units,
+                "fixed": [sl.to_yaml(x, self.base_dir) for x in self.fixed],
+                "handle": [sl.to_yaml(x, self.base_dir) for x in self.handles[0].selectors],
+            },
+            "handle": {"matrix": [[float(v) for v in row] for row in self.handles[0].matrix]},
+            "boundary": s.boundary.model_dump(),
+            "fit": s.fit.model_dump(),
+            "normals": s.normals,
+            "backend": self.resolved_backend(),
+        }
+        if s.device is not None:
+            data["device"] = s.device
+        if s.render is not None:
+            render = s.render.model_dump()
+            render["output"] = _relative((self.base_dir / s.render.output).resolve(), cdir)
+            data["render"] = render
+        return data
+
+    def default_paths(self) -> tuple[Path, Path, Path]:
+        """(model, yaml, png) Save writes by default. From a bare MODEL: MODEL_edited.<ext>,
+        MODEL_edit.yaml and MODEL_edit.png beside it; from EDIT.yaml: its output, then
+        EDIT_edited.yaml and EDIT_edited.png beside the YAML (inputs are never overwritten)."""
+        if self.config_path is not None:
+            c = self.config_path
+            return ((self.base_dir / self.settings.output).resolve(),
+                    c.with_name(f"{c.stem}_edited.yaml"), c.with_name(f"{c.stem}_edited.png"))
+        m = self.model_path
+        return (m.with_name(f"{m.stem}_edited{m.suffix}"), m.with_name(f"{m.stem}_edit.yaml"),
+                m.with_name(f"{m.stem}_edit.png"))
+
+    def deformed_model(self) -> PointModel:
+        """The deformed model exactly as ``splatdeform deform`` computes it for
+        :meth:`to_config` (float64 :func:`splatdeform.deform.apply`)."""
+        from ..edit import control_displacement
+
+        if self.stale:
+            raise StaleFitError("fit: the regions changed since the last fit (or there is none);"
+                                " fit again before saving")
+        cfg = self.to_config()
+        delta_c, matrix = control_displacement(cfg, self.model, self.deformation)
+        deformed = df.apply(self.deformation, self.model, delta_c, moving_matrix=matrix)
+        if not np.isfinite(deformed.positions).all():
+            raise InputError("the deformation produced non-finite positions; check the regions "
+                             "and the transform")
+        return deformed
+
+    def save(self, model_path: str | Path | None = None, config_path: str | Path | None = None,
+             image_path: str | Path | None = None, *, image: bool = True,
+             image_size: tuple[int, int] = (512, 512)) -> SaveResult:
+        """Write the deformed model (atomic, never over the input), the edit YAML that
+        reproduces it through ``splatdeform deform``, and (``image``) a before/after PNG through
+        the project's renderer. Defaults: :meth:`default_paths`."""
+        from ..io import atomic_write
+
+        d_model, d_yaml, d_png = self.default_paths()
+        out = Path(model_path) if model_path is not None else d_model
+        ypath = Path(config_path) if config_path is not None else d_yaml
+        png = Path(image_path) if image_path is not None else d_png
+        inputs = [self.model_path, self.config_path]
+        check_output_path(out, *inputs)
+        check_output_path(ypath, *inputs, out)
+        if ypath.suffix.lower() not in (".yaml", ".yml"):
+            raise InputError(f"{ypath}: expected a .yaml edit file name")
+        if image:
+            check_output_path(png, *inputs, out, ypath)
+            if png.suffix.lower() != ".png":
+                raise InputError(f"{png}: expected a .png image file name")
+        deformed = self.deformed_model()
+        text = yaml.safe_dump(self.to_yaml_dict(output=out, config_dir=ypath.resolve().parent),
+                              sort_keys=False, default_flow_style=None)
+        written = save(deformed, out)
+        with atomic_write(ypath) as stream:
+            stream.write(("# splatdeform edit written by the editor; reproduce with:\n"
+                          f"#   splatdeform deform {ypath.name}\n" + text).encode())
+        if image:
+            from ..render import render_comparison
+
+            render_comparison(self.model, deformed, png, size=image_size,
+                              labels=("before", "after"))
+        return SaveResult(written, ypath, png if image else None)
+
+
+def _bare_settings(model_path: Path) -> dict[str, Any]:
+    """Default settings of an edit started from a bare model (regions filled in later)."""
+    return {"input": str(model_path), "output": "unused.ply",
+            "regions": {"fixed": [{"indices": [0]}], "handle": [{"indices": [0]}]},
+            "handle": {"matrix": np.eye(4).tolist()}}
+
+
+def _relative(path: Path, base: Path) -> str:
+    """``path`` relative to ``base`` when it is inside it, else absolute."""
+    try:
+        return str(Path(os.path.relpath(path, base))) if path.is_relative_to(base) else str(path)
+    except ValueError:
+        return str(path)
+
