@@ -5,7 +5,7 @@
 VENV    := .venv
 PY      := $(VENV)/bin/python
 STAMP   := $(VENV)/.installed-stamp
-APT_PKGS := pocl-opencl-icd ocl-icd-libopencl1 libusb-1.0-0 libegl1 libegl-mesa0 libgl1-mesa-dri libgomp1
+APT_PKGS := pocl-opencl-icd ocl-icd-libopencl1 libusb-1.0-0 libegl1 libegl-mesa0 libgl1-mesa-dri libgomp1 chromium
 SUDO    := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
 DEMO_DIR := demo_out
 
