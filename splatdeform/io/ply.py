@@ -217,6 +217,18 @@ def source_for_save(model: PointModel) -> PlySource:
             data, props = _set_field(data, props, f"scale_{i}", g.scale_log[:, i])
         for i in range(4):
             data, props = _set_field(data, props, f"rot_{i}", g.rotation[:, i])
+        # SH (rotated by deformations) and the other 3DGS fields; only changed rows are written
+        # so that a double-typed column keeps its untouched values bit-exact
+        columns = [("opacity", g.opacity)] if g.opacity is not None else []
+        for part, prefix in ((g.sh_dc, "f_dc_"), (g.sh_rest, "f_rest_")):
+            if part is not None:
+                columns += [(f"{prefix}{i}", part[:, i]) for i in range(part.shape[1])]
+        for name, values in columns:
+            if name in (data.dtype.names or ()):
+                changed = data[name].astype(values.dtype) != values
+                data[name][changed] = values[changed]
+            else:
+                data, props = _set_field(data, props, name, values)
     elements = [el for el in source.elements]
     new_vertex = PlyElementData("vertex", props, data)
     if model.source is None:

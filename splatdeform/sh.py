@@ -1,0 +1,129 @@
+"""Real spherical harmonics of 3D Gaussian splats (3DGS conventions) and their rotation.
+
+Basis, constants and signs are those of the reference 3DGS ``sh_utils.eval_sh``: the colour seen
+along the unit direction d (from the camera to the splat) is
+``0.5 + sum_i c_i Y_i(d)`` with Y_0 = C0, band 1 = (-C1 y, C1 z, -C1 x), bands 2 and 3 as below.
+Within a band the functions are orthonormal on the sphere.
+
+``f_rest_*`` is stored channel-major: the first (deg+1)^2 - 1 values are the red channel's
+coefficients of bands 1..deg, then green, then blue (3DGS ``save_ply`` flattens
+``features_rest.transpose(1, 2)``).
+
+Rotation. For a rotation R every band l has an orthogonal (2l+1)x(2l+1) matrix D_l(R) with
+Y_l(R d) = D_l(R) Y_l(d). The coefficients c'_l = D_l(R) c_l then satisfy
+colour_out(R d) = colour_in(d) for every d. D_1 is R itself with rows and columns reordered
+(band 1 is C1 (-y, z, -x)); D_2 and D_3 are built exactly (to rounding) for a batch of rotations by
+evaluating Y_l at a fixed set of well-spread directions P and solving once:
+D_l(R) = Y_l(R P) Y_l(P)^+ (the pseudo-inverse of the fixed (2l+1, K) matrix is precomputed).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .errors import InputError
+
+C0 = 0.28209479177387814
+C1 = 0.4886025119029199
+C2 = (1.0925484305920792, -1.0925484305920792, 0.31539156525252005, -1.0925484305920792,
+      0.5462742152960396)
+C3 = (-0.5900435899266435, 2.890611442640554, -0.4570457994644658, 0.3731763325901154,
+      -0.4570457994644658, 1.445305721320277, -0.5900435899266435)
+
+MAX_DEGREE = 3
+REST_COUNTS = {3 * ((d + 1) ** 2 - 1): d for d in range(1, MAX_DEGREE + 1)}  # 9, 24, 45
+_CHUNK = 32768  # rotations per block (bounds the (M, K, 15) temporary)
+
+
+def sh_degree(n_rest: int) -> int:
+    """SH degree (1, 2 or 3) from the number of ``f_rest_*`` values (9, 24 or 45); 0 for 0."""
+    if n_rest == 0:
+        return 0
+    if n_rest not in REST_COUNTS:
+        raise InputError(f"f_rest_*: expected 9, 24 or 45 values per splat (SH degree 1-3, "
+                         f"3 colour channels), got {n_rest}; cannot rotate view-dependent colour")
+    return REST_COUNTS[n_rest]
+
+
+def _band_basis(d: np.ndarray, band: int) -> np.ndarray:
+    """Real SH of one band (1..3) at directions (..., 3) float64 -> (..., 2 band + 1)."""
+    x, y, z = d[..., 0], d[..., 1], d[..., 2]
+    if band == 1:
+        out = [-C1 * y, C1 * z, -C1 * x]
+    elif band == 2:
+        xx, yy, zz = x * x, y * y, z * z
+        out = [C2[0] * x * y, C2[1] * y * z, C2[2] * (2 * zz - xx - yy), C2[3] * x * z,
+               C2[4] * (xx - yy)]
+    else:
+        xx, yy, zz = x * x, y * y, z * z
+        out = [C3[0] * y * (3 * xx - yy), C3[1] * x * y * z, C3[2] * y * (4 * zz - xx - yy),
+               C3[3] * z * (2 * zz - 3 * xx - 3 * yy), C3[4] * x * (4 * zz - xx - yy),
+               C3[5] * z * (xx - yy), C3[6] * x * (xx - 3 * yy)]
+    return np.stack(out, axis=-1)
+
+
+def sh_basis(dirs: np.ndarray, degree: int = MAX_DEGREE) -> np.ndarray:
+    """Real SH of bands 1..degree at directions (..., 3) -> (..., (degree+1)^2 - 1) float64.
+
+    Homogeneous polynomials of 3DGS ``eval_sh`` (exact on unit vectors); band 0 is left out.
+    """
+    d = np.asarray(dirs, dtype=np.float64)
+    return np.concatenate([_band_basis(d, b) for b in range(1, degree + 1)], axis=-1)
+
+
+def _band(band: int) -> slice:
+    """Columns of band ``band`` (1..3) in the bands-1..deg coefficient vector."""
+    return slice(band * band - 1, (band + 1) * (band + 1) - 1)
+
+
+def _sample_directions(k: int) -> np.ndarray:
+    """(k, 3) unit vectors on a Fibonacci spiral (deterministic, well spread)."""
+    i = np.arange(k) + 0.5
+    z = 1 - 2 * i / k
+    r = np.sqrt(1 - z * z)
+    phi = np.pi * (1 + 5 ** 0.5) * i
+    return np.stack([r * np.cos(phi), r * np.sin(phi), z], axis=1)
+
+
+# Band 1 is R itself in the (-y, z, -x) order: Y_1(d) = C1 P d, so D_1 = P R P^T.
+_P1 = np.array([[0.0, -1.0, 0.0], [0.0, 0.0, 1.0], [-1.0, 0.0, 0.0]])
+# Bands 2 and 3 from samples: 6 and 8 spiral directions give Y_l(P) conditions 8.0 and 12.1.
+_DIRS = {2: _sample_directions(6), 3: _sample_directions(8)}
+_PINV = {b: np.linalg.pinv(_band_basis(p, b).T) for b, p in _DIRS.items()}  # (K, 2b+1)
+
+
+def band_rotations(rot: np.ndarray, degree: int = MAX_DEGREE) -> list[np.ndarray]:
+    """Per-band SH rotation matrices for rotations (M, 3, 3) float64.
+
+    Returns [D_1, ..., D_degree], D_l (M, 2l+1, 2l+1) float64 with Y_l(R d) = D_l(R) Y_l(d).
+    """
+    r = np.asarray(rot, dtype=np.float64)
+    out = [_P1 @ r @ _P1.T]
+    for b in range(2, degree + 1):
+        rotated = np.matmul(r[:, None], _DIRS[b][None, :, :, None])[..., 0]  # R p_k, (M, K, 3)
+        out.append(np.matmul(_band_basis(rotated, b).transpose(0, 2, 1), _PINV[b]))
+    return out
+
+
+def rotate_sh_rest(sh_rest: np.ndarray, rot: np.ndarray) -> np.ndarray:
+    """SH bands 1..deg rotated by R: colour_out(R d) = colour_in(d).
+
+    sh_rest: (M, 3 * ((deg+1)^2 - 1)) channel-major ``f_rest_*``; rot: (M, 3, 3) proper
+    rotations. Returns (M, same) in sh_rest's dtype (computed in float64).
+    """
+    rest = np.asarray(sh_rest)
+    degree = sh_degree(rest.shape[1])
+    out = rest.copy()
+    if degree == 0:
+        return out
+    n = (degree + 1) ** 2 - 1
+    for start in range(0, rest.shape[0], _CHUNK):
+        block = slice(start, start + _CHUNK)
+        coeffs = rest[block].astype(np.float64).reshape(-1, 3, n)  # (M, channel, coefficient)
+        new = np.empty_like(coeffs)
+        r = rot[block]
+        same = bool((r == r[:1]).all())  # one rotation for the whole block (a rigid handle)
+        for b, d in enumerate(band_rotations(r[:1] if same else r, degree), start=1):
+            new[:, :, _band(b)] = np.matmul(coeffs[:, :, _band(b)], d.transpose(0, 2, 1))
+        out[block] = new.reshape(-1, 3 * n).astype(rest.dtype)
+    return out
