@@ -24,7 +24,7 @@ from .handle import AffineFrame, apply_affine, handle_frame
 from .model import PointModel
 from .rbf.result import RbfFit
 from .regions import check_regions
-from .rings import adjacency, boundary_rings
+from .rings import boundary_rings, region_adjacency
 
 
 @dataclass
@@ -83,7 +83,7 @@ def prepare(model: PointModel, fixed: np.ndarray, moving: np.ndarray, *,
     check_regions(fixed, moving, handle_name=moving_name)
     timings: dict[str, float] = {}
     t0 = time.perf_counter()
-    adj = adjacency(model, neighbors)
+    adj = region_adjacency(model, fixed, moving, neighbors, continuity + 2)
     fixed_rings, moving_rings = boundary_rings(adj, fixed, moving, continuity + 1, moving_name)
     timings["rings"] = time.perf_counter() - t0
 

@@ -37,6 +37,123 @@ def knn_edges(positions: np.ndarray, k: int, subset: np.ndarray | None = None) -
     return np.stack([src[keep], dst[keep]], axis=1)
 
 
+#: Points sampled (seeded) to estimate the kNN radius that sizes the border band.
+_SPACING_SAMPLE = 4000
+_BAND_SAFETY = 2.0
+
+
+def _cell_keys(positions: np.ndarray, cell: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Voxel cells of size ``cell``: (unique keys (C,), inverse (N,), key strides (3,))."""
+    lo = positions.min(axis=0)
+    ijk = np.floor((positions - lo) / cell).astype(np.int64) + 1  # 1-based: room for -1
+    dims = ijk.max(axis=0) + 2
+    strides = np.array([dims[1] * dims[2], dims[2], 1], dtype=np.int64)
+    keys = ijk @ strides
+    uniq, inverse = np.unique(keys, return_inverse=True)
+    return uniq, inverse.reshape(-1), strides
+
+
+def border_band(positions: np.ndarray, labels: np.ndarray, radius: float) -> np.ndarray:
+    """Mask (N,) of points within about ``radius`` of a point with another label.
+
+    labels: (N,) small ints (free / fixed / moving). Points are hashed into cells of size
+    ``radius``; a cell is on the border when its 3x3x3 neighbourhood holds two or more labels,
+    so every point within ``radius`` of another label is in the band (and some a little
+    farther). O(N log N) for the hash, no neighbour search.
+    """
+    uniq, inverse, strides = _cell_keys(positions, radius)
+    flags = np.zeros(uniq.size, dtype=np.uint8)
+    for label in np.unique(labels):
+        flags[np.unique(inverse[labels == label])] |= np.uint8(1 << int(label))
+    around = flags.copy()
+    offsets = np.array([[i, j, k] for i in (-1, 0, 1) for j in (-1, 0, 1) for k in (-1, 0, 1)
+                        if (i, j, k) != (0, 0, 0)]) @ strides
+    for off in offsets:
+        pos = np.searchsorted(uniq, uniq + off)
+        pos[pos == uniq.size] = 0
+        hit = uniq[pos] == uniq + off
+        around[hit] |= flags[pos[hit]]
+    bits = np.unpackbits(around[:, None], axis=1).sum(axis=1)
+    return (bits >= 2)[inverse]
+
+
+def knn_radius(positions: np.ndarray, tree: cKDTree, k: int, seed: int = 0) -> float:
+    """A high quantile of the distance to the k-th nearest neighbour, from a seeded sample."""
+    n = positions.shape[0]
+    rng = np.random.default_rng(seed)
+    sample = positions if n <= _SPACING_SAMPLE else positions[
+        rng.choice(n, _SPACING_SAMPLE, replace=False)]
+    dist, _ = tree.query(sample, k=min(k + 1, n), workers=-1)
+    return float(np.quantile(dist[:, -1], 0.999))
+
+
+def border_knn_adjacency(positions: np.ndarray, labels: np.ndarray, neighbors: int,
+                         depth: int) -> sp.csr_matrix:
+    """Symmetric (N, N) kNN adjacency holding only the edges of points near the label borders.
+
+    The rings (``depth`` of them) and the region checks only look at edges within a few hops of
+    where the free, fixed and moving regions meet, so only those points are queried instead of
+    the whole model: the candidates in a thin voxel band around the borders (two kNN radii);
+    the seeds among them whose k nearest neighbours hold another label, with those neighbours;
+    then ``depth + 1`` hops of kNN expansion from the seeds, so every ring point and every
+    neighbour of one has its own kNN list, whatever the local density. Edges that exist only
+    because a point far from every border lists a ring point among its neighbours (a lone
+    outlier) are the one thing not searched; the tests check equality with the whole-model
+    graph's rings on every shared scan.
+    """
+    n = positions.shape[0]
+    k = int(min(neighbors, n - 1))
+    if k <= 0:
+        return _symmetric(np.empty((0, 2), dtype=np.int64), n)
+    tree = cKDTree(positions)
+    radius = knn_radius(positions, tree, k)
+    extent = float(np.ptp(positions, axis=0).max())
+    if radius > 0 and 2 * radius * _BAND_SAFETY < extent:
+        frontier = np.flatnonzero(border_band(positions, labels, 2 * radius * _BAND_SAFETY))
+    else:
+        frontier = np.arange(n)
+    queried = np.zeros(n, dtype=bool)
+    sources, targets = [], []
+    for hop in range(depth + 2):
+        if frontier.size == 0:
+            break
+        _, nbr = tree.query(positions[frontier], k=k + 1, workers=-1)
+        queried[frontier] = True
+        sources.append(np.repeat(frontier, k + 1))
+        targets.append(nbr.reshape(-1))
+        valid = nbr < n
+        if hop == 0:  # seeds: candidates with a neighbour of another label, and that neighbour
+            cross = valid & (labels[np.minimum(nbr, n - 1)] != labels[frontier][:, None])
+            reached = np.concatenate([frontier[cross.any(axis=1)], nbr[cross]])
+        else:
+            reached = nbr[valid]
+        reached = np.unique(reached)
+        frontier = reached[~queried[reached]]
+    src = np.concatenate(sources)
+    dst = np.concatenate(targets)
+    keep = (dst != src) & (dst < n)
+    return _symmetric(np.stack([src[keep], dst[keep]], axis=1), n)
+
+
+def _symmetric(edges: np.ndarray, n: int) -> sp.csr_matrix:
+    data = np.ones(len(edges), dtype=bool)
+    adj = sp.coo_matrix((data, (edges[:, 0], edges[:, 1])), shape=(n, n)).tocsr()
+    adj = (adj + adj.T).tocsr()
+    adj.setdiag(False)
+    adj.eliminate_zeros()
+    return adj
+
+
+def region_adjacency(model: PointModel, fixed: np.ndarray, moving: np.ndarray,
+                     neighbors: int = 10, depth: int = 3) -> sp.csr_matrix:
+    """The adjacency the rings need: mesh edges when the model has faces, else the kNN graph
+    restricted to the band where the regions meet (see :func:`border_knn_adjacency`)."""
+    if model.faces is not None and model.n_faces:
+        return adjacency(model, neighbors)
+    labels = fixed.astype(np.int8) + 2 * moving.astype(np.int8)
+    return border_knn_adjacency(model.positions, labels, neighbors, depth)
+
+
 def adjacency(model: PointModel, neighbors: int = 10) -> sp.csr_matrix:
     """Symmetric (N, N) boolean adjacency: mesh edges if the model has faces, else kNN."""
     n = model.n_points
@@ -50,12 +167,7 @@ def adjacency(model: PointModel, neighbors: int = 10) -> sp.csr_matrix:
                                                      np.flatnonzero(~used))])
     else:
         edges = knn_edges(model.positions, neighbors)
-    data = np.ones(len(edges), dtype=bool)
-    adj = sp.coo_matrix((data, (edges[:, 0], edges[:, 1])), shape=(n, n)).tocsr()
-    adj = (adj + adj.T).tocsr()
-    adj.setdiag(False)
-    adj.eliminate_zeros()
-    return adj
+    return _symmetric(edges, n)
 
 
 def neighbours_of(adj: sp.csr_matrix, mask: np.ndarray) -> np.ndarray:
