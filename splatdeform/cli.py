@@ -7,9 +7,15 @@ stderr naming the file or key; ``--debug`` shows the traceback.
 from __future__ import annotations
 
 import argparse
+import contextlib
+import errno
 import json
+import math
+import os
+import signal
 import sys
 import traceback
+import warnings
 
 from .errors import InputError, SplatdeformError
 
@@ -50,22 +56,98 @@ def cmd_deform(args: argparse.Namespace) -> int:
     reuse = args.reuse_file
     if args.reuse and reuse is None:
         reuse = str(output or base / cfg.output) + ".deform.npz"
+    render_out = args.render or (str(base / cfg.render.output) if cfg.render else None)
+    _check_deform_paths(args, cfg, base, output, reuse, render_out)
     try:
         result = run_edit(cfg, base, output=output, drop_nonfinite=args.drop_nonfinite,
-                          reuse=reuse, log=print, warn=_warn)
+                          reuse=reuse, log=print, warn=_warn,
+                          stream={"budget": args.memory_budget, "scheduler": args.scheduler,
+                                  "workers": args.workers, "quiet": args.quiet})
     except InputError as exc:
         # region/curve/transform errors name the key; add the config file they came from
         if str(exc).split(":")[0].split(".")[0] in ("regions", "handle", "curve", "boundary",
                                                      "fit"):
             raise type(exc)(f"{args.config}: {exc}") from exc
         raise
-    render_out = args.render or (str(base / cfg.render.output) if cfg.render else None)
+    if render_out and result.model is None:
+        raise InputError("--render/render: not available when deform streams (the model is "
+                         "never whole in memory); render the output file instead")
     if render_out:
         from .edit_render import render_result
 
         render_result(result, cfg, render_out, frames=args.frames)
     print(format_report(result))
     return 0
+
+
+def _check_deform_paths(args: argparse.Namespace, cfg, base, output, reuse, render_out) -> None:
+    """Before any work: no output of this run may be an input or another output."""
+    from .config import input_paths
+    from .edit_render import render_frames_count, render_target
+    from .io.atomic import check_io_paths
+
+    outputs = [("-o/--output" if output is not None else "output",
+                output if output is not None else base / cfg.output),
+               ("--reuse-file" if args.reuse_file else "--reuse cache", reuse)]
+    if render_out:
+        _, files = render_target(render_out, render_frames_count(cfg, args.frames))
+        outputs += [("--render" if args.render else "render.output", f) for f in files]
+    check_io_paths([("edit config", args.config), *input_paths(cfg, base)], outputs)
+
+
+def cmd_select(args: argparse.Namespace) -> int:
+    from pathlib import Path
+
+    from .config import input_paths, load_edit
+    from .edit import prepare_model
+    from .io.atomic import check_io_paths
+    from .selection import format_counts, preview_model, select_regions
+
+    cfg = load_edit(args.config)
+    base = Path(args.config).resolve().parent
+    if args.output is not None and not args.output.lower().endswith(".png"):
+        raise InputError(f"-o/--output: expected a .png file, got {args.output!r}")
+    check_io_paths([("edit config", args.config), *input_paths(cfg, base)],
+                   [("-o/--output", args.output)])
+    model = prepare_model(cfg, base, {}, args.drop_nonfinite)
+    try:
+        sel = select_regions(cfg, model, base)
+    except InputError as exc:
+        raise type(exc)(f"{args.config}: {exc}") from exc
+    print(format_counts(sel.counts()))
+    if args.output is not None:
+        from .render import render_comparison
+
+        opts = cfg.render
+        size = (opts.size[0] // 2, opts.size[1]) if opts else (600, 600)
+        view = dict(azimuth=opts.azimuth, elevation=opts.elevation, fov=opts.fov) if opts \
+            else {}
+        render_comparison(preview_model(model, sel), None, args.output, size=size,
+                          labels=(f"fixed (blue) / {sel.moving_name} (orange) / free (grey); "
+                                  "rings lighter",), **view)
+        print(f"wrote {args.output}")
+    return 0
+
+
+def cmd_edit(args: argparse.Namespace) -> int:
+    from .editor.server import run
+
+    if not 0 <= args.port <= 65535:
+        raise InputError(f"--port: expected 0..65535, got {args.port}")
+    return run(args.path, host=args.host, port=args.port)
+
+
+def _frames(text: str) -> int:
+    from .config import MAX_FRAMES
+
+    try:
+        n = int(text)
+        if not 0 <= n <= MAX_FRAMES:
+            raise ValueError
+    except ValueError:
+        raise InputError(f"--frames: expected an integer from 0 to {MAX_FRAMES}, got "
+                         f"{text!r}") from None
+    return n
 
 
 def _size(text: str) -> tuple[int, int]:
@@ -80,15 +162,20 @@ def _size(text: str) -> tuple[int, int]:
 
 
 def cmd_render(args: argparse.Namespace) -> int:
-    from .io import check_output_path, load
+    from .io import load
+    from .io.atomic import check_io_paths
     from .render import render_comparison
 
     size = _size(args.size)
-    models = [load(p, drop_nonfinite=args.drop_nonfinite) for p in args.models]
-    for m in models:
-        check_output_path(args.output, m.path)
+    for name in ("azimuth", "elevation", "fov"):
+        if not math.isfinite(getattr(args, name)):
+            raise InputError(f"--{name}: expected a finite number, got {getattr(args, name)}")
+    if not 1 <= args.fov <= 179:
+        raise InputError(f"--fov: expected degrees between 1 and 179, got {args.fov}")
     if not args.output.lower().endswith(".png"):
         raise InputError(f"-o/--output: expected a .png file, got {args.output!r}")
+    check_io_paths([("model", p) for p in args.models], [("-o/--output", args.output)])
+    models = [load(p, drop_nonfinite=args.drop_nonfinite) for p in args.models]
     after = models[1] if len(models) > 1 else None
     labels = tuple(args.labels.split(",")) if args.labels else (
         (models[0].path, models[1].path) if after is not None else (models[0].path,))
@@ -122,10 +209,18 @@ def build_parser() -> argparse.ArgumentParser:
                         "transform with the same regions skips fitting and the basis")
     p.add_argument("--reuse-file", help="like --reuse, with this file")
     p.add_argument("--render", help="also write a before/after PNG (or GIF with --frames)")
-    p.add_argument("--frames", type=int, default=0,
+    p.add_argument("--frames", type=_frames, default=0,
                    help="render N frames of the handle moving from identity to the target")
     p.add_argument("--drop-nonfinite", action="store_true",
                    help="drop vertices with NaN/Inf coordinates instead of failing")
+    p.add_argument("--memory-budget", metavar="SIZE",
+                   help="stream the scan out of core when the in-memory estimate exceeds SIZE "
+                        "(e.g. 512MB, 2GB; config memory_budget; default half the RAM)")
+    p.add_argument("--scheduler", metavar="ADDRESS",
+                   help="split the scan over this Dask scheduler (tcp://HOST:PORT)")
+    p.add_argument("--workers", type=int, metavar="N",
+                   help="split the scan over N local Dask worker processes")
+    p.add_argument("--quiet", action="store_true", help="no progress lines")
     p.set_defaults(func=cmd_deform)
 
     p = sub.add_parser("render", help="render a model, or two side by side (before/after)")
@@ -139,33 +234,98 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--drop-nonfinite", action="store_true")
     p.set_defaults(func=cmd_render)
 
+    p = sub.add_parser("select", help="what an edit selects: fixed / handle / free / ring "
+                                      "counts, and a preview image coloured by region")
+    p.add_argument("config", help="edit YAML file")
+    p.add_argument("-o", "--output", help="preview PNG (the model coloured by region)")
+    p.add_argument("--drop-nonfinite", action="store_true",
+                   help="drop vertices with NaN/Inf coordinates instead of failing")
+    p.set_defaults(func=cmd_select)
+
+    p = sub.add_parser("edit", help="local web editor: pick regions, fit, drag the handle, save")
+    p.add_argument("path", metavar="MODEL|EDIT.yaml", help="a model file or an edit YAML")
+    p.add_argument("--port", type=int, default=8080, help="port (default 8080; next free one)")
+    p.add_argument("--host", default="127.0.0.1",
+                   help="address to bind (default 127.0.0.1: this machine only)")
+    p.set_defaults(func=cmd_edit)
+
     from .batch import register as register_batch
 
     register_batch(sub)
     return parser
 
 
+class Terminated(BaseException):
+    """SIGTERM arrived: unwind like Ctrl-C (temporary files are removed on the way out)."""
+
+
+def _on_sigterm(signum, frame) -> None:
+    raise Terminated()
+
+
+# OS errors that mean "this path is wrong" (exit 2); the rest (disk full, I/O error) exit 1
+_USAGE_ERRNOS = {errno.EACCES, errno.EPERM, errno.ENOENT, errno.ENOTDIR, errno.EISDIR,
+                 errno.ENAMETOOLONG, errno.EROFS, errno.EEXIST, errno.ELOOP, errno.EINVAL}
+
+
+def _os_error_line(exc: OSError) -> tuple[str, int]:
+    where = exc.filename if exc.filename is not None else ""
+    what = exc.strerror or str(exc) or type(exc).__name__
+    if exc.errno in (errno.ENOSPC, errno.EDQUOT, errno.EFBIG):
+        what += " (the disk or the file size limit is full; nothing was written)"
+    line = f"{where}: {what}" if where else what
+    return line, 2 if exc.errno in _USAGE_ERRNOS else 1
+
+
+def _stdout_gone() -> int:
+    """The reader of stdout went away (``| head``): stop quietly, like other Unix tools."""
+    with contextlib.suppress(OSError):
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+    return 141  # 128 + SIGPIPE
+
+
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
     debug = "--debug" in argv
+    if not debug:  # numpy RuntimeWarnings must not turn one error line into several
+        warnings.simplefilter("ignore", RuntimeWarning)
+    with contextlib.suppress(ValueError):  # not in the main thread (tests calling main())
+        signal.signal(signal.SIGTERM, _on_sigterm)
+
+    def fail(line: str, code: int) -> int:
+        if debug:
+            traceback.print_exc()
+        print(f"splatdeform: error: {line}", file=sys.stderr)
+        return code
+
     try:
         args = build_parser().parse_args(argv)
         if args.command == "render" and len(args.models) > 2:
             raise InputError("render: expected one or two model files")
-        return int(args.func(args) or 0)
+        code = int(args.func(args) or 0)
+        sys.stdout.flush()
+        return code
     except SplatdeformError as exc:
-        if debug:
-            traceback.print_exc()
-        print(f"splatdeform: error: {exc}", file=sys.stderr)
-        return exc.exit_code
+        return fail(str(exc), exc.exit_code)
     except MemoryError:
-        if debug:
-            traceback.print_exc()
-        print("splatdeform: error: out of memory", file=sys.stderr)
-        return 1
+        return fail("out of memory", 1)
+    except BrokenPipeError:
+        return _stdout_gone()
+    except OSError as exc:
+        return fail(*_os_error_line(exc))
     except KeyboardInterrupt:
         print("splatdeform: interrupted", file=sys.stderr)
         return 130
+    except Terminated:
+        print("splatdeform: terminated", file=sys.stderr)
+        return 143
+    except RecursionError:
+        return fail("input nested too deeply", 2)
+    except Exception as exc:  # a bug: still one line; --debug shows where
+        msg = " ".join(str(exc).split())[:300] or type(exc).__name__
+        return fail(f"internal error: {type(exc).__name__}: {msg} (rerun with --debug for the "
+                    "traceback)", 1)
 
 
 if __name__ == "__main__":

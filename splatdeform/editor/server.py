@@ -1,0 +1,419 @@
+"""The editor's web layer on viser: the scene, the gizmos and the GUI panel.
+
+It only calls the :class:`~splatdeform.editor.controller.EditorController`: every selector edit,
+fit, pose change and save is a controller action; this module turns results into viewer buffers.
+Everything shown is in *local* coordinates (model coordinates minus ``controller.origin``).
+Pose changes from gizmo drags are coalesced: a worker thread always applies the latest pose, so a
+fast drag never queues stale frames.
+"""
+
+from __future__ import annotations
+
+import signal
+import threading
+import time
+from typing import Any
+
+import numpy as np
+
+from ..errors import SplatdeformError
+from ..gaussians import quaternion_to_matrix
+from . import view
+from .controller import EditorController, Frame
+
+ROLE_COLORS = {"fixed": (50, 110, 255), "handle": (255, 120, 30)}
+
+
+def _rotation_to(normal: np.ndarray) -> np.ndarray:
+    """(4,) wxyz quaternion rotating +z onto ``normal`` (3,)."""
+    z = np.array([0.0, 0.0, 1.0])
+    n = np.asarray(normal, float) / max(np.linalg.norm(normal), 1e-300)
+    axis = np.cross(z, n)
+    s, c = np.linalg.norm(axis), float(z @ n)
+    if s < 1e-12:
+        return np.array([1.0, 0, 0, 0]) if c > 0 else np.array([0.0, 1, 0, 0])
+    half = np.arctan2(s, c) / 2
+    return np.concatenate([[np.cos(half)], np.sin(half) * axis / s])
+
+
+def pose_matrix(origin: np.ndarray, start: np.ndarray, position: np.ndarray,
+                wxyz: np.ndarray) -> np.ndarray:
+    """4x4 model-space map of a gizmo moved from local ``start`` (3,) (identity rotation) to
+    local ``position`` (3,) with rotation ``wxyz`` (4,): rotate about the start, then move."""
+    r = quaternion_to_matrix(np.asarray(wxyz, float)[None])[0]
+    pivot = origin + np.asarray(start, float)
+    m = np.eye(4)
+    m[:3, :3] = r
+    m[:3, 3] = origin + np.asarray(position, float) - r @ pivot
+    return m
+
+
+class EditorApp:
+    """The viser scene and GUI over one controller."""
+
+    def __init__(self, controller: EditorController, server: Any) -> None:
+        self.ed = controller
+        self.server = server
+        self.lock = threading.RLock()
+        self.model = controller.model
+        self.up = view.up_direction(self.model)
+        self.colors = view.base_colors(self.model)
+        self.kind = ("splats" if self.model.gaussians is not None
+                     else "mesh" if self.model.n_faces else "points")
+        self._selector_nodes: list[Any] = []
+        self._pose_gizmos: list[Any] = []
+        self._pose_base: list[tuple[np.ndarray, np.ndarray]] = []
+        self._pending: tuple[int, np.ndarray] | None = None
+        self._wake = threading.Event()
+        self._closing = False
+        self.frames = 0
+        self.last_ms = 0.0
+        self._build_scene()
+        self._build_gui()
+        self.refresh_regions()
+        self._worker = threading.Thread(target=self._pose_worker, name="editor-pose", daemon=True)
+        self._worker.start()
+
+    # ---- scene -------------------------------------------------------------------------
+    def _build_scene(self) -> None:
+        s, m = self.server.scene, self.model
+        s.set_up_direction(self.up)
+        diag = max(m.diagonal(), 1e-9)
+        sign = -1.0 if self.up == "-y" else 1.0
+        self.server.initial_camera.position = (0.55 * diag, 0.35 * diag * sign, 0.9 * diag)
+        self.server.initial_camera.look_at = (0.0, 0.0, 0.0)
+        frame = self.ed.base_frame()
+        self.labels = self.ed.labels()
+        self._tinted = view.tinted(self.colors, self.labels)
+        if self.kind == "splats":
+            rgba = view.splat_rgba(m, self._tinted)
+            self._rgba = rgba
+            self.node = s.add_gaussian_splats(
+                "/model/splats", centers=frame.positions, covariances=frame.covariances,
+                rgbs=rgba[:, :3], opacities=rgba[:, 3:4])
+        else:
+            if self.kind == "mesh":
+                self.mesh = s.add_mesh_simple("/model/mesh", frame.positions,
+                                              self.model.faces.astype(np.uint32),
+                                              color=(200, 200, 200), side="double")
+            self.node = s.add_point_cloud(
+                "/model/points", frame.positions,
+                view.shaded(self._tinted, frame.normals, self.up),
+                point_size=view.point_size(m) * (0.5 if self.kind == "mesh" else 1.0),
+                point_shape="circle", precision="float32", point_shading="flat")
+        self._frame = frame
+
+    def show_frame(self, frame: Frame) -> None:
+        """Hand a frame's buffers to the viewer (the end of the measured pose path)."""
+        if self.kind == "splats":
+            self.node.buffer = view.splat_buffer(frame.positions, frame.covariances, self._rgba)
+            return
+        if self.kind == "mesh":
+            self.mesh.vertices = frame.positions
+        self.node.points = frame.positions
+        if frame.normals is not None:
+            self.node.colors = view.shaded(self._tinted, frame.normals, self.up)
+        self._frame = frame
+
+    def refresh_regions(self) -> None:
+        """Recolour by region and update counts, problems and the stale flag."""
+        with self.lock:
+            self.labels = self.ed.labels()
+            self._tinted = view.tinted(self.colors, self.labels)
+            if self.kind == "splats":
+                self._rgba = view.splat_rgba(self.model, self._tinted)
+                self.node.buffer = view.splat_buffer(self._frame.positions,
+                                                     self._frame.covariances, self._rgba)
+            else:
+                self.node.colors = view.shaded(self._tinted, self._frame.normals, self.up)
+            c = self.ed.counts()
+            problem = self.ed.problem()
+            fit = "none yet" if self.ed.deformation is None else (
+                "**stale** (regions changed: fit again)" if self.ed.stale else "current")
+            lines = [f"fixed **{c['fixed']:,}** · handle **{c['handle']:,}** · "
+                     f"free **{c['free']:,}** of {self.model.n_points:,}", f"fit: {fit}"]
+            if problem:
+                lines.append(f"⚠ {problem}")
+            self.counts_md.content = "  \n".join(lines)
+
+    # ---- selectors ---------------------------------------------------------------------
+    def _selector_entries(self) -> list[tuple[str, int]]:
+        return [("fixed", i) for i in range(len(self.ed.fixed))] + \
+               [("handle", i) for i in range(len(self.ed.handles[0].selectors))]
+
+    def rebuild_selectors(self) -> None:
+        """One gizmo + outline per box / sphere / plane selector."""
+        s = self.server.scene
+        for node in self._selector_nodes:
+            node.remove()
+        self._selector_nodes = []
+        for role, i in self._selector_entries():
+            shape = self.ed.shape(role, i)
+            if shape.kind == "other":
+                continue
+            name = f"/selectors/{role}{i}"
+            wxyz = _rotation_to(shape.normal) if shape.kind == "plane" else (1.0, 0, 0, 0)
+            size = float(max(self.model.diagonal(), 1e-9))
+            gizmo = s.add_transform_controls(
+                name, scale=0.15 * size, position=shape.center - self.ed.origin, wxyz=wxyz,
+                disable_rotations=shape.kind != "plane", depth_test=False)
+            color = ROLE_COLORS[role]
+            if shape.kind == "box":
+                outline = s.add_box(f"{name}/outline", color=color,
+                                    dimensions=tuple(np.maximum(shape.size, 1e-9)), wireframe=True)
+            elif shape.kind == "sphere":
+                outline = s.add_icosphere(f"{name}/outline", radius=float(shape.size[0]),
+                                          color=color, wireframe=True, subdivisions=2)
+            else:
+                outline = s.add_box(f"{name}/outline", color=color,
+                                    dimensions=(0.8 * size, 0.8 * size, 1e-3 * size),
+                                    opacity=0.25)
+            gizmo.on_update(self._selector_moved(role, i, shape.kind))
+            self._selector_nodes += [outline, gizmo]
+        labels = [f"{role} {i} ({type(sel).__name__.lower()})" for role, i in
+                  self._selector_entries()
+                  for sel in [self.ed._region(role)[i]]]
+        self.selected.options = tuple(labels) or ("(none)",)
+        self._on_selected()
+
+    def _selector_moved(self, role: str, index: int, kind: str):
+        def callback(event: Any) -> None:
+            g = event.target
+            with self.lock:
+                normal = None
+                if kind == "plane":
+                    normal = quaternion_to_matrix(np.asarray(g.wxyz)[None])[0][:, 2]
+                self.ed.move_selector(role, index, center=np.asarray(g.position) + self.ed.origin,
+                                      normal=normal)
+            self.refresh_regions()
+        return callback
+
+    def _selected_entry(self) -> tuple[str, int] | None:
+        value = self.selected.value
+        if not value or value == "(none)":
+            return None
+        role, idx = value.split(" ")[:2]
+        return role, int(idx)
+
+    def _on_selected(self, *_: Any) -> None:
+        entry = self._selected_entry()
+        if entry is None:
+            return
+        shape = self.ed.shape(*entry)
+        self._syncing = True
+        try:
+            self.size_input.value = tuple(float(v) for v in shape.size)
+        finally:
+            self._syncing = False
+
+    def _on_size(self, *_: Any) -> None:
+        entry = self._selected_entry()
+        if entry is None or getattr(self, "_syncing", False):
+            return
+        size = np.abs(np.asarray(self.size_input.value, float))
+        with self.lock:
+            try:
+                if self.ed.shape(*entry).kind == "sphere":
+                    size = np.full(3, size.max())
+                self.ed.move_selector(*entry, size=size)
+            except SplatdeformError as exc:
+                self.status(str(exc))
+                return
+        self.rebuild_selectors()
+        self.refresh_regions()
+
+    def _add(self, role: str, kind: str) -> None:
+        with self.lock:
+            self.ed.add_selector(role, kind)
+        self.rebuild_selectors()
+        self.refresh_regions()
+
+    def _remove(self, *_: Any) -> None:
+        entry = self._selected_entry()
+        if entry is None:
+            return
+        with self.lock:
+            self.ed.remove_selector(*entry)
+        self.rebuild_selectors()
+        self.refresh_regions()
+
+    # ---- fit and pose ------------------------------------------------------------------
+    def _fit(self, *_: Any) -> None:
+        self.fit_button.disabled = True
+        self.progress.visible = True
+        self.progress.animated = True
+
+        def report(stage: str, fraction: float) -> None:
+            self.progress.value = 100.0 * fraction
+            self.fit_md.content = f"fitting: {stage} …"
+
+        try:
+            with self.lock:
+                stats = self.ed.fit(report)
+                frame = self.ed.set_pose(self.ed.handles[0].matrix)
+                self.show_frame(frame)
+            self.fit_md.content = (
+                f"centers **{stats['centers']}** · constraints {stats['constraints']:,} · "
+                f"converged {str(stats['converged']).lower()}  \n"
+                f"rings {stats.get('rings_s', 0):.2f} s · fit {stats.get('fit_s', 0):.2f} s · "
+                f"basis {stats.get('basis_s', 0):.2f} s")
+            self._build_pose_gizmos()
+        except SplatdeformError as exc:
+            self.fit_md.content = f"⚠ {exc}"
+        finally:
+            self.progress.animated = False
+            self.progress.visible = False
+            self.fit_button.disabled = False
+        self.refresh_regions()
+
+    def _build_pose_gizmos(self) -> None:
+        for g in self._pose_gizmos:
+            g.remove()
+        self._pose_gizmos, self._pose_base = [], []
+        d = self.ed.deformation
+        for h, state in enumerate(self.ed.handles):
+            start = state.matrix[:3, :3] @ d.control_points[0] + state.matrix[:3, 3] \
+                - self.ed.origin
+            g = self.server.scene.add_transform_controls(
+                f"/handles/pose{h}", scale=0.25 * max(self.model.diagonal(), 1e-9),
+                position=start, depth_test=False)
+            self._pose_base.append((start, state.matrix.copy()))
+            g.on_update(self._pose_moved(h))
+            self._pose_gizmos.append(g)
+
+    def _pose_moved(self, h: int):
+        def callback(event: Any) -> None:
+            g = event.target
+            start, base = self._pose_base[h]
+            delta = pose_matrix(self.ed.origin, start, np.asarray(g.position),
+                                np.asarray(g.wxyz))
+            self.request_pose(h, delta @ base)
+        return callback
+
+    def request_pose(self, handle: int, matrix: np.ndarray) -> None:
+        """Queue a pose change (the latest one wins) for the worker thread."""
+        self._pending = (handle, matrix)
+        self._wake.set()
+
+    def apply_pose(self, handle: int, matrix: np.ndarray) -> float:
+        """Pose received -> new buffers handed to the viewer; returns the seconds it took."""
+        t0 = time.perf_counter()
+        with self.lock:
+            frame = self.ed.set_pose(matrix, handle)
+            self.show_frame(frame)
+        return time.perf_counter() - t0
+
+    def _pose_worker(self) -> None:
+        while not self._closing:
+            self._wake.wait(0.5)
+            self._wake.clear()
+            pending, self._pending = self._pending, None
+            if pending is None:
+                continue
+            try:
+                seconds = self.apply_pose(*pending)
+            except SplatdeformError as exc:
+                self.status(str(exc))
+                continue
+            self.frames += 1
+            self.last_ms = 1000 * seconds
+            self.pose_md.content = f"pose updates {self.frames} · last {self.last_ms:.0f} ms"
+
+    def _reset(self, *_: Any) -> None:
+        with self.lock:
+            self.ed.reset_pose()
+            if not self.ed.stale:
+                self.show_frame(self.ed.set_pose(np.eye(4)))
+                self._build_pose_gizmos()
+
+    # ---- save --------------------------------------------------------------------------
+    def _save(self, *_: Any) -> None:
+        self.save_button.disabled = True
+        try:
+            with self.lock:
+                result = self.ed.save(self.out_model.value, self.out_yaml.value,
+                                      self.out_png.value)
+            self.status(f"wrote {result.model.name}, {result.config.name}, {result.image.name}")
+        except SplatdeformError as exc:
+            self.status(str(exc))
+        finally:
+            self.save_button.disabled = False
+
+    def status(self, text: str) -> None:
+        self.status_md.content = text
+
+    # ---- GUI ---------------------------------------------------------------------------
+    def _build_gui(self) -> None:
+        gui = self.server.gui
+        gui.add_markdown(f"**splatdeform editor** · `{self.ed.model_path.name}` "
+                         f"({self.model.kind}, {self.model.n_points:,} points)")
+        self.counts_md = gui.add_markdown("")
+        with gui.add_folder("Regions"):
+            for role in ("fixed", "handle"):
+                group = gui.add_button_group(f"add {role}", ("box", "sphere", "plane"))
+                group.on_click(lambda e, role=role: self._add(role, e.target.value))
+            self.selected = gui.add_dropdown("selector", ("(none)",))
+            self.selected.on_update(self._on_selected)
+            self.size_input = gui.add_vector3("size", (0.0, 0.0, 0.0), step=1e-3)
+            self.size_input.on_update(self._on_size)
+            gui.add_button("remove selector").on_click(self._remove)
+        with gui.add_folder("Fit"):
+            self.fit_button = gui.add_button("Fit")
+            self.fit_button.on_click(self._fit)
+            self.progress = gui.add_progress_bar(0.0, visible=False)
+            self.fit_md = gui.add_markdown("no fit yet: mark fixed and handle regions, then Fit")
+        with gui.add_folder("Handle"):
+            gui.add_button("reset pose").on_click(self._reset)
+            self.pose_md = gui.add_markdown("drag the handle gizmo after a fit")
+        with gui.add_folder("Save"):
+            model_p, yaml_p, png_p = self.ed.default_paths()
+            self.out_model = gui.add_text("model", str(model_p))
+            self.out_yaml = gui.add_text("edit YAML", str(yaml_p))
+            self.out_png = gui.add_text("before/after", str(png_p))
+            self.save_button = gui.add_button("Save")
+            self.save_button.on_click(self._save)
+        self.status_md = gui.add_markdown("")
+
+    def start(self) -> None:
+        """Show the loaded state: selector gizmos, and the pose when a fit is current."""
+        self.rebuild_selectors()
+
+    def close(self) -> None:
+        self._closing = True
+        self._wake.set()
+
+
+def run(path: str, *, host: str = "127.0.0.1", port: int = 8080,
+        ready: threading.Event | None = None) -> int:
+    """Load MODEL or EDIT.yaml, serve the editor, print its URL, block until Ctrl-C / SIGTERM.
+    Returns 0 (clean shutdown)."""
+    import viser
+
+    controller = EditorController.open(path)
+    stop = threading.Event()
+    previous = {}
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        previous[sig] = signal.signal(sig, lambda *_: stop.set())
+    server = viser.ViserServer(host=host, port=port, verbose=False)
+    app = None
+    try:
+        app = EditorApp(controller, server)
+        app.start()
+        shown = "127.0.0.1" if host in ("0.0.0.0", "") else host
+        print(f"splatdeform editor: http://{shown}:{server.get_port()}/  "
+              f"({controller.model.n_points:,} points; Ctrl-C to stop)", flush=True)
+        if ready is not None:
+            ready.set()
+        while not stop.wait(0.25):
+            pass
+    finally:
+        if app is not None:
+            app.close()
+        server.stop()
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+    print("splatdeform editor: stopped", flush=True)
+    return 0
+
+
+__all__ = ["EditorApp", "pose_matrix", "run"]
