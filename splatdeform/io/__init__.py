@@ -14,6 +14,7 @@ from ..errors import FormatError, InputError
 from ..model import PointModel
 from . import las, open3d_io, ply
 from .atomic import atomic_path, atomic_write, check_output_path
+from .regular import require_regular
 
 READERS = {".ply": ply.read_model, **{ext: open3d_io.read_model for ext in open3d_io.EXTENSIONS}}
 READERS.update({ext: las.read_model for ext in las.EXTENSIONS})
@@ -39,6 +40,7 @@ def load(path: str | Path, *, drop_nonfinite: bool = False) -> PointModel:
         raise InputError(f"{path}: no such file")
     if path.is_dir():
         raise InputError(f"{path}: is a directory; expected a model file")
+    require_regular(path)  # a FIFO or a device would block or never end
     ext = _extension(path, "model file")
     try:
         return READERS[ext](path, drop_nonfinite=drop_nonfinite)

@@ -10,12 +10,15 @@ writes back unchanged: same elements, property names, type spellings, order and 
 from __future__ import annotations
 
 import io
+import os
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
 
 from ..errors import FormatError
 from ..model import PlyElementData, PlyProperty, PlySource
+from .regular import check_regular
 
 TYPE_CODES = {
     "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1",
@@ -27,6 +30,7 @@ TYPE_NAMES = {"i1": "char", "u1": "uchar", "i2": "short", "u2": "ushort", "i4": 
               "u4": "uint", "f4": "float", "f8": "double"}  # fmt: skip
 FORMATS = {"ascii": None, "binary_little_endian": "<", "binary_big_endian": ">"}
 MAX_HEADER_BYTES = 1 << 20
+MAX_COUNT_DIGITS = 15  # 1e15 rows: far beyond any file that fits on a disk
 
 
 class _Header:
@@ -36,28 +40,51 @@ class _Header:
         self.comments: list[str] = []
         self.obj_info: list[str] = []
         self.elements: list[tuple[str, int, list[PlyProperty]]] = []
-        self.size = 0
+        self.size = 0  # bytes up to and including the end_header line
+        self.lines = 0  # lines up to and including the end_header line
+
+
+def _header_lines(path: Path, raw: bytes) -> tuple[list[bytes], int]:
+    """The header lines before ``end_header`` and the body's byte offset.
+
+    ``end_header`` must be a line of its own: a comment that mentions it does not end the header.
+    """
+    lines: list[bytes] = []
+    pos = 0
+    limit = min(len(raw), MAX_HEADER_BYTES)
+    while pos < limit:
+        newline = raw.find(b"\n", pos, limit)
+        end = limit if newline < 0 else newline
+        line = raw[pos:end]
+        if line.strip() == b"end_header":
+            return lines, len(raw) if newline < 0 else newline + 1
+        lines.append(line)
+        if newline < 0:
+            break
+        pos = newline + 1
+    raise FormatError(f"{path}: malformed PLY header: no 'end_header' line"
+                      + (f" in the first {MAX_HEADER_BYTES} bytes" if len(raw) > limit else ""))
 
 
 def _parse_header(path: Path, raw: bytes) -> _Header:
     if not raw.startswith(b"ply"):
         raise FormatError(f"{path}: not a PLY file (it does not start with 'ply')")
-    end = raw.find(b"end_header", 0, MAX_HEADER_BYTES)
-    if end < 0:
-        raise FormatError(f"{path}: malformed PLY header: no 'end_header' line")
-    newline = raw.find(b"\n", end)
+    raw_lines, size = _header_lines(path, raw)
     header = _Header()
-    header.size = len(raw) if newline < 0 else newline + 1
-    try:
-        lines = raw[:end].decode("ascii").splitlines()
-    except UnicodeDecodeError as exc:
-        raise FormatError(f"{path}: malformed PLY header: non-ASCII bytes") from exc
+    header.size = size
+    header.lines = len(raw_lines) + 1
     seen_format = False
-    for number, line in enumerate(lines[1:], start=2):
+    names: set[str] = set()  # property names of the current element (linear duplicate check)
+    for number, raw_line in enumerate(raw_lines[1:], start=2):
+        try:
+            line = raw_line.decode("ascii")
+        except UnicodeDecodeError as exc:
+            raise FormatError(f"{path}: malformed PLY header, line {number}: non-ASCII bytes") \
+                from exc
         words = line.split()
         if not words:
             continue
-        where = f"{path}: malformed PLY header, line {number} ({line.strip()!r})"
+        where = f"{path}: malformed PLY header, line {number} ({line.strip()[:80]!r})"
         key = words[0]
         if key == "format":
             if len(words) != 3 or words[1] not in FORMATS:
@@ -71,9 +98,13 @@ def _parse_header(path: Path, raw: bytes) -> _Header:
         elif key == "obj_info":
             header.obj_info.append(line.strip()[len("obj_info"):].strip())
         elif key == "element":
-            if len(words) != 3 or not words[2].isdigit():
+            if len(words) != 3 or not (words[2].isascii() and words[2].isdigit()):
                 raise FormatError(f"{where}: expected 'element <name> <count>'")
+            if len(words[2].lstrip("0")) > MAX_COUNT_DIGITS:
+                raise FormatError(f"{where}: element count {words[2][:20]}... is too large")
+            _check_previous_element(path, header, number)
             header.elements.append((words[1], int(words[2]), []))
+            names = set()
         elif key == "property":
             if not header.elements:
                 raise FormatError(f"{where}: property before any element")
@@ -84,20 +115,52 @@ def _parse_header(path: Path, raw: bytes) -> _Header:
                                       f"{', '.join(TYPE_CODES)}")
                 if TYPE_CODES[words[2]][0] == "f":
                     raise FormatError(f"{where}: list length type must be an integer type")
-                props.append(PlyProperty(words[4], TYPE_CODES[words[3]], words[3], True,
-                                         TYPE_CODES[words[2]], words[2]))
+                prop = PlyProperty(words[4], TYPE_CODES[words[3]], words[3], True,
+                                   TYPE_CODES[words[2]], words[2])
             elif len(words) == 3 and words[1] in TYPE_CODES:
-                props.append(PlyProperty(words[2], TYPE_CODES[words[1]], words[1]))
+                prop = PlyProperty(words[2], TYPE_CODES[words[1]], words[1])
             else:
                 raise FormatError(f"{where}: expected 'property <type> <name>' or "
                                   "'property list <count type> <type> <name>'")
-            if [p.name for p in props].count(props[-1].name) > 1:
-                raise FormatError(f"{where}: duplicate property {props[-1].name!r}")
+            if prop.name in names:
+                raise FormatError(f"{where}: duplicate property {prop.name!r}")
+            names.add(prop.name)
+            props.append(prop)
         else:
             raise FormatError(f"{where}: unknown keyword {key!r}")
     if not seen_format:
         raise FormatError(f"{path}: malformed PLY header: no 'format' line")
+    _check_previous_element(path, header, header.lines)
     return header
+
+
+def _check_previous_element(path: Path, header: _Header, number: int) -> None:
+    """An element with rows but no properties has nothing to read (and no size to bound)."""
+    if header.elements and header.elements[-1][1] > 0 and not header.elements[-1][2]:
+        name, count, _ = header.elements[-1]
+        raise FormatError(f"{path}: malformed PLY header, before line {number}: element "
+                          f"{name!r} declares {count} rows but no properties")
+
+
+def _min_row_bytes(props: list[PlyProperty], text: bool) -> int:
+    """The fewest bytes one row can take (lists empty): binary sizes, or ascii tokens of one
+    character each followed by one separator."""
+    if text:
+        return 2 * len(props)
+    return sum(np.dtype(p.len_dtype if p.is_list else p.dtype).itemsize for p in props)
+
+
+def _check_declared_size(path: Path, header: _Header, body_bytes: int) -> None:
+    """Refuse a header whose element counts cannot fit in the file, before allocating anything."""
+    needed = 0
+    for name, count, props in header.elements:
+        needed += count * _min_row_bytes(props, header.text)
+        # an ascii body may lack the final newline: one byte of slack
+        if needed > body_bytes + (1 if header.text else 0):
+            raise FormatError(
+                f"{path}: the header declares more data than the file holds: element '{name}' "
+                f"({count} rows) needs at least {needed} body bytes up to its end, the body has "
+                f"{body_bytes} (file cut short, or the header's count is wrong)")
 
 
 def _object_dtype(props: list[PlyProperty], byte_order: str) -> np.dtype:
@@ -143,6 +206,10 @@ def _read_binary_element(path: Path, buf: memoryview, offset: int, name: str, co
                            f"{needed} more bytes, {max(total - offset, 0)} left "
                            "(file cut short, or the header's count is wrong)")
 
+    def negative(row: int, prop: PlyProperty, n: int) -> FormatError:
+        return FormatError(f"{path}: malformed binary body: element '{name}' row {row}: list "
+                           f"'{prop.name}' has a negative length ({n})")
+
     if not any(p.is_list for p in props):
         dtype = np.dtype([(p.name, bo + p.dtype) for p in props])
         if offset + dtype.itemsize * count > total:
@@ -160,6 +227,8 @@ def _read_binary_element(path: Path, buf: memoryview, offset: int, name: str, co
             if pos + size > total:
                 raise truncated(size)
             n = int(np.frombuffer(buf, dtype=bo + p.len_dtype, count=1, offset=pos)[0])
+            if n < 0:
+                raise negative(0, p, n)
             lengths[p.name] = n
             pos += size + n * np.dtype(p.dtype).itemsize
         else:
@@ -169,7 +238,8 @@ def _read_binary_element(path: Path, buf: memoryview, offset: int, name: str, co
         packed = np.frombuffer(buf, dtype=packed_dtype, count=count, offset=offset)
         if all((packed[n + "\nlen"] == L).all() for n, L in lengths.items()):
             return _split_lists(packed, props, bo), offset + packed_dtype.itemsize * count
-    # Variable-length lists: one row at a time.
+    # Variable-length lists: one row at a time (count * the smallest row fits the file: checked
+    # by _check_declared_size, so this loop is bounded by the file size).
     out = _empty(props, count, bo)
     pos = offset
     for row in range(count):
@@ -179,6 +249,8 @@ def _read_binary_element(path: Path, buf: memoryview, offset: int, name: str, co
                 if pos + size > total:
                     raise truncated(size)
                 n = int(np.frombuffer(buf, dtype=bo + p.len_dtype, count=1, offset=pos)[0])
+                if n < 0:
+                    raise negative(row, p, n)
                 pos += size
                 nbytes = n * np.dtype(p.dtype).itemsize
                 if pos + nbytes > total:
@@ -195,8 +267,52 @@ def _read_binary_element(path: Path, buf: memoryview, offset: int, name: str, co
     return out, pos
 
 
-def _parse_ascii_rows(path: Path, rows: list[bytes], first_line: int, name: str,
-                      props: list[PlyProperty]) -> np.ndarray:
+class _AsciiElement:
+    """The body rows of one ascii element and how to name a value in an error message.
+
+    rows: the element's non-blank body lines; line_of(i): the file line number of rows[i].
+    """
+
+    def __init__(self, path: Path, name: str, rows: list[bytes],
+                 line_of: Callable[[int], int]) -> None:
+        self.path, self.name, self.rows, self.line_of = path, name, rows, line_of
+
+    def error(self, row: int, message: str) -> FormatError:
+        return FormatError(f"{self.path}: malformed ascii body, line {self.line_of(row)} of "
+                           f"element '{self.name}': {message}")
+
+    def convert(self, values: np.ndarray, code: str, what: str, first_col: int,
+                rows: np.ndarray | None = None) -> np.ndarray:
+        """(R, W) float64 parsed tokens -> ``code``; rejects values the type cannot hold
+        (300 in a uchar, -1 in a uint, 1.9 in an int, 1e39 in a float) naming the line.
+
+        rows: (R,) element row of each row of ``values`` (default 0..R-1).
+        """
+        with np.errstate(over="ignore", invalid="ignore"):
+            if code[0] == "f":
+                out = values.astype(code)
+                bad = np.isfinite(values) & ~np.isfinite(out)
+                expected = f"within {TYPE_NAMES[code]} range"
+            else:
+                info = np.iinfo(code)
+                bad = ~((values >= info.min) & (values <= info.max)
+                        & (np.floor(values) == values))
+                expected = f"an integer in {info.min}..{info.max}"
+                out = None
+        if bad.any():
+            k = int(np.flatnonzero(bad)[0])
+            width = values.shape[1] if values.ndim == 2 else 1
+            row = k // width if rows is None else int(rows[k // width])
+            tokens = self.rows[row].split()
+            col = first_col + k % width
+            token = tokens[col].decode(errors="replace") if col < len(tokens) else "?"
+            raise self.error(row, f"{what} ({TYPE_NAMES[code]}) value {token!r} is not "
+                             f"{expected}")
+        return values.astype(code) if out is None else out
+
+
+def _parse_ascii_rows(el: _AsciiElement, props: list[PlyProperty]) -> np.ndarray:
+    rows = el.rows
     count = len(rows)
     out = _empty(props, count, "=")
     if count == 0:
@@ -208,17 +324,23 @@ def _parse_ascii_rows(path: Path, rows: list[bytes], first_line: int, name: str,
             table = np.array(b" ".join(rows).split(), dtype=np.float64).reshape(count, width)
             col = 0
             for p in props:
+                if col >= width:
+                    raise ValueError("width")
                 if p.is_list:
-                    n = int(table[0, col])
-                    if not (table[:, col] == n).all() or col + 1 + n > width:
+                    lengths = el.convert(table[:, col:col + 1], p.len_dtype,
+                                         f"list length of '{p.name}'", col)[:, 0]
+                    n = int(lengths[0])
+                    if n < 0 or not (lengths == n).all() or col + 1 + n > width:
                         raise ValueError("ragged")
-                    values = table[:, col + 1: col + 1 + n].astype(p.dtype)
+                    values = el.convert(table[:, col + 1: col + 1 + n], p.dtype, repr(p.name),
+                                        col + 1)
                     column = np.empty(count, dtype=object)
                     column[:] = list(values)
                     out[p.name] = column
                     col += 1 + n
                 else:
-                    out[p.name] = table[:, col].astype(p.dtype)
+                    out[p.name] = el.convert(table[:, col:col + 1], p.dtype, repr(p.name),
+                                             col)[:, 0]
                     col += 1
             if col != width:
                 raise ValueError("width")
@@ -227,53 +349,87 @@ def _parse_ascii_rows(path: Path, rows: list[bytes], first_line: int, name: str,
         pass
     for i, row in enumerate(rows):
         tokens = row.split()
-        pos = 0
         try:
-            for p in props:
-                if p.is_list:
-                    n = int(tokens[pos])
-                    out[p.name][i] = np.array(tokens[pos + 1: pos + 1 + n], dtype=np.float64)\
-                        .astype(p.dtype)
-                    if len(out[p.name][i]) != n:
-                        raise IndexError
-                    pos += 1 + n
-                else:
-                    out[p.name][i] = np.float64(tokens[pos]).astype(p.dtype) \
-                        if p.dtype[0] == "f" else int(tokens[pos])
-                    pos += 1
-        except (IndexError, ValueError) as exc:
-            raise FormatError(f"{path}: malformed ascii body, line {first_line + i} of element "
-                              f"'{name}': expected {len(props)} properties, got "
-                              f"{row.decode(errors='replace').strip()[:60]!r}") from exc
+            values = np.array(tokens, dtype=np.float64).reshape(1, -1)
+        except ValueError as exc:
+            raise el.error(i, f"not a number in {row.decode(errors='replace').strip()[:60]!r}")\
+                from exc
+        pos = 0
+        at = np.array([i])
+        for p in props:
+            if pos >= len(tokens):
+                raise el.error(i, f"expected {len(props)} properties, got "
+                               f"{row.decode(errors='replace').strip()[:60]!r}")
+            if p.is_list:
+                n = int(el.convert(values[:, pos:pos + 1], p.len_dtype,
+                                   f"list length of '{p.name}'", pos, at)[0, 0])
+                if n < 0 or pos + 1 + n > len(tokens):
+                    raise el.error(i, f"list '{p.name}' declares {n} values, "
+                                   f"{len(tokens) - pos - 1} present")
+                out[p.name][i] = el.convert(values[:, pos + 1: pos + 1 + n], p.dtype,
+                                            repr(p.name), pos + 1, at)[0]
+                pos += 1 + n
+            else:
+                out[p.name][i] = el.convert(values[:, pos:pos + 1], p.dtype, repr(p.name),
+                                            pos, at)[0, 0]
+                pos += 1
         if pos != len(tokens):
-            raise FormatError(f"{path}: malformed ascii body, line {first_line + i} of element "
-                              f"'{name}': {len(tokens) - pos} values too many")
+            raise el.error(i, f"{len(tokens) - pos} values too many")
     return out
 
 
+def _read_file(path: Path) -> bytes:
+    """The whole file; refuses anything but a regular file before reading (a FIFO or a device
+    would block or never end)."""
+    fd = os.open(path, os.O_RDONLY | getattr(os, "O_NONBLOCK", 0))
+    with os.fdopen(fd, "rb") as stream:
+        check_regular(path, os.fstat(stream.fileno()).st_mode)
+        return stream.read()
+
+
 def read_ply(path: str | Path) -> PlySource:
-    """Read a PLY file verbatim. Raises FormatError naming the file on any problem."""
+    """Read a PLY file verbatim. Raises FormatError naming the file on any problem.
+
+    Work and memory are bounded by the file size: the header's element counts are checked
+    against the body size before anything is allocated.
+    """
     path = Path(path)
-    raw = path.read_bytes()
+    raw = _read_file(path)
     if not raw:
         raise FormatError(f"{path}: empty file")
     header = _parse_header(path, raw)
+    _check_declared_size(path, header, len(raw) - header.size)
     elements: list[PlyElementData] = []
     if header.text:
+        underscore = raw.find(b"_", header.size)
+        if underscore >= 0:  # Python would read 1_000 as 1000; PLY has no digit separators
+            line = header.lines + 1 + raw.count(b"\n", header.size, underscore)
+            raise FormatError(f"{path}: malformed ascii body, line {line}: '_' in a number "
+                              "(not PLY syntax)")
         lines = [ln for ln in raw[header.size:].splitlines() if ln.strip()]
-        header_lines = raw[: header.size].count(b"\n")
+
+        def line_of(index: int) -> int:  # file line number of the index-th non-blank body line
+            seen = -1
+            for number, ln in enumerate(raw[header.size:].splitlines(), header.lines + 1):
+                seen += bool(ln.strip())
+                if seen == index:
+                    return number
+            return -1
+
         pos = 0
         for name, count, props in header.elements:
             rows = lines[pos: pos + count]
             if len(rows) < count:
                 raise FormatError(f"{path}: truncated ascii body: element '{name}' declares "
                                   f"{count} rows, {len(rows)} present")
-            elements.append(PlyElementData(name, props, _parse_ascii_rows(
-                path, rows, header_lines + pos + 1, name, props)))
+            start = pos
+            el = _AsciiElement(path, name, rows, lambda i, s=start: line_of(s + i))
+            elements.append(PlyElementData(name, props, _parse_ascii_rows(el, props)))
             pos += count
         if pos < len(lines):
-            raise FormatError(f"{path}: {len(lines) - pos} ascii lines after the last element; "
-                              "the header's element counts do not match the body")
+            raise FormatError(f"{path}: {len(lines) - pos} ascii lines after the last element "
+                              f"(from line {line_of(pos)}); the header's element counts do not "
+                              "match the body")
     else:
         buf = memoryview(raw)
         offset = header.size
