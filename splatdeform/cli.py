@@ -9,7 +9,6 @@ from __future__ import annotations
 import argparse
 import contextlib
 import errno
-import json
 import math
 import os
 import signal
@@ -26,12 +25,12 @@ class _Parser(argparse.ArgumentParser):
 
 
 def cmd_info(args: argparse.Namespace) -> int:
-    from .info import describe, format_text
+    from .info import describe, format_text, to_json
     from .io import load
 
     model = load(args.model, drop_nonfinite=args.drop_nonfinite)
     info = describe(model)
-    print(json.dumps(info, indent=2) if args.json else format_text(info))
+    print(to_json(info) if args.json else format_text(info))
     return 0
 
 

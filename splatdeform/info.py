@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import json
+import math
 from typing import Any
 
 import numpy as np
@@ -42,6 +44,22 @@ def describe(model: PointModel) -> dict[str, Any]:
     if model.radius is not None:
         info["radius_median"] = float(np.median(model.radius))
     return info
+
+
+def json_ready(value: Any) -> Any:
+    """``value`` with every non-finite float (NaN, +-Inf) replaced by None (JSON has no NaN)."""
+    if isinstance(value, float):
+        return value if math.isfinite(value) else None
+    if isinstance(value, dict):
+        return {k: json_ready(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [json_ready(v) for v in value]
+    return value
+
+
+def to_json(info: dict[str, Any]) -> str:
+    """:func:`describe`'s dict as strict JSON (non-finite numbers become null)."""
+    return json.dumps(json_ready(info), indent=2, allow_nan=False)
 
 
 def format_text(info: dict[str, Any]) -> str:
