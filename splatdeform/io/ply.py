@@ -67,6 +67,12 @@ def model_from_source(source: PlySource, path: str | Path, *,
     data = vertex.data
     positions = _columns(data, ("x", "y", "z"))
     if positions is None:
+        if "packed_position" in (data.dtype.names or ()):
+            raise FormatError(
+                f"{path}: a PlayCanvas compressed splat file (.compressed.ply: 'chunk' element, "
+                "quantised 'packed_position'/'packed_rotation'/... vertex properties) is not "
+                "supported; decompress it to a standard 3DGS PLY first (e.g. PlayCanvas "
+                "splat-transform)")
         missing = [n for n in "xyz" if n not in (data.dtype.names or ())]
         raise FormatError(f"{path}: vertex element lacks property {', '.join(missing)} "
                           "(x, y and z are required)")
@@ -135,27 +141,112 @@ def model_from_source(source: PlySource, path: str | Path, *,
                       path=str(path))
 
 
+# Properties of non-vertex elements that hold vertex indices (the standard PLY names).
+VERTEX_REFS = ("vertex_indices", "vertex_index", "vertex1", "vertex2")
+
+
+def _flatten(column: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Object column of 1-D arrays (R,) -> all values (M,) int64 and each row's length (R,)."""
+    lengths = np.fromiter((len(v) for v in column), dtype=np.int64, count=len(column))
+    flat = (np.concatenate([np.asarray(v, dtype=np.int64) for v in column]) if lengths.sum()
+            else np.empty(0, dtype=np.int64))
+    return flat, lengths
+
+
+def _unflatten(flat: np.ndarray, lengths: np.ndarray, dtype: np.dtype) -> np.ndarray:
+    column = np.empty(len(lengths), dtype=object)
+    column[:] = np.split(flat.astype(dtype), np.cumsum(lengths)[:-1]) if len(lengths) else []
+    return column
+
+
+def _cut_strips(column: np.ndarray, bad: np.ndarray, remap: np.ndarray) -> np.ndarray:
+    """Tristrip lists with the removed vertices turned into -1 separators (and remapped).
+
+    A piece that resumes a strip at an odd position starts with its first vertex twice (one
+    degenerate triangle, skipped by readers) so that its triangles keep their winding.
+    """
+    out = np.empty(len(column), dtype=object)
+    for row, strip in enumerate(column):
+        strip = np.asarray(strip, dtype=np.int64)
+        removed = (strip >= 0) & bad[np.clip(strip, 0, len(bad) - 1)]
+        if not removed.any():
+            out[row] = np.where(strip >= 0, remap[np.clip(strip, 0, len(bad) - 1)], strip)\
+                .astype(column[row].dtype)
+            continue
+        pieces: list[np.ndarray] = []
+        seg_start = 0
+        cuts = np.flatnonzero((strip < 0) | removed)
+        start = 0
+        for cut in [*cuts.tolist(), len(strip)]:
+            piece = strip[start:cut]
+            if len(piece) >= 3:
+                if (start - seg_start) % 2:
+                    piece = np.concatenate([piece[:1], piece])
+                pieces.append(remap[piece])
+            if cut < len(strip) and strip[cut] < 0:
+                seg_start = cut + 1
+            start = cut + 1
+        joined = [x for p in pieces for x in (p, np.array([-1]))][:-1]
+        out[row] = (np.concatenate(joined) if joined else np.empty(0, dtype=np.int64))\
+            .astype(column[row].dtype)
+    return out
+
+
 def _drop_vertices(source: PlySource, path: str | Path, bad: np.ndarray) -> PlySource:
-    """Remove vertices (bool mask ``bad`` (N,)) and the faces that use them."""
-    if source.element("tristrips") is not None:
-        raise FormatError(f"{path}: cannot drop non-finite vertices from a tristrips model")
+    """Remove vertices (bool mask ``bad`` (N,)) and keep every vertex reference consistent.
+
+    Other elements' ``vertex_indices`` / ``vertex_index`` / ``vertex1`` / ``vertex2`` are
+    remapped to the new numbering; references to a removed vertex: a ``face`` (or ``edge``, or
+    any other element) row using one is dropped, a ``range_grid`` cell loses it (the grid keeps
+    its shape), a ``tristrips`` strip is cut there.
+    """
+    n = len(bad)
     remap = np.cumsum(~bad) - 1
     elements = []
     for el in source.elements:
         data = el.data
+        refs = [p for p in el.properties if p.name in VERTEX_REFS and p.dtype[0] in "iu"]
         if el.name == "vertex":
             data = data[~bad]
-        elif el.name == "face":
-            name = next((n for n in ("vertex_indices", "vertex_index")
-                         if el.property(n) is not None), None)
-            if name is not None:
-                keep = np.array([not bad[np.asarray(f, dtype=np.int64)].any()
-                                 for f in data[name]], dtype=bool)
-                data = data[keep].copy()
-                column = np.empty(len(data), dtype=object)
-                column[:] = [remap[np.asarray(f, dtype=np.int64)].astype(f.dtype)
-                             for f in data[name]]
-                data[name] = column
+        elif refs and el.count:
+            data = data.copy()
+            drop_row = np.zeros(el.count, dtype=bool)
+            lists = {}
+            for p in refs:
+                if p.is_list:
+                    flat, lengths = _flatten(data[p.name])
+                    outside = flat >= n  # in tristrips negative values separate strips
+                    if el.name != "tristrips":
+                        outside |= flat < 0
+                    if outside.any():
+                        raise FormatError(f"{path}: element '{el.name}' property '{p.name}' "
+                                          f"has vertex indices outside 0..{n - 1}; cannot "
+                                          "drop non-finite vertices consistently")
+                    lists[p.name] = (flat, lengths)
+                    if el.name not in ("range_grid", "tristrips"):
+                        rows = np.repeat(np.arange(el.count), lengths)
+                        drop_row |= np.bincount(rows, weights=bad[flat], minlength=el.count) > 0
+                else:
+                    column = data[p.name].astype(np.int64)
+                    if ((column < 0) | (column >= n)).any():
+                        raise FormatError(f"{path}: element '{el.name}' property '{p.name}' "
+                                          f"has vertex indices outside 0..{n - 1}; cannot "
+                                          "drop non-finite vertices consistently")
+                    drop_row |= bad[column]
+            for p in refs:
+                if p.is_list and el.name == "tristrips":
+                    data[p.name] = _cut_strips(data[p.name], bad, remap)
+                elif p.is_list:
+                    flat, lengths = lists[p.name]
+                    if el.name == "range_grid":  # the cell stays, without the removed vertex
+                        keep = ~bad[flat]
+                        rows = np.repeat(np.arange(el.count), lengths)
+                        lengths = np.bincount(rows[keep], minlength=el.count)
+                        flat = flat[keep]
+                    data[p.name] = _unflatten(remap[flat], lengths, np.dtype(p.dtype))
+                else:
+                    data[p.name] = remap[data[p.name].astype(np.int64)]
+            data = data[~drop_row]
         elements.append(PlyElementData(el.name, el.properties, data))
     return replace(source, elements=elements)
 
