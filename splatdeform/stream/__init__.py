@@ -1,0 +1,202 @@
+"""Out-of-core ``deform``: scans bigger than memory, and one scan split over a Dask cluster.
+
+``deform`` streams when the in-memory path's estimated peak memory exceeds the budget
+(``--memory-budget`` / config ``memory_budget``; default half the machine's RAM), or when it is
+given a Dask scheduler (``--scheduler``) or local worker processes (``--workers``):
+
+1. pass 1: bounding box (and a sample for the kNN scale); pass 2: regions -> one label byte
+   per point, handle positions (frame, pivot);
+2. passes 3-4: the border set (points near another label), rings on it, the fit (once);
+3. pass 5: per chunk, basis of the free points + apply (the in-memory code on a chunk) ->
+   the output file (same format and properties), renamed into place at the end.
+
+See :mod:`splatdeform.stream.plan` for why the rings equal the in-memory rings.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import ConfigError
+from .progress import Progress
+from .sources import STREAMABLE, open_chunks
+
+BASE_RSS = 150 * 2**20  # measured: Python + numpy + scipy + pyopencl (+ PoCL) resident
+_UNITS = {"": 1, "b": 1, "k": 2**10, "kb": 2**10, "kib": 2**10, "m": 2**20, "mb": 2**20,
+          "mib": 2**20, "g": 2**30, "gb": 2**30, "gib": 2**30, "t": 2**40, "tb": 2**40,
+          "tib": 2**40}
+
+
+def parse_size(text: str | int | float, what: str = "--memory-budget") -> int:
+    """'512MB', '1.5GB', '2g', 1000000 -> bytes (ConfigError naming ``what`` otherwise)."""
+    if isinstance(text, (int, float)) and not isinstance(text, bool):
+        value = int(text)
+    else:
+        m = re.fullmatch(r"\s*([0-9]*\.?[0-9]+)\s*([a-zA-Z]*)\s*", str(text))
+        if not m or m.group(2).lower() not in _UNITS:
+            raise ConfigError(f"{what}: expected a size like 512MB or 2GB, got {text!r}")
+        value = int(float(m.group(1)) * _UNITS[m.group(2).lower()])
+    if value < 64 * 2**20:
+        raise ConfigError(f"{what}: expected at least 64MB, got {text!r}")
+    return value
+
+
+def machine_memory() -> int:
+    """Physical memory in bytes."""
+    try:
+        return int(os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES"))
+    except (ValueError, OSError, AttributeError):
+        return 8 * 2**30
+
+
+def default_budget() -> int:
+    """Half the machine's RAM."""
+    return machine_memory() // 2
+
+
+def estimate_in_memory_peak(path: str | Path, neighbors: int = 10) -> int | None:
+    """Estimated peak bytes of the in-memory ``deform`` of ``path`` (None: not estimable).
+
+    Measured shape of the in-memory path: the file read whole and parsed (about 2x the file),
+    float64 geometry and its deformed copy, the kNN graph (~(k+1)·16·3 bytes per point) and the
+    basis and Jacobians of the free points (~600 bytes per point)."""
+    path = Path(path)
+    if not path.is_file():
+        return None
+    size = path.stat().st_size
+    try:
+        src = open_chunks(path)
+        n = src.n_points
+        record = size / max(n, 1)
+        if path.suffix.lower() == ".laz":
+            record = src.header.point_format.size
+    except Exception:  # noqa: BLE001 - not streamable: the in-memory path decides
+        return None
+    return int(3 * n * record + n * (300 + 16 * (neighbors + 1)))
+
+
+def chunk_for_budget(budget: int, record_bytes: int, fixed_bytes: int) -> int:
+    """Points per chunk so that a chunk's working set (~4 copies of a record + ~900 bytes of
+    float64 geometry, basis and Jacobians per point) takes a quarter of what is left."""
+    left = max(budget - fixed_bytes, budget // 4)
+    per_point = 4 * record_bytes + 900
+    return int(np.clip(left // 4 // per_point, 5_000, 4_000_000))
+
+
+def should_stream(cfg, in_path: Path, budget: int | None) -> bool:
+    """True when the input is streamable and its in-memory estimate exceeds the budget."""
+    if Path(in_path).suffix.lower() not in STREAMABLE:
+        return False
+    peak = estimate_in_memory_peak(in_path, cfg.boundary.neighbors)
+    return peak is not None and peak > (budget or default_budget())
+
+
+def run_stream(cfg, base_dir: str | Path = ".", *, output: str | Path | None = None,
+               budget: int | None = None, scheduler: str | None = None,
+               workers: int | None = None, quiet: bool = False, log=None, check_fit=None,
+               client=None, chunk: int | None = None):
+    """Run one handle edit out of core (locally, or on Dask with ``scheduler``/``workers``).
+
+    Returns an :class:`splatdeform.edit.EditResult` with ``model``/``deformed`` None (the models
+    are never whole in memory) and the figures ``format_report`` prints. ``client``: an open
+    Dask client to use; ``chunk``: points per chunk (default: from the budget)."""
+    import time
+
+    from ..edit import EditResult
+    from ..io import check_output_path
+    from .run import check_streamable, dask_client, stream_deform
+
+    base_dir = Path(base_dir)
+    in_path = base_dir / cfg.input
+    out_path = Path(output) if output is not None else base_dir / cfg.output
+    check_output_path(out_path, in_path)
+    budget = budget or default_budget()
+    t0 = time.perf_counter()
+    src = check_streamable(cfg, in_path, out_path)
+    n = src.n_points
+    record = src.dtype.itemsize if hasattr(src, "dtype") else src.header.point_format.size
+    base = BASE_RSS + 2 * n  # interpreter and libraries, labels
+    chunk = chunk or chunk_for_budget(budget, record, fixed_bytes=base)
+    max_border = int(max(budget - base, budget // 2) // 500)
+    if log and not quiet:
+        log(f"streaming {n:,} points in chunks of {chunk:,} (memory budget "
+            f"{budget / 2**20:,.0f} MB)")
+    if client is not None:
+        plan = stream_deform(src, cfg, base_dir, out_path, chunk=chunk, quiet=quiet,
+                             client=client, max_border=max_border, check_fit=check_fit)
+    elif scheduler or workers:  # at least ~16 parts, so every worker gets several
+        chunk = min(chunk, max(20_000, -(-n // 16)))
+        with dask_client(scheduler, workers) as client:
+            plan = stream_deform(src, cfg, base_dir, out_path, chunk=chunk, quiet=quiet,
+                                 client=client, max_border=max_border, check_fit=check_fit)
+    else:
+        plan = stream_deform(src, cfg, base_dir, out_path, chunk=chunk, quiet=quiet,
+                             max_border=max_border, check_fit=check_fit)
+    from functools import partial
+
+    from .. import deform as df
+    from ..basis import compute_basis
+
+    border = plan.border
+    basis_fn = partial(compute_basis, gradients=False, backend="numpy")
+    if hasattr(df, "constraint_errors"):
+        err, err_rms = df.constraint_errors(border, plan.delta_c, basis_fn)
+    else:
+        err, err_rms = df.constraint_error(border, plan.delta_c, basis_fn), float("nan")
+    fit = border.fit
+    diag = float(np.linalg.norm(plan.hi - plan.lo)) or 1.0
+    stats = {
+        "points": n,
+        "free_points": int(np.count_nonzero(plan.labels == 0)),
+        "constraints": int(border.constraint_idx.size),
+        "centers": fit.n_centers,
+        "residual": getattr(fit, "max_error", float("nan")),
+        "residual_rms": getattr(fit, "rms_error", float("nan")),
+        "tolerance": fit.tolerance,
+        "method": getattr(fit, "method", "incremental"),
+        "converged": bool(fit.converged),
+        "constraint_error": err,
+        "constraint_error_rms": err_rms,
+        "constraint_error_rel": err / max(diag, 1e-300),
+        "border_points": plan.border_points,
+        "chunk": chunk,
+    }
+    timings = dict(plan.timings)
+    timings["load"] = sum(timings.pop(k, 0.0) for k in ("bbox", "regions", "border"))
+    timings["total"] = time.perf_counter() - t0
+    return EditResult(None, None, border, plan.delta_c, plan.matrix, out_path, stats, timings)
+
+
+__all__ = ["Progress", "default_budget", "estimate_in_memory_peak", "parse_size", "run_stream",
+           "should_stream"]
+
+
+def maybe_stream(cfg, base_dir: Path, out_path: Path, *, budget: int | str | None = None,
+                 scheduler: str | None = None, workers: int | None = None,
+                 quiet: bool = False, reuse=None, drop_nonfinite: bool = False, log=None,
+                 check_fit=None, render: bool = False):
+    """The streaming result when this edit should stream (budget exceeded, or a Dask
+    scheduler/workers asked for), else None (run in memory). ``budget``: bytes or a size
+    string (else ``cfg.memory_budget``, else half the RAM)."""
+    distributed = bool(scheduler or workers)
+    if budget is None and cfg.memory_budget is not None:
+        budget = parse_size(cfg.memory_budget, "memory_budget")
+    elif isinstance(budget, str):
+        budget = parse_size(budget)
+    in_path = Path(base_dir) / cfg.input
+    if not distributed and not should_stream(cfg, in_path, budget):
+        return None
+    if reuse is not None or drop_nonfinite:
+        if distributed:
+            raise ConfigError("--scheduler/--workers: cannot be combined with --reuse or "
+                              "--drop-nonfinite")
+        return None
+    if render:
+        raise ConfigError("--render/render: not available when deform streams (the model is "
+                          "never whole in memory); render the output file instead")
+    return run_stream(cfg, base_dir, output=out_path, budget=budget, scheduler=scheduler,
+                      workers=workers, quiet=quiet, log=log, check_fit=check_fit)

@@ -1,0 +1,312 @@
+"""The streaming first passes: bounding box, regions, border gathering, rings and the fit.
+
+Only what the rings and the fit need is ever held whole:
+- labels (N,) uint8 (0 free, 1 fixed, 2 handle): one byte per point;
+- the handle points' positions (Nh, 3), for the affine frame and the centroid pivot (the same
+  arrays, in the same order, as the in-memory path, so the frame and matrix are identical);
+- the *border set* S: points within distance R of a point of another label (regions vs free).
+
+The border set is found with a coarse voxel grid of edge R/2 (voxels holding a region point
+within two voxels of voxels holding a free point, and vice versa) and then exact distances
+within those voxels.
+The rings (the existing :func:`splatdeform.deform.prepare`, kNN graph and all) run on S alone.
+This equals the in-memory rings when every point whose kNN edges can reach a ring lies well
+inside S: with r = the largest k-th-neighbour distance among the points within R/2 of the
+interface, the rings are at most (rings + 1) r deep, so (rings + 1) r < R/2 makes every kNN
+ball that matters lie inside S. R starts from a sampled estimate and is enlarged (another pass)
+until that holds. Points near the interface whose kNN reach farther than that (isolated
+outliers) are reported.
+"""
+
+from __future__ import annotations
+
+import math
+import warnings
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from .. import deform as df
+from ..basis.result import Basis
+from ..config import EditConfig
+from ..errors import InputError, ProcessingError, RegionError
+from ..handle import AffineFrame, delta_for_transform, handle_frame
+from ..model import PointModel
+from ..regions import Indices, Property, _load_indices, select
+from .progress import Progress
+from .sources import ChunkFile, as_chunk
+
+FREE, FIXED, HANDLE = 0, 1, 2
+
+
+@dataclass
+class Plan:
+    """Everything the second pass needs: labels (N,) uint8, the fit, frame, delta_c (4, 3),
+    matrix (4, 4); plus the border-set deformation (for the report) and pass timings."""
+
+    n_points: int
+    lo: np.ndarray
+    hi: np.ndarray
+    labels: np.ndarray
+    frame: AffineFrame
+    matrix: np.ndarray
+    delta_c: np.ndarray
+    border: df.Deformation
+    border_points: int
+    radius: float
+    timings: dict[str, float] = field(default_factory=dict)
+
+
+def chunk_ranges(n: int, chunk: int):
+    for start in range(0, n, chunk):
+        yield start, min(start + chunk, n)
+
+
+def _no_basis(points: np.ndarray, fit) -> Basis:
+    k = fit.weights.shape[1]
+    return Basis(values=np.zeros((points.shape[0], k)), gradients=None)
+
+
+def bbox_pass(src: ChunkFile, chunk: int, quiet: bool, sample_size: int = 200_000):
+    """(lo (3,), hi (3,), sample (M, 3)) with a strided sample of about sample_size points."""
+    n = src.n_points
+    stride = max(1, n // sample_size)
+    lo = np.full(3, np.inf)
+    hi = np.full(3, -np.inf)
+    sample = []
+    progress = Progress("pass 1 (bounding box)", n, quiet=quiet)
+    for a, b in chunk_ranges(n, chunk):
+        pos = src.positions(a, b)
+        lo = np.minimum(lo, pos.min(axis=0))
+        hi = np.maximum(hi, pos.max(axis=0))
+        sample.append(pos[(-a) % stride::stride])
+        progress.update(b - a)
+    seconds = progress.finish()
+    return lo, hi, np.concatenate(sample), seconds
+
+
+def initial_radius(sample: np.ndarray, n: int, neighbors: int, rings: int,
+                   lo: np.ndarray, hi: np.ndarray) -> float:
+    """R from the k-th-neighbour distance of a sample scaled to the full density (surface
+    scaling), with the (rings + 1) r < R/2 rule and a factor 2 of slack."""
+    m = sample.shape[0]
+    k = min(neighbors, m - 1)
+    diag = float(np.linalg.norm(hi - lo)) or 1.0
+    if k < 1:
+        return diag
+    dist, _ = cKDTree(sample).query(sample, k=k + 1, workers=-1)
+    r_sample = float(np.quantile(dist[:, -1], 0.95))
+    r = r_sample * math.sqrt(m / max(n, 1))
+    return min(max(3.5 * (rings + 1) * r, 1e-9 * diag), diag)
+
+
+def _split_selectors(selectors):
+    plain = [s for s in selectors if not isinstance(s, Indices)]
+    index = [s for s in selectors if isinstance(s, Indices)]
+    return plain, index
+
+
+def _index_mask(selectors, n: int, base_dir: Path) -> np.ndarray | None:
+    if not selectors:
+        return None
+    mask = np.zeros(n, dtype=bool)
+    for sel in selectors:
+        idx = _load_indices(sel, base_dir)
+        if idx.size and (idx.min() < 0 or idx.max() >= n):
+            raise InputError(f"indices: expected values in 0..{n - 1}, got "
+                             f"{int(idx.min())}..{int(idx.max())}")
+        mask[idx] = True
+    return mask
+
+
+def _voxel_keys(pos: np.ndarray, lo: np.ndarray, h: float, dims: np.ndarray) -> np.ndarray:
+    ijk = np.minimum(((pos - lo) / h).astype(np.int64), dims - 1)
+    return (ijk[:, 0] * dims[1] + ijk[:, 1]) * dims[2] + ijk[:, 2]
+
+
+def _dilate(keys: np.ndarray, dims: np.ndarray) -> np.ndarray:
+    """Keys of the voxels within Chebyshev distance 1 of ``keys`` (sorted unique)."""
+    i = keys // (dims[1] * dims[2])
+    j = (keys // dims[2]) % dims[1]
+    k = keys % dims[2]
+    out = []
+    for di in (-1, 0, 1):
+        for dj in (-1, 0, 1):
+            for dk in (-1, 0, 1):
+                a, b, c = i + di, j + dj, k + dk
+                ok = (a >= 0) & (a < dims[0]) & (b >= 0) & (b < dims[1]) & (c >= 0) & (c < dims[2])
+                out.append(((a * dims[1] + b) * dims[2] + c)[ok])
+    return np.unique(np.concatenate(out))
+
+
+def _in_sorted(keys: np.ndarray, table: np.ndarray) -> np.ndarray:
+    if table.size == 0:
+        return np.zeros(keys.shape, dtype=bool)
+    at = np.minimum(np.searchsorted(table, keys), table.size - 1)
+    return table[at] == keys
+
+
+def labels_pass(src: ChunkFile, cfg: EditConfig, base_dir: Path, lo: np.ndarray,
+                hi: np.ndarray, chunk: int, quiet: bool):
+    """(labels (N,) uint8, handle positions (Nh, 3) float64, seconds); region errors as the
+    in-memory path raises them."""
+    n = src.n_points
+    fixed_plain, fixed_idx = _split_selectors([s.to_selector() for s in cfg.regions.fixed])
+    handle_plain, handle_idx = _split_selectors([s.to_selector()
+                                                 for s in cfg.regions.handle or []])
+    fixed_imask = _index_mask(fixed_idx, n, base_dir)
+    handle_imask = _index_mask(handle_idx, n, base_dir)
+    need_model = any(isinstance(s, Property) for s in fixed_plain + handle_plain)
+    units = cfg.regions.units
+    labels = np.zeros(n, dtype=np.uint8)
+    handle_pos = []
+    overlap = 0
+    progress = Progress("pass 2 (regions)", n, quiet=quiet)
+    for a, b in chunk_ranges(n, chunk):
+        model = src.read(a, b) if need_model else PointModel(positions=src.positions(a, b))
+        cm = as_chunk(model, lo, hi)
+        fixed = select(cm, fixed_plain, units, base_dir)
+        handle = select(cm, handle_plain, units, base_dir)
+        if fixed_imask is not None:
+            fixed |= fixed_imask[a:b]
+        if handle_imask is not None:
+            handle |= handle_imask[a:b]
+        overlap += int((fixed & handle).sum())
+        labels[a:b][fixed] = FIXED
+        labels[a:b][handle] = HANDLE
+        handle_pos.append(cm.positions[handle])
+        progress.update(b - a)
+    seconds = progress.finish()
+    counts = np.bincount(labels, minlength=3)
+    if counts[FIXED] == 0 and overlap == 0:
+        raise RegionError("regions.fixed: selects no point; widen the fixed region")
+    if counts[HANDLE] == 0:
+        raise RegionError("regions.handle: selects no point; widen the handle region")
+    if overlap:
+        raise RegionError(f"regions: fixed and handle regions overlap in {overlap} points; "
+                          "they must be disjoint")
+    if counts[FREE] == 0:
+        raise RegionError("regions: fixed and handle regions cover every point; leave a free "
+                          "region between them")
+    return labels, np.concatenate(handle_pos), seconds
+
+
+def gather_border(src: ChunkFile, labels: np.ndarray, lo: np.ndarray, hi: np.ndarray,
+                  radius: float, chunk: int, quiet: bool, max_points: int):
+    """Two passes: voxels of edge radius/2 by label, then the points in voxels within two
+    voxels of another label, and of those the points within ``radius`` of another label.
+    Returns (global indices (S,) int64, positions (S, 3), labels (S,), distance to the other
+    label (S,))."""
+    n = src.n_points
+    edge = radius / 2.0
+    dims = np.maximum(np.ceil((hi - lo) / edge).astype(np.int64), 1)
+    if float(np.prod(dims.astype(np.float64))) > 2**62:
+        raise ProcessingError("streaming: the border radius is too small for the bounding box")
+    free_keys, region_keys = [], []
+    progress = Progress("pass 3 (border voxels)", n, quiet=quiet)
+    for a, b in chunk_ranges(n, chunk):
+        keys = _voxel_keys(src.positions(a, b), lo, edge, dims)
+        lab = labels[a:b]
+        free_keys.append(np.unique(keys[lab == FREE]))
+        region_keys.append(np.unique(keys[lab != FREE]))
+        progress.update(b - a)
+    progress.finish()
+    free_v = np.unique(np.concatenate(free_keys))
+    region_v = np.unique(np.concatenate(region_keys))
+    candidates = np.union1d(np.intersect1d(_dilate(_dilate(free_v, dims), dims), region_v),
+                            np.intersect1d(_dilate(_dilate(region_v, dims), dims), free_v))
+    idx, pos, lab = [], [], []
+    taken = 0
+    progress = Progress("pass 4 (border points)", n, quiet=quiet)
+    for a, b in chunk_ranges(n, chunk):
+        p = src.positions(a, b)
+        keep = np.flatnonzero(_in_sorted(_voxel_keys(p, lo, edge, dims), candidates))
+        taken += keep.size
+        if taken > max_points:
+            raise ProcessingError(
+                f"streaming: more than {max_points:,} points lie near the region borders; "
+                "the border does not fit the memory budget (raise --memory-budget)")
+        idx.append(keep + a)
+        pos.append(p[keep])
+        lab.append(labels[a:b][keep])
+        progress.update(b - a)
+    progress.finish()
+    idx, pos, lab = np.concatenate(idx), np.concatenate(pos), np.concatenate(lab)
+    free = lab == FREE
+    dist = np.full(idx.size, np.inf)
+    if free.any() and (~free).any():
+        dist[~free] = cKDTree(pos[free]).query(pos[~free], k=1, distance_upper_bound=radius,
+                                               workers=-1)[0]
+        dist[free] = cKDTree(pos[~free]).query(pos[free], k=1, distance_upper_bound=radius,
+                                               workers=-1)[0]
+    keep = dist < radius
+    return idx[keep], pos[keep], lab[keep], dist[keep]
+
+
+def kth_distance(points: np.ndarray, k: int, block: int = 500_000) -> np.ndarray:
+    """(M,) distance of each point to its k-th nearest other point (within ``points``)."""
+    tree = cKDTree(points)
+    k = min(k, points.shape[0] - 1)
+    out = np.empty(points.shape[0])
+    for a in range(0, points.shape[0], block):
+        out[a:a + block] = tree.query(points[a:a + block], k=k + 1, workers=-1)[0][:, -1]
+    return out
+
+
+def build_plan(src: ChunkFile, cfg: EditConfig, base_dir: Path, *, chunk: int, quiet: bool,
+               max_border: int, make_fit_fn, handle_matrix) -> Plan:
+    """Passes 1-4, the rings on the border set and the fit."""
+    timings: dict[str, float] = {}
+    n = src.n_points
+    lo, hi, sample, timings["bbox"] = bbox_pass(src, chunk, quiet)
+    labels, handle_pos, timings["regions"] = labels_pass(src, cfg, base_dir, lo, hi, chunk,
+                                                         quiet)
+    frame = handle_frame(handle_pos)
+    whole = as_chunk(PointModel(positions=handle_pos), lo, hi)
+    matrix = handle_matrix(cfg, whole, np.ones(handle_pos.shape[0], dtype=bool))
+    delta_c = delta_for_transform(frame.control_points, matrix)
+    del handle_pos, whole
+    rings = cfg.boundary.continuity + 1
+    k = cfg.boundary.neighbors
+    radius = initial_radius(sample, n, k, rings, lo, hi)
+    diag = float(np.linalg.norm(hi - lo)) or 1.0
+    import time
+
+    t0 = time.perf_counter()
+    for _attempt in range(6):
+        gidx, pos, lab, dist = gather_border(src, labels, lo, hi, radius, chunk, quiet,
+                                             max_border)
+        kth = kth_distance(pos, k) if pos.shape[0] > 1 else np.zeros(pos.shape[0])
+        core = dist <= radius / 2
+        r_core = float(kth[core].max()) if core.any() else 0.0
+        needed = 2.0 * (rings + 1) * r_core
+        outliers = int(np.sum(~core & (kth >= dist - rings * r_core)))
+        if needed < radius and (outliers == 0 or radius >= diag):
+            break
+        if radius >= diag:
+            break
+        radius = min(max(needed, radius) * 1.5, diag)
+    if outliers:
+        warnings.warn(f"{src.path}: {outliers} points near the region borders have their "
+                      f"{k} nearest neighbours farther than the border band ({radius:.3g}); "
+                      "their rings may differ from the in-memory path", stacklevel=2)
+    fixed_s, handle_s = lab == FIXED, lab == HANDLE
+    sub = PointModel(positions=pos)
+    grads = frame.coordinate_gradients()
+    bbox_model = PointModel(positions=np.stack([lo, hi]))
+    border = df.prepare(
+        sub, fixed_s, handle_s, control_points=frame.control_points,
+        coordinates=frame.coordinates,
+        coordinate_gradients=lambda p: np.broadcast_to(grads, (p.shape[0], 4, 3)),
+        fit_fn=make_fit_fn(cfg, bbox_model), basis_fn=_no_basis,
+        continuity=cfg.boundary.continuity, neighbors=k, frame=frame)
+    timings["border"] = time.perf_counter() - t0 - border.timings.get("rings", 0.0) \
+        - border.timings.get("fit", 0.0)
+    timings["rings"] = border.timings.get("rings", 0.0)
+    timings["fit"] = border.timings.get("fit", 0.0)
+    border.constraint_idx = gidx[border.constraint_idx]  # global indices, for the report
+    return Plan(n_points=n, lo=lo, hi=hi, labels=labels, frame=frame, matrix=matrix,
+                delta_c=delta_c, border=border, border_points=int(gidx.size), radius=radius,
+                timings=timings)

@@ -1,0 +1,39 @@
+"""Progress lines for the long passes: points done, percent, points per second (stderr)."""
+
+from __future__ import annotations
+
+import sys
+import time
+from collections.abc import Callable
+
+
+class Progress:
+    """Reports a pass over ``total`` points at most every ``every`` seconds, and once at the
+    end; silent when ``quiet``. ``sink`` receives each line (default: stderr)."""
+
+    def __init__(self, name: str, total: int, *, quiet: bool = False, every: float = 2.0,
+                 sink: Callable[[str], None] | None = None) -> None:
+        self.name, self.total, self.quiet, self.every = name, max(int(total), 1), quiet, every
+        self.sink = sink or (lambda line: print(line, file=sys.stderr, flush=True))
+        self.done = 0
+        self.t0 = self.last = time.perf_counter()
+
+    def rate(self) -> float:
+        return self.done / max(time.perf_counter() - self.t0, 1e-9)
+
+    def update(self, points: int) -> None:
+        self.done += int(points)
+        now = time.perf_counter()
+        if not self.quiet and now - self.last >= self.every and self.done < self.total:
+            self.last = now
+            pct = 100.0 * self.done / self.total
+            self.sink(f"{self.name}: {self.done:,}/{self.total:,} points "
+                      f"({pct:.0f}%, {self.rate() / 1e6:.2f} M points/s)")
+
+    def finish(self) -> float:
+        """Print the closing line; returns the pass's seconds."""
+        seconds = time.perf_counter() - self.t0
+        if not self.quiet:
+            self.sink(f"{self.name}: {self.done:,} points in {seconds:.1f} s "
+                      f"({self.rate() / 1e6:.2f} M points/s)")
+        return seconds

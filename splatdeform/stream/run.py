@@ -1,0 +1,241 @@
+"""The streaming second pass (basis + apply chunk by chunk) locally or on Dask, and the entry
+point :func:`run_stream` that ``deform`` calls when the in-memory path would exceed the budget.
+
+Every chunk is deformed by the same code as the in-memory path (:func:`splatdeform.deform.apply`
+on a chunk-sized :class:`~splatdeform.deform.Deformation`), so fixed and handle points are
+bit-exact and free points differ only by the basis backend's rounding. On Dask, workers read
+their chunk from the shared file, deform it and write it as a part file (written to a temporary
+name and renamed, so a recomputed chunk rewrites the same part); the client then assembles the
+parts in order into the output, atomically. The fitted deformation (centers, weights, frame,
+delta_c) is scattered once.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import shutil
+import tempfile
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from .. import deform as df
+from ..basis.result import Basis
+from ..errors import InputError, ProcessingError
+from ..io import las as laslib
+from ..io.atomic import atomic_path
+from .plan import FIXED, FREE, HANDLE, Plan, build_plan, chunk_ranges
+from .progress import Progress
+from .sources import ChunkFile, LasChunks, PlyChunks, open_chunks
+
+
+@dataclass
+class Shared:
+    """What every chunk needs (small; sent once to Dask workers)."""
+
+    fit: object
+    frame: object
+    matrix: np.ndarray
+    delta_c: np.ndarray
+    backend: str
+    device: str | None
+
+
+def deform_chunk(src: ChunkFile, start: int, stop: int, labels: np.ndarray,
+                 shared: Shared):
+    """Deform points [start, stop): returns (rows or records, PLY properties or None)."""
+    from ..basis import compute_basis
+
+    model = src.read(start, stop)
+    free = np.flatnonzero(labels == FREE)
+    mov = np.flatnonzero(labels == HANDLE)
+    frame = shared.frame
+    needs_grad = any(a is not None for a in (model.normals, model.axes, model.gaussians))
+    if free.size:
+        basis = compute_basis(model.positions[free], shared.fit, gradients=needs_grad,
+                              backend=shared.backend, device=shared.device)
+    else:
+        k = shared.fit.weights.shape[1]
+        basis = Basis(np.zeros((0, k)), np.zeros((0, k, 3)) if needs_grad else None)
+    grads = frame.coordinate_gradients()
+    n = stop - start
+    empty = np.empty(0, dtype=np.int64)
+    deformation = df.Deformation(
+        n_points=n, fixed=labels == FIXED, moving=labels == HANDLE, free_idx=free,
+        moving_idx=mov, moving_coords=frame.coordinates(model.positions[mov]),
+        moving_gradients=np.broadcast_to(grads, (mov.size, 4, 3)),
+        constraint_idx=empty, constraint_points=np.empty((0, 3)),
+        constraint_rhs=np.empty((0, 4)), control_points=frame.control_points,
+        fit=shared.fit, basis=basis, frame=frame)
+    out = df.apply(deformation, model, shared.delta_c, moving_matrix=shared.matrix)
+    if not np.isfinite(out.positions).all():
+        raise ProcessingError("the deformation produced non-finite positions; check the "
+                              "regions and the transform")
+    try:
+        return src.encode(out)
+    except ProcessingError as exc:
+        raise ProcessingError(
+            f"{src.path}: deformed coordinates overflow the LAS int32 range with the input's "
+            "scale and offset; the streaming path keeps them (run in memory with a larger "
+            "--memory-budget to move the offset)") from exc
+
+
+def _part_name(parts: Path, start: int) -> Path:
+    return parts / f"part_{start:014d}.npy"
+
+
+def dask_part(path: str, start: int, stop: int, labels: np.ndarray, shared: Shared,
+              parts: str) -> str:
+    """A Dask task: deform one chunk and write it as a part (idempotent: tmp + rename)."""
+    src = open_chunks(path)
+    rows, _ = deform_chunk(src, start, stop, labels, shared)
+    final = _part_name(Path(parts), start)
+    fd, tmp = tempfile.mkstemp(dir=parts, prefix=".part.", suffix=".npy")
+    with os.fdopen(fd, "wb") as f:
+        np.save(f, rows, allow_pickle=False)
+    os.replace(tmp, final)
+    return str(final)
+
+
+class _Writer:
+    """Streams deformed chunks into the output (PLY: header, rows, other elements verbatim;
+    LAS/LAZ: the input's header, VLRs and EVLRs)."""
+
+    def __init__(self, src: ChunkFile, tmp: Path) -> None:
+        self.src, self.tmp = src, tmp
+        self.stream = None
+        self.las = None
+
+    def write(self, rows, props) -> None:
+        if isinstance(self.src, PlyChunks):
+            if self.stream is None:
+                self.stream = open(self.tmp, "wb")
+                self.stream.write(self.src.header_bytes(props))
+            self.stream.write(rows.tobytes())
+        else:
+            if self.las is None:
+                self.las = laslib.LasWriter(self.src.header, self.tmp, self.src.evlrs)
+            self.las.write(rows)
+
+    def close(self, props) -> None:
+        if isinstance(self.src, PlyChunks):
+            self.src.copy_tail(self.stream)
+            self.stream.flush()
+            os.fsync(self.stream.fileno())
+            self.stream.close()
+        else:
+            self.las.close()
+
+
+def _ply_props(src: PlyChunks, plan: Plan, shared: Shared):
+    """The output vertex properties (from deforming a one-point chunk)."""
+    _, props = deform_chunk(src, 0, 1, plan.labels[:1], shared)
+    return props
+
+
+def second_pass_local(src: ChunkFile, plan: Plan, shared: Shared, out: Path, chunk: int,
+                      quiet: bool) -> None:
+    progress = Progress("pass 5 (basis + apply + write)", src.n_points, quiet=quiet)
+    with atomic_path(out) as tmp:
+        writer = _Writer(src, tmp)
+        props = None
+        for a, b in chunk_ranges(src.n_points, chunk):
+            rows, props = deform_chunk(src, a, b, plan.labels[a:b], shared)
+            writer.write(rows, props)
+            progress.update(b - a)
+        writer.close(props)
+    progress.finish()
+
+
+def second_pass_dask(src: ChunkFile, plan: Plan, shared: Shared, out: Path, chunk: int,
+                     quiet: bool, client) -> None:
+    from distributed import as_completed
+
+    parts = Path(tempfile.mkdtemp(dir=out.parent, prefix=f".{out.stem}.parts."))
+    progress = Progress("pass 5 on Dask (basis + apply + parts)", src.n_points, quiet=quiet)
+    try:
+        shared_f = client.scatter(shared, broadcast=True)
+        futures = {}
+        for a, b in chunk_ranges(src.n_points, chunk):
+            fut = client.submit(dask_part, str(src.path), a, b, plan.labels[a:b], shared_f,
+                                str(parts), key=f"splatdeform-part-{a}-{b}-{id(plan)}",
+                                retries=2, pure=False)
+            futures[fut] = (a, b)
+        for fut in as_completed(list(futures)):
+            fut.result()
+            a, b = futures[fut]
+            progress.update(b - a)
+        progress.finish()
+        props = _ply_props(src, plan, shared) if isinstance(src, PlyChunks) else None
+        with atomic_path(out) as tmp:
+            writer = _Writer(src, tmp)
+            for a, _b in chunk_ranges(src.n_points, chunk):
+                writer.write(np.load(_part_name(parts, a), allow_pickle=False), props)
+            writer.close(props)
+    finally:
+        shutil.rmtree(parts, ignore_errors=True)
+
+
+@contextlib.contextmanager
+def dask_client(scheduler: str | None, workers: int | None):
+    """A Dask client on ``scheduler``, or on a new LocalCluster of ``workers`` processes."""
+    from distributed import Client, LocalCluster
+
+    if scheduler:
+        try:
+            client = Client(scheduler, timeout="20s")
+        except (OSError, TimeoutError) as exc:
+            raise InputError(f"--scheduler: cannot reach the Dask scheduler at {scheduler}: "
+                             f"{exc}") from exc
+        try:
+            yield client
+        finally:
+            client.close()
+        return
+    cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
+                           dashboard_address=None)
+    client = Client(cluster)
+    try:
+        yield client
+    finally:
+        client.close()
+        cluster.close()
+
+
+def stream_deform(src: ChunkFile, cfg, base_dir: Path, out: Path, *, chunk: int,
+                  quiet: bool = False, client=None, max_border: int = 20_000_000,
+                  check_fit=None):
+    """Plan (passes 1-4, rings, fit) and the second pass. Returns (plan, timings)."""
+    from ..edit import handle_matrix, make_fit_fn
+
+    plan = build_plan(src, cfg, base_dir, chunk=chunk, quiet=quiet, max_border=max_border,
+                      make_fit_fn=make_fit_fn, handle_matrix=handle_matrix)
+    if check_fit is not None:
+        check_fit(plan.border.fit)  # warns, or raises before any output
+    shared = Shared(plan.border.fit, plan.frame, plan.matrix, plan.delta_c, cfg.backend,
+                    cfg.device)
+    t0 = time.perf_counter()
+    if client is None:
+        second_pass_local(src, plan, shared, out, chunk, quiet)
+    else:
+        second_pass_dask(src, plan, shared, out, chunk, quiet, client)
+    plan.timings["apply"] = time.perf_counter() - t0
+    return plan
+
+
+def check_streamable(cfg, in_path: Path, out_path: Path) -> ChunkFile:
+    """The chunk reader, or an InputError saying why this edit cannot stream."""
+    if cfg.curve is not None:
+        raise InputError("curve edits do not stream yet; raise --memory-budget")
+    if cfg.normals == "estimate":
+        raise InputError("normals: estimate needs the whole model; raise --memory-budget")
+    src = open_chunks(in_path)
+    same = (isinstance(src, PlyChunks) and out_path.suffix.lower() == ".ply") or (
+        isinstance(src, LasChunks) and out_path.suffix.lower() in laslib.EXTENSIONS)
+    if not same:
+        raise InputError(f"{out_path}: streaming writes the input's format "
+                         f"({in_path.suffix}); choose a matching output extension")
+    return src

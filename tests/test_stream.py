@@ -1,0 +1,214 @@
+"""Streaming ``deform``: the out-of-core path equals the in-memory path (bit-exact positions on
+the fixed and handle points, the backend's tolerance on free points, every other property
+kept), for binary PLY and LAS/LAZ; bounded peak memory in a subprocess; progress and --quiet;
+bad budgets."""
+
+from __future__ import annotations
+
+import resource
+import subprocess
+import sys
+from pathlib import Path
+
+import laspy
+import numpy as np
+import pytest
+import yaml
+from conftest import ROOT, shared_file
+
+from data_tools.synth import bumpy_bar
+from splatdeform.cli import main
+from splatdeform.config import load_edit
+from splatdeform.edit import run_edit
+from splatdeform.io import save
+from splatdeform.io.ply_format import read_ply
+from splatdeform.stream import estimate_in_memory_peak, parse_size, run_stream
+
+EDIT = {
+    "regions": {"units": "relative",
+                "fixed": [{"box": {"min": [0, 0, 0], "max": [0.25, 1, 1]}}],
+                "handle": [{"box": {"min": [0.75, 0, 0], "max": [1, 1, 1]}}]},
+    "handle": {"transform": {"pivot": [0.75, 0.5, 0.5],
+                             "rotate": {"axis": [0, 0, 1], "degrees": 35},
+                             "translate": [0, 0.1, 0]}},
+    "fit": {"tolerance": 1e-3},
+}
+
+
+def write_edit(folder: Path, inp: Path, out: str, **extra) -> Path:
+    cfg = dict(EDIT, input=str(inp), output=out, **extra)
+    path = folder / f"edit_{out.replace('.', '_')}.yaml"
+    path.write_text(yaml.safe_dump(cfg))
+    return path
+
+
+@pytest.fixture(scope="module")
+def bar(tmp_path_factory) -> Path:
+    """A 60k-point surfel bar (positions, normals, colours, radius) as binary PLY."""
+    path = tmp_path_factory.mktemp("stream") / "bar.ply"
+    save(bumpy_bar(60_000, seed=4), path)
+    return path
+
+
+def vertex(path: Path) -> np.ndarray:
+    return read_ply(path).element("vertex").data
+
+
+def labels_of(data: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    x = data["x"].astype(np.float64)
+    u = (x - x.min()) / (x.max() - x.min())
+    return u <= 0.25, u >= 0.75
+
+
+def assert_same_result(mem: Path, streamed: Path) -> None:
+    """Same header and properties; F and H positions bit-exact; free points within the
+    backend's tolerance; every other property equal (normals to rounding)."""
+    a, b = vertex(mem), vertex(streamed)
+    assert a.dtype == b.dtype and a.shape == b.shape
+    src_a, src_b = read_ply(mem), read_ply(streamed)
+    assert [(e.name, e.count) for e in src_a.elements] == \
+        [(e.name, e.count) for e in src_b.elements]
+    assert src_a.comments == src_b.comments
+    fixed, handle = labels_of(a)
+    pos_a = np.stack([a[c] for c in "xyz"], axis=1)
+    pos_b = np.stack([b[c] for c in "xyz"], axis=1)
+    rigid = fixed | handle
+    assert np.array_equal(pos_a[rigid], pos_b[rigid])
+    diag = float(np.linalg.norm(np.ptp(pos_a, axis=0)))
+    assert np.abs(pos_a - pos_b).max() <= 1e-6 * diag
+    for name in a.dtype.names:
+        if name in "xyz":
+            continue
+        if name in ("nx", "ny", "nz", "radius"):
+            assert np.allclose(a[name], b[name], atol=1e-6, rtol=0), name
+            assert np.array_equal(a[name][fixed], b[name][fixed]), name
+        else:
+            assert np.array_equal(a[name], b[name]), name
+
+
+def test_stream_equals_in_memory_ply(bar: Path, tmp_path: Path) -> None:
+    cfg_path = write_edit(tmp_path, bar, "mem.ply")
+    cfg = load_edit(cfg_path)
+    run_edit(cfg, tmp_path)
+    result = run_stream(cfg, tmp_path, output=tmp_path / "st.ply", chunk=7_000, quiet=True)
+    assert result.model is None and result.stats["points"] == 60_000
+    assert result.stats["border_points"] < 60_000
+    mem = run_edit(cfg, tmp_path, save_output=False)
+    # the same rings and the same fit as the in-memory path
+    assert result.stats["constraints"] == mem.stats["constraints"]
+    assert result.stats["centers"] == mem.stats["centers"]
+    assert np.array_equal(np.sort(result.deformation.constraint_idx),
+                          np.sort(mem.deformation.constraint_idx))
+    assert_same_result(tmp_path / "mem.ply", tmp_path / "st.ply")
+    assert not list(tmp_path.glob(".*tmp*"))  # no temporary left behind
+
+
+def test_cli_streams_above_budget_with_progress(bar: Path, tmp_path: Path, capsys) -> None:
+    big = tmp_path / "big.ply"
+    save(bumpy_bar(150_000, seed=5), big)
+    assert estimate_in_memory_peak(big) > parse_size("64MB")
+    cfg = write_edit(tmp_path, big, "out.ply")
+    assert main(["deform", str(cfg), "--memory-budget", "64MB"]) == 0
+    captured = capsys.readouterr()
+    assert "streaming 150,000 points" in captured.out
+    assert "pass 5" in captured.err and "M points/s" in captured.err
+    assert main(["deform", str(cfg), "-o", str(tmp_path / "q.ply"), "--memory-budget", "64MB",
+                 "--quiet"]) == 0
+    captured = capsys.readouterr()
+    assert captured.err == "" and "streaming" not in captured.out
+    assert vertex(tmp_path / "q.ply").shape == (150_000,)
+    # the config key does the same
+    cfg2 = write_edit(tmp_path, big, "out2.ply", memory_budget="64MB")
+    assert main(["deform", str(cfg2), "--quiet"]) == 0
+    assert np.array_equal(vertex(tmp_path / "out2.ply"), vertex(tmp_path / "q.ply"))
+
+
+@pytest.mark.parametrize("bad", ["lots", "12XB", "-1GB", "1MB"])
+def test_bad_budget_is_one_line(bar: Path, tmp_path: Path, capsys, bad: str) -> None:
+    cfg = write_edit(tmp_path, bar, "o.ply")
+    assert main(["deform", str(cfg), "--memory-budget", bad]) == 2
+    err = capsys.readouterr().err
+    assert "--memory-budget" in err and err.count("\n") == 1
+    assert not (tmp_path / "o.ply").exists()
+
+
+def test_render_refused_when_streaming(tmp_path: Path, capsys) -> None:
+    big = tmp_path / "big.ply"
+    save(bumpy_bar(150_000, seed=6), big)
+    cfg = write_edit(tmp_path, big, "o.ply")
+    assert main(["deform", str(cfg), "--memory-budget", "64MB", "--quiet",
+                 "--render", str(tmp_path / "x.png")]) == 2
+    assert "streams" in capsys.readouterr().err
+    assert not (tmp_path / "o.ply").exists()
+
+
+def test_stream_las_equals_in_memory(tmp_path: Path) -> None:
+    src = shared_file("lidar/simple.laz")
+    edit = dict(EDIT, handle={"transform": {"translate": [0, 0, 0.3]}})
+    for name in ("mem.laz", "st.laz"):
+        (tmp_path / f"{name}.yaml").write_text(yaml.safe_dump(
+            dict(edit, input=str(src), output=name, backend="numpy")))
+    run_edit(load_edit(tmp_path / "mem.laz.yaml"), tmp_path)
+    run_stream(load_edit(tmp_path / "st.laz.yaml"), tmp_path, chunk=300, quiet=True)
+    a, b = laspy.read(tmp_path / "mem.laz"), laspy.read(tmp_path / "st.laz")
+    assert b.header.are_points_compressed
+    assert np.array_equal(a.header.scales, b.header.scales)
+    assert np.array_equal(a.header.offsets, b.header.offsets)
+    names = [n for n in a.point_format.dimension_names if n not in ("X", "Y", "Z")]
+    for n in names:
+        assert np.array_equal(np.asarray(a[n]), np.asarray(b[n])), n
+    ints_a = np.stack([a.X, a.Y, a.Z], axis=1)
+    ints_b = np.stack([b.X, b.Y, b.Z], axis=1)
+    u = (a.x - a.x.min()) / (a.x.max() - a.x.min())
+    rigid = (u <= 0.25) | (u >= 0.75)
+    assert np.array_equal(ints_a[rigid], ints_b[rigid])
+    assert np.abs(ints_a - ints_b).max() <= 1  # free points: one quantisation step at most
+
+
+def test_not_streamable_inputs(tmp_path: Path, capsys) -> None:
+    model = bumpy_bar(2_000, seed=1)
+    save(model, tmp_path / "a.ply", text=True)
+    cfg = write_edit(tmp_path, tmp_path / "a.ply", "o.ply")
+    with pytest.raises(Exception, match="binary PLY"):
+        run_stream(load_edit(cfg), tmp_path, quiet=True)
+    save(model, tmp_path / "b.ply")
+    cfg = write_edit(tmp_path, tmp_path / "b.ply", "o.las")
+    with pytest.raises(Exception, match="input's format"):
+        run_stream(load_edit(cfg), tmp_path, quiet=True)
+
+
+PEAK_SCRIPT = """
+import resource, subprocess, sys
+rc = subprocess.call([sys.executable, "-m", "splatdeform.cli", "deform", sys.argv[1],
+                      "--memory-budget", sys.argv[2], "--quiet"], stdout=subprocess.DEVNULL)
+print(rc, resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss)
+"""
+
+
+def test_peak_memory_bounded_by_budget(tmp_path: Path) -> None:
+    """A 2M-point binary PLY (positions + normals, 48 MB) deformed in a subprocess under a
+    300 MB budget: its peak RSS stays below the budget (the in-memory path needs ~1 GB)."""
+    rng = np.random.default_rng(11)
+    n = 2_000_000
+    data = np.empty(n, dtype=[(c, "<f4") for c in ("x", "y", "z", "nx", "ny", "nz")])
+    t = rng.uniform(0, 2 * np.pi, n)
+    data["x"] = rng.uniform(0, 4, n)
+    data["y"], data["z"] = 0.5 * np.cos(t), 0.5 * np.sin(t)
+    data["nx"], data["ny"], data["nz"] = 0, np.cos(t), np.sin(t)
+    path = tmp_path / "big.ply"
+    with open(path, "wb") as f:
+        f.write(f"ply\nformat binary_little_endian 1.0\nelement vertex {n}\n".encode())
+        for c in data.dtype.names:
+            f.write(f"property float {c}\n".encode())
+        f.write(b"end_header\n")
+        f.write(data.tobytes())
+    del data, t
+    cfg = write_edit(tmp_path, path, "out.ply")
+    budget_mb = 300
+    out = subprocess.run([sys.executable, "-c", PEAK_SCRIPT, str(cfg), f"{budget_mb}MB"],
+                         capture_output=True, text=True, cwd=ROOT, check=True)
+    rc, peak_kb = (int(v) for v in out.stdout.split())
+    assert rc == 0
+    assert peak_kb * 1024 < budget_mb * 2**20, f"peak RSS {peak_kb / 1024:.0f} MB"
+    assert vertex(tmp_path / "out.ply").shape == (n,)
+    assert resource.getrusage(resource.RUSAGE_SELF).ru_maxrss > 0
