@@ -61,7 +61,8 @@ def cmd_deform(args: argparse.Namespace) -> int:
         result = run_edit(cfg, base, output=output, drop_nonfinite=args.drop_nonfinite,
                           reuse=reuse, log=print, warn=_warn,
                           stream={"budget": args.memory_budget, "scheduler": args.scheduler,
-                                  "workers": args.workers, "quiet": args.quiet})
+                                  "workers": args.workers, "quiet": args.quiet,
+                                  "render": bool(args.render or cfg.render)})
     except InputError as exc:
         # region/curve/transform errors name the key; add the config file they came from
         if str(exc).split(":")[0].split(".")[0] in ("regions", "handle", "curve", "boundary",
