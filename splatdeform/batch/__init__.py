@@ -12,12 +12,20 @@ Batch config (paths relative to the batch file)::
     workers: 2                    # optional; default: the number of cores
     scheduler: tcp://host:8786    # optional; run on a Dask distributed cluster instead
     memory_per_worker_mb: 4000    # optional; default: available memory / workers
+    scan_timeout_s: 600           # optional; a scan still running after this is stopped and
+                                  # reported failed (--scan-timeout SECONDS wins)
 
 Per scan: ``output_dir/<stem>_deformed<ext>`` (same format and properties as the input),
 ``<stem>.png`` with ``render:``, and ``<stem>_deformed<ext>.json`` (the sidecar with the config
 hash, written last). The run writes ``report.json``, ``report.csv`` and ``index.html``.
 A rerun skips scans whose sidecar holds the same config hash (edit, overrides, render options,
 input size/mtime, package version); ``--force`` redoes them. Exit code 1 when any scan failed.
+
+Hostile inputs are reported, not fatal: a scan that is not a regular file (a FIFO or device
+named ``*.ply``) and the second entry of a duplicate archive member name fail without being
+opened; a scan larger than its PLY header allows, or whose header *or size* exceeds the memory
+budget, fails before it is loaded or extracted (members are never extracted past the size the
+archive declares). The report is always written.
 
 Local execution uses worker processes started with "spawn" (OpenCL/GL state is never forked).
 A Dask cluster runs the same task function; every worker must import ``splatdeform`` and see the
@@ -88,17 +96,23 @@ class _Progress:
 
 
 def run_batch(path: str | Path, *, workers: int | None = None, scheduler: Any = None,
-              force: bool = False, quiet: bool = False) -> dict[str, Any]:
+              force: bool = False, quiet: bool = False,
+              scan_timeout: float | None = None) -> dict[str, Any]:
     """Run a batch file; returns the report summary (``rows``, ``counts``, ``exit_code``).
 
-    ``scheduler`` may be an address or a Dask Cluster/Client object (tests)."""
+    ``scheduler`` may be an address or a Dask Cluster/Client object (tests).
+    ``scan_timeout``: seconds per scan, wins over the config's ``scan_timeout_s``."""
     from .report import write_reports
     from .runner import run_dask, run_local
-    from .worker import available_memory, read_sidecar
+    from .sources import clean_stale_temps
+    from .worker import _row, available_memory, read_sidecar
 
     t0 = time.perf_counter()
+    if scan_timeout is not None:
+        scan_timeout = parse_timeout(scan_timeout, "--scan-timeout")
     batch = load_batch(path)
     scheduler = scheduler or batch.scheduler
+    timeout = scan_timeout if scan_timeout is not None else batch.scan_timeout_s
     if workers is not None and workers < 1:
         from ..errors import InputError
 
@@ -106,42 +120,53 @@ def run_batch(path: str | Path, *, workers: int | None = None, scheduler: Any = 
     workers = workers or batch.workers or os.cpu_count() or 1
     batch.output_dir.mkdir(parents=True, exist_ok=True)
     _clean_stale_temps(batch.output_dir)
+    clean_stale_temps()   # archive members of killed runs / workers on this machine
 
     rows: dict[int, dict[str, Any]] = {}
     todo: list[Job] = []
+    problems: list[dict[str, Any]] = []
     for i, job in enumerate(batch.jobs):
+        if job.problem is not None:   # never opened: a FIFO, a duplicate member, ...
+            rows[i] = _row(job, "failed", seconds=0.0, error=job.problem)
+            problems.append(rows[i])
+            continue
         side = None if force else read_sidecar(job)
         if side is not None:
             rows[i] = {**side.get("row", {}), "scan": job.scan.name, "status": "skipped"}
         else:
             todo.append(job)
     index = {id(job): i for i, job in enumerate(batch.jobs)}
-    progress = _Progress(len(todo), quiet)
-    if not quiet and len(rows):
-        print(f"skipping {len(rows)} scan(s) already done with this config (--force redoes "
+    progress = _Progress(len(todo) + len(problems), quiet)
+    skipped = len(rows) - len(problems)
+    if not quiet and skipped:
+        print(f"skipping {skipped} scan(s) already done with this config (--force redoes "
               "them)", flush=True)
     try:
+        for row in problems:
+            progress(row)
         if todo:
             if scheduler:
                 budget = batch.memory_per_worker_mb * 2**20 if batch.memory_per_worker_mb else None
-                done = run_dask(todo, scheduler, progress, budget)
+                done = run_dask(todo, scheduler, progress, budget, timeout)
             else:
                 budget = (batch.memory_per_worker_mb * 2**20 if batch.memory_per_worker_mb
                           else available_memory() / min(workers, len(todo)))
                 for job in todo:
                     job.memory_budget = budget
-                done = run_local(todo, workers, progress)
+                done = run_local(todo, workers, progress, timeout=timeout)
             by_name = {job.scan.name: index[id(job)] for job in todo}
             for row in done:
                 rows[by_name[row["scan"]]] = row
     finally:
         progress.close()
+        clean_stale_temps()
     ordered = [rows[i] for i in sorted(rows)]
     counts = {s: sum(r["status"] == s for r in ordered) for s in ("ok", "failed", "skipped")}
     summary = {"batch": str(batch.source), "output_dir": str(batch.output_dir),
                "workers": None if scheduler else workers,
                "scheduler": scheduler if isinstance(scheduler, str) else
                (None if scheduler is None else type(scheduler).__name__),
+               "scan_timeout_s": timeout,
                "seconds": time.perf_counter() - t0, "counts": counts,
                "config": batch.config}
     write_reports(batch.output_dir, ordered, summary)
@@ -150,9 +175,24 @@ def run_batch(path: str | Path, *, workers: int | None = None, scheduler: Any = 
     return summary
 
 
+def parse_timeout(value: Any, what: str) -> float:
+    """Seconds > 0 and finite (at most ``MAX_TIMEOUT_S``); InputError naming ``what``."""
+    from ..errors import InputError
+    from .config import MAX_TIMEOUT_S
+
+    try:
+        seconds = float(value)
+        if not 0 < seconds <= MAX_TIMEOUT_S:   # also false for NaN
+            raise ValueError
+    except (TypeError, ValueError):
+        raise InputError(f"{what}: expected a number of seconds > 0 and at most "
+                         f"{MAX_TIMEOUT_S:g}, got {value!r}") from None
+    return seconds
+
+
 def cmd_batch(args: argparse.Namespace) -> int:
     summary = run_batch(args.config, workers=args.workers, scheduler=args.scheduler,
-                        force=args.force, quiet=args.quiet)
+                        force=args.force, quiet=args.quiet, scan_timeout=args.scan_timeout)
     c = summary["counts"]
     line = (f"{len(summary['rows'])} scans: {c['ok']} ok, {c['failed']} failed, "
             f"{c['skipped']} skipped in {summary['seconds']:.1f} s; report "
@@ -172,6 +212,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("config", help="batch YAML file")
     p.add_argument("--workers", type=int, help="local worker processes (default: cores)")
     p.add_argument("--scheduler", help="Dask scheduler address, e.g. tcp://host:8786")
+    p.add_argument("--scan-timeout", type=lambda v: parse_timeout(v, "--scan-timeout"),
+                   metavar="SECONDS", help="stop a scan after this many seconds and report it "
+                   "failed (wins over scan_timeout_s in the batch file)")
     p.add_argument("--force", action="store_true", help="redo scans already done")
     p.add_argument("--quiet", action="store_true", help="no progress output")
     p.set_defaults(func=cmd_batch)

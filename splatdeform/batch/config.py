@@ -1,5 +1,6 @@
 """Batch config: ``scans``, ``edit``, ``overrides``, ``output_dir``, ``render``, ``workers``,
-``scheduler``, ``memory_per_worker_mb`` -> a validated :class:`Batch`, one :class:`Job` a scan.
+``scheduler``, ``memory_per_worker_mb``, ``scan_timeout_s`` -> a validated :class:`Batch`,
+one :class:`Job` a scan.
 
 The edit's ``input``/``output`` keys are optional in a batch and ignored: every scan is the
 input, and its output is ``output_dir/<stem>_deformed<ext>``. Paths inside the edit (e.g.
@@ -25,6 +26,7 @@ from .sources import Scan, find_scans, glob_base, is_glob
 
 PLACEHOLDER_IN = "__batch_input__.ply"
 PLACEHOLDER_OUT = "__batch_output__.ply"
+MAX_TIMEOUT_S = 1e7   # seconds (~115 days); larger values overflow the OS wait calls
 
 
 class _Strict(BaseModel):
@@ -52,6 +54,8 @@ class BatchConfig(_Strict):
     workers: int | None = Field(default=None, ge=1, le=512)
     scheduler: str | None = None
     memory_per_worker_mb: float | None = Field(default=None, gt=0)
+    scan_timeout_s: float | None = Field(default=None, gt=0, le=MAX_TIMEOUT_S,
+                                         allow_inf_nan=False)
 
 
 @dataclass
@@ -66,6 +70,12 @@ class Job:
     render: dict[str, Any] | None
     config_hash: str
     memory_budget: float | None = None   # bytes; filled by the runner
+    timeout_s: float | None = None       # per-scan limit; filled by the runner
+
+    @property
+    def problem(self) -> str | None:
+        """Why the scan is reported failed without being processed (None: process it)."""
+        return self.scan.problem
 
     @property
     def sidecar(self) -> str:
@@ -80,6 +90,7 @@ class Batch:
     workers: int | None
     scheduler: str | None
     memory_per_worker_mb: float | None
+    scan_timeout_s: float | None = None
     config: dict[str, Any] = field(default_factory=dict)
 
 
@@ -145,6 +156,10 @@ def load_batch(path: str | Path) -> Batch:
     jobs: list[Job] = []
     by_output: dict[str, Scan] = {}
     for scan in scans:
+        if scan.problem is not None:   # reported failed, never opened: no outputs
+            jobs.append(Job(scan, edit, str(edit_base), "", None, None,
+                            _hash({"problem": scan.name})))
+            continue
         merged = edit
         for ov in cfg.overrides:
             if fnmatch.fnmatch(scan.filename, ov.match) or fnmatch.fnmatch(scan.name, ov.match):
@@ -159,7 +174,7 @@ def load_batch(path: str | Path) -> Batch:
                         "version": __version__})
         jobs.append(Job(scan, merged, str(edit_base), str(out), png, render, digest))
     return Batch(path, output_dir, jobs, cfg.workers, cfg.scheduler, cfg.memory_per_worker_mb,
-                 cfg.model_dump())
+                 cfg.scan_timeout_s, cfg.model_dump())
 
 
 def _inside(child: Path, parent: Path) -> bool:

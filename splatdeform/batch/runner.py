@@ -1,24 +1,48 @@
 """Run jobs on local worker processes (spawn context) or on a Dask distributed cluster.
 
-Both call the same :func:`~splatdeform.batch.worker.process_scan`. A worker process that dies
-(killed, out of memory, segfault) marks only its scan failed: after a broken pool the scans
-that were in flight are retried one at a time in a fresh pool, so the culprit is found exactly.
+Both call the same :func:`~splatdeform.batch.worker.process_scan`.
+
+Local workers are long-lived processes, each fed one scan at a time over its own pipe, so the
+runner always knows which scan a process is working on: a process that dies (killed, out of
+memory, segfault) fails exactly its scan, and a scan over the per-scan time limit is stopped
+(SIGTERM, which unwinds its cleanup handlers; SIGKILL after a grace period) and reported as
+timed out. A stopped or dead worker is replaced; the other scans go on. The clock starts when
+the scan is handed to a worker that has finished importing, so it measures the scan.
+
+On Dask a running task is a thread that cannot be stopped, so with a time limit each scan runs
+in a child process of the Dask worker (:func:`run_isolated`), stopped the same way.
 """
 
 from __future__ import annotations
 
+import contextlib
 import multiprocessing
 import os
+import pickle
+import select
+import subprocess
+import sys
+import time
+from collections import deque
 from collections.abc import Callable
-from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
-from concurrent.futures.process import BrokenProcessPool
+from multiprocessing.connection import wait as mp_wait
+from pathlib import Path
 from typing import Any
 
 from .config import Job
-from .worker import _row, process_scan, worker_init
+from .worker import _row, process_scan, warm_up, worker_init
 
 Row = dict[str, Any]
 THREAD_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
+GRACE_S = 3.0            # after SIGTERM, before SIGKILL
+START_TIMEOUT_S = 300.0  # a worker process that cannot import in this time is broken
+DIED = ("the worker process died while processing this scan (killed, out of memory or "
+        "crashed)")
+
+
+def timed_out(limit: float) -> str:
+    return (f"timed out: still running after {limit:g} s (scan_timeout_s / --scan-timeout); "
+            "the scan was stopped")
 
 
 def _thread_env(workers: int) -> dict[str, str | None]:
@@ -41,54 +65,209 @@ def _restore_env(saved: dict[str, str | None]) -> None:
             os.environ[var] = value
 
 
+def _worker_main(conn: Any, fn: Callable[[Job], Row], parent: int) -> None:
+    """A local worker process: import, say ready, then run one job per message until None."""
+    import signal
+
+    worker_init(parent)
+    signal.signal(signal.SIGINT, signal.SIG_IGN)   # Ctrl-C: the batch process stops us
+    warm_up()
+    conn.send(("ready", None))
+    while True:
+        try:
+            job = conn.recv()
+        except (EOFError, OSError):
+            return
+        if job is None:
+            return
+        try:
+            row = fn(job)
+        except Exception as exc:  # a task function that raises: fail its scan, keep serving
+            row = _row(job, "failed", error=f"{type(exc).__name__}: {exc}")
+        conn.send(("row", row))
+
+
+class _Worker:
+    """One worker process and the scan it is running."""
+
+    def __init__(self, ctx: Any, fn: Callable[[Job], Row]) -> None:
+        self.conn, child = ctx.Pipe()
+        self.proc = ctx.Process(target=_worker_main, args=(child, fn, os.getpid()),
+                                daemon=True)
+        self.proc.start()
+        child.close()
+        self.started = time.monotonic()
+        self.ready = False
+        self.job: Job | None = None
+        self.t0 = 0.0
+        self.deadline: float | None = None
+
+    def give(self, job: Job, timeout: float | None) -> None:
+        self.conn.send(job)
+        self.job, self.t0 = job, time.monotonic()
+        self.deadline = None if timeout is None else self.t0 + timeout
+
+    def stop(self, grace: float = GRACE_S) -> None:
+        if self.proc.is_alive():
+            self.proc.terminate()
+            self.proc.join(grace)
+            if self.proc.is_alive():
+                self.proc.kill()
+        self.proc.join()
+        self.conn.close()
+
+
 def run_local(jobs: list[Job], workers: int, on_done: Callable[[Row], None], *,
-              fn: Callable[[Job], Row] = process_scan) -> list[Row]:
-    """Process-pool execution with at most ``workers`` scans in flight (``fn``: the task,
-    a picklable top-level function)."""
+              fn: Callable[[Job], Row] = process_scan,
+              timeout: float | None = None) -> list[Row]:
+    """Worker-process execution with at most ``workers`` scans in flight (``fn``: the task, a
+    picklable top-level function; ``timeout``: seconds per scan, None for no limit)."""
+    from ..errors import ProcessingError
+    from .sources import clean_stale_temps
+
     ctx = multiprocessing.get_context("spawn")
-    pending = list(jobs)
-    suspects: list[Job] = []     # in flight when a pool broke: retried alone
+    pending = deque(jobs)
     rows: list[Row] = []
     saved = _thread_env(workers)
+    pool: list[_Worker] = []
+    failed_starts = 0
+
+    def finish(job: Job, row: Row) -> None:
+        rows.append(row)
+        on_done(row)
+
     try:
-        while pending or suspects:
-            pool = ProcessPoolExecutor(max_workers=min(workers, len(pending) + len(suspects)),
-                                       mp_context=ctx, initializer=worker_init,
-                                       initargs=(os.getpid(),))
-            running: dict[Any, Job] = {}
-            broken = False
-            try:
-                while (pending or suspects or running) and not broken:
-                    limit = 1 if suspects else workers
-                    while len(running) < limit and (suspects or pending):
-                        job = suspects.pop(0) if suspects else pending.pop(0)
-                        running[pool.submit(fn, job)] = job
-                    done, _ = wait(running, return_when=FIRST_COMPLETED)
-                    for fut in done:
-                        job = running.pop(fut)
-                        try:
-                            row = fut.result()
-                        except BrokenProcessPool:
-                            broken = True
-                            if limit == 1:   # alone in the pool: this scan killed its worker
-                                row = _row(job, "failed", error="the worker process died while "
-                                           "processing this scan (killed, out of memory or "
-                                           "crashed)")
-                            else:
-                                suspects.append(job)
-                                continue
-                        except Exception as exc:  # pickling problems and the like
-                            row = _row(job, "failed", error=f"{type(exc).__name__}: {exc}")
-                        rows.append(row)
-                        on_done(row)
-                if broken:
-                    suspects.extend(running.values())
-                    running.clear()
-            finally:
-                pool.shutdown(wait=not broken, cancel_futures=True)
+        pool = [_Worker(ctx, fn) for _ in range(min(workers, len(pending)))]
+        while pool:
+            for w in pool:
+                while w.ready and w.job is None and pending:
+                    job = pending.popleft()
+                    try:
+                        w.give(job, timeout)
+                    except (pickle.PicklingError, TypeError, AttributeError) as exc:
+                        finish(job, _row(job, "failed", error=f"{type(exc).__name__}: {exc}"))
+            now = time.monotonic()
+            limits = [w.deadline for w in pool if w.deadline is not None] + \
+                [w.started + START_TIMEOUT_S for w in pool if not w.ready]
+            wait_s = max(0.0, min(limits) - now) if limits else None
+            mp_wait([w.conn for w in pool] + [w.proc.sentinel for w in pool], wait_s)
+            now = time.monotonic()
+            for w in list(pool):
+                gone = False
+                try:
+                    while w.conn.poll():
+                        kind, payload = w.conn.recv()
+                        if kind == "ready":
+                            w.ready, failed_starts = True, 0
+                        elif w.job is not None:
+                            finish(w.job, payload)
+                            w.job, w.deadline = None, None
+                except (EOFError, OSError):
+                    gone = True
+                if w.job is not None and w.deadline is not None and now >= w.deadline:
+                    job = w.job
+                    w.stop()
+                    finish(job, _row(job, "failed", seconds=now - w.t0,
+                                     error=timed_out(timeout or 0)))
+                    w.job, gone = None, True
+                elif not w.ready and now >= w.started + START_TIMEOUT_S:
+                    w.stop(grace=0.5)
+                    gone = True
+                elif gone or not w.proc.is_alive():
+                    w.stop(grace=0.5)
+                    gone = True
+                if not gone:
+                    continue
+                if w.job is not None:
+                    finish(w.job, _row(w.job, "failed", seconds=now - w.t0, error=DIED))
+                    w.job = None
+                elif not w.ready:
+                    failed_starts += 1
+                    if failed_starts >= 3:
+                        raise ProcessingError("cannot start a batch worker process (it exited "
+                                              f"with code {w.proc.exitcode} before it was ready)")
+                clean_stale_temps()   # what a killed worker left behind
+                pool.remove(w)
+                busy = sum(x.job is not None for x in pool)
+                if pending and len(pool) < min(workers, len(pending) + busy):
+                    pool.append(_Worker(ctx, fn))
+            if not pending:   # let idle workers go
+                for w in [w for w in pool if w.job is None]:
+                    if w.ready:
+                        with contextlib.suppress(OSError):
+                            w.conn.send(None)
+                        w.proc.join(GRACE_S)
+                    w.stop(grace=1.0)
+                    pool.remove(w)
     finally:
+        for w in pool:
+            w.stop(grace=1.0)
         _restore_env(saved)
     return rows
+
+
+def _child_env() -> dict[str, str]:
+    """The environment for a scan's child process: it must import this very package."""
+    env = dict(os.environ)
+    root = str(Path(__file__).resolve().parents[2])
+    env["PYTHONPATH"] = os.pathsep.join(p for p in (root, env.get("PYTHONPATH")) if p)
+    for var in THREAD_VARS:
+        env.setdefault(var, "1")
+    return env
+
+
+def _read_line(fd: int, limit: float) -> bytes:
+    """Bytes up to a newline from a pipe, or what arrived before ``limit`` (monotonic) / EOF."""
+    data = b""
+    while not data.endswith(b"\n"):
+        left = limit - time.monotonic()
+        if left <= 0 or not select.select([fd], [], [], left)[0]:
+            break
+        chunk = os.read(fd, 1)
+        if not chunk:
+            break
+        data += chunk
+    return data
+
+
+def run_isolated(job: Job) -> Row:
+    """``process_scan(job)`` in a child process stopped after ``job.timeout_s`` seconds (the
+    Dask path: a Dask task is a thread, which cannot be stopped). The clock starts once the
+    child has imported. Never raises for the scan's problems."""
+    from .sources import clean_stale_temps
+
+    proc = subprocess.Popen([sys.executable, "-m", "splatdeform.batch.child"],
+                            stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, env=_child_env())
+    assert proc.stdin is not None and proc.stdout is not None
+    try:
+        if _read_line(proc.stdout.fileno(), time.monotonic() + START_TIMEOUT_S) != b"ready\n":
+            proc.kill()
+            _, err = proc.communicate()
+            last = (err.decode(errors="replace").strip().splitlines() or [""])[-1]
+            return _row(job, "failed", error=f"the scan's child process did not start: {last}")
+        t0 = time.monotonic()
+        try:
+            out, err = proc.communicate(pickle.dumps(job), timeout=job.timeout_s)
+        except subprocess.TimeoutExpired:
+            proc.terminate()
+            try:
+                proc.communicate(timeout=GRACE_S)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                proc.communicate()
+            clean_stale_temps()
+            return _row(job, "failed", seconds=time.monotonic() - t0,
+                        error=timed_out(job.timeout_s or 0))
+        try:
+            return pickle.loads(out)
+        except Exception:
+            return _row(job, "failed", seconds=time.monotonic() - t0,
+                        error=f"{DIED} (exit code {proc.returncode})")
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
 
 
 def dask_budget(client: Any) -> float | None:
@@ -102,8 +281,9 @@ def dask_budget(client: Any) -> float | None:
 
 
 def run_dask(jobs: list[Job], address: Any, on_done: Callable[[Row], None],
-             budget: float | None = None) -> list[Row]:
-    """Submit every job to the Dask cluster at ``address`` (a string or a Cluster object)."""
+             budget: float | None = None, timeout: float | None = None) -> list[Row]:
+    """Submit every job to the Dask cluster at ``address`` (a string or a Cluster object);
+    with ``timeout`` each scan runs in a child process of its Dask worker (:func:`run_isolated`)."""
     try:
         from distributed import Client, as_completed
     except ImportError as exc:  # pragma: no cover
@@ -123,8 +303,9 @@ def run_dask(jobs: list[Job], address: Any, on_done: Callable[[Row], None],
             budget = dask_budget(client)
         futures = {}
         for i, job in enumerate(jobs):
-            job.memory_budget = budget
-            fut = client.submit(process_scan, job, key=f"splatdeform-{job.config_hash}-{i}",
+            job.memory_budget, job.timeout_s = budget, timeout
+            task = run_isolated if job.timeout_s else process_scan
+            fut = client.submit(task, job, key=f"splatdeform-{job.config_hash}-{i}",
                                 pure=False, retries=0)
             futures[fut] = job
         for fut in as_completed(futures):

@@ -1,21 +1,31 @@
 """Where scans come from: files, globs, folders (recursive) and .zip/.tar(.gz/.bz2/.xz) archives.
 
 Archive members are listed up front and read one at a time, on the worker that processes them,
-into a private temporary folder (never the whole archive unpacked to disk).
+into a private temporary folder (never the whole archive unpacked to disk), found by their
+position in the archive (a name can occur twice; only the first is processed). Nothing that is
+not a regular file is ever opened (a FIFO named ``scan.ply`` would block the reader for ever):
+such a scan is listed with a ``problem`` and reported failed. Temporary folders carry their
+owner's pid and host; folders of processes that are gone (killed mid-extraction) are removed
+by :func:`clean_stale_temps` at the start and end of each batch and of each scan.
 """
 
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import glob
 import os
+import re
 import shutil
+import socket
+import stat
 import tarfile
 import tempfile
 import zipfile
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path, PurePosixPath
+from typing import BinaryIO
 
 from ..errors import ConfigError, InputError
 from ..io import SUPPORTED
@@ -25,11 +35,19 @@ ARCHIVES = (".zip", ".tar", ".tar.gz", ".tgz", ".tar.bz2", ".tbz2", ".tar.xz", "
 
 @dataclass(frozen=True)
 class Scan:
-    """One input scan: a file, or a ``member`` of the archive ``path``."""
+    """One input scan: a file, or a ``member`` of the archive ``path`` (the ``index``-th entry).
+
+    ``problem`` is set for a scan that is reported failed without being processed (not a regular
+    file, a duplicate archive member name). ``occurrence`` > 1 tells apart scans whose names
+    would otherwise be equal (it is appended to the name as ``#N``)."""
 
     path: str
     member: str | None = None
     identity: tuple = ()      # (size, mtime/crc) so a changed input invalidates its output
+    index: int | None = None  # position in the archive's listing
+    size: int | None = None   # bytes (the archive's declared member size for a member)
+    problem: str | None = None
+    occurrence: int = 1
 
     @property
     def filename(self) -> str:
@@ -37,7 +55,8 @@ class Scan:
 
     @property
     def name(self) -> str:
-        return f"{Path(self.path).name}:{self.member}" if self.member else self.path
+        base = f"{Path(self.path).name}:{self.member}" if self.member else self.path
+        return base if self.occurrence == 1 else f"{base}#{self.occurrence}"
 
     @property
     def stem(self) -> str:
@@ -72,22 +91,68 @@ def _supported(name: str) -> bool:
     return not base.startswith(".") and PurePosixPath(name).suffix.lower() in SUPPORTED
 
 
+def _kind(mode: int) -> str:
+    for test, what in ((stat.S_ISFIFO, "a FIFO"), (stat.S_ISCHR, "a character device"),
+                       (stat.S_ISBLK, "a block device"), (stat.S_ISSOCK, "a socket"),
+                       (stat.S_ISDIR, "a directory")):
+        if test(mode):
+            return what
+    return "not a regular file"
+
+
+def not_regular(p: Path) -> str | None:
+    """Why ``p`` cannot be read as a scan without blocking (None: a regular file)."""
+    try:
+        st = p.stat()
+    except OSError as exc:
+        return f"cannot read it: {exc.strerror or exc}"
+    if stat.S_ISREG(st.st_mode):
+        return None
+    return f"not a regular file ({_kind(st.st_mode)}); skipped"
+
+
 def _file_scan(p: Path) -> Scan:
+    problem = not_regular(p)
+    if problem is not None:
+        return Scan(str(p), problem=problem)
     st = p.stat()
-    return Scan(str(p), None, (st.st_size, st.st_mtime_ns))
+    return Scan(str(p), None, (st.st_size, st.st_mtime_ns), size=st.st_size)
 
 
 def archive_members(path: Path) -> list[Scan]:
-    """Model files inside an archive, in archive order; InputError for an unreadable archive."""
+    """Model files inside an archive, in archive order; InputError for an unreadable archive.
+
+    A member name seen before in the same archive is listed with a ``problem``: only its first
+    entry is processed (extracting by name would silently pick the last one). Members that are
+    not regular files (links, FIFOs, devices) are listed with a ``problem`` too."""
+    problem = not_regular(path)
+    if problem is not None:
+        return [Scan(str(path), problem=problem)]
+    out: list[Scan] = []
+    seen: dict[str, int] = {}
+
+    def add(name: str, index: int, identity: tuple, size: int, regular: bool) -> None:
+        seen[name] = seen.get(name, 0) + 1
+        why = None
+        if seen[name] > 1:
+            why = (f"duplicate member name in the archive (entry {seen[name]} with this name); "
+                   "only the first entry is processed, rename the others")
+        elif not regular:
+            why = "not a regular file in the archive (a link or special file); skipped"
+        out.append(Scan(str(path), name, identity, index, size, why))
+
     try:
         if path.suffix.lower() == ".zip":
             with zipfile.ZipFile(path) as zf:
-                return [Scan(str(path), info.filename, (info.file_size, info.CRC))
-                        for info in zf.infolist()
-                        if not info.is_dir() and _supported(info.filename)]
+                for i, info in enumerate(zf.infolist()):
+                    if not info.is_dir() and _supported(info.filename):
+                        add(info.filename, i, (info.file_size, info.CRC), info.file_size, True)
+            return out
         with tarfile.open(path) as tf:
-            return [Scan(str(path), m.name, (m.size, m.mtime)) for m in tf.getmembers()
-                    if m.isfile() and _supported(m.name)]
+            for i, m in enumerate(tf.getmembers()):
+                if not m.isdir() and _supported(m.name):
+                    add(m.name, i, (m.size, m.mtime), m.size, m.isfile())
+        return out
     except (zipfile.BadZipFile, tarfile.TarError, OSError, EOFError) as exc:
         raise InputError(f"{path}: cannot read the archive: {exc}") from exc
 
@@ -114,13 +179,16 @@ def _expand_path(p: Path, exclude: Path) -> list[Scan]:
 
 
 def find_scans(patterns: list[str], base: Path, *, exclude: Path, source: str) -> list[Scan]:
-    """Expand the ``scans`` entries (relative to ``base``); ConfigError when nothing matched."""
-    seen: dict[tuple[str, str | None], Scan] = {}
+    """Expand the ``scans`` entries (relative to ``base``); ConfigError when nothing matched.
+
+    Scans whose names coincide (duplicate archive members, equally named archives in two
+    folders) get ``occurrence`` 2, 3, ... so every report row has its own name."""
+    seen: dict[tuple[str, str | None, int | None], Scan] = {}
     for pattern in patterns:
         full = base / pattern
         if is_glob(pattern):
             paths = [Path(p) for p in sorted(glob.glob(str(full), recursive=True))]
-        elif full.exists():
+        elif full.exists() or full.is_symlink():
             paths = [full]
         else:
             raise ConfigError(f"{source}: scans: {pattern}: no such file or folder")
@@ -129,35 +197,178 @@ def find_scans(patterns: list[str], base: Path, *, exclude: Path, source: str) -
             if p == exclude or exclude in p.parents:
                 continue
             for scan in _expand_path(p, exclude):
-                seen.setdefault((scan.path, scan.member), scan)
+                seen.setdefault((scan.path, scan.member, scan.index), scan)
     if not seen:
         what = patterns if len(patterns) > 1 else patterns[0]
         raise ConfigError(f"{source}: scans: no scans matched {what!r} "
                           f"(expected files ending in {', '.join(SUPPORTED)}, folders or archives)")
-    return list(seen.values())
+    out, names = [], {}
+    for scan in seen.values():
+        n = names[scan.name] = names.get(scan.name, 0) + 1
+        out.append(scan if n == 1 else dataclasses.replace(scan, occurrence=n))
+    return out
+
+
+# -- temporary folders for archive members -----------------------------------------------------
+
+TEMP_PREFIX = "splatdeform-batch-"
+
+
+def _host() -> str:
+    return re.sub(r"[^A-Za-z0-9.]", "_", socket.gethostname())[:64] or "host"
+
+
+def temp_prefix() -> str:
+    """``splatdeform-batch-<pid>-<host>-``: who owns a temporary folder, for stale cleanup."""
+    return f"{TEMP_PREFIX}{os.getpid()}-{_host()}-"
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    except OSError:
+        return True
+    return True
+
+
+def clean_stale_temps(tmpdir: str | None = None) -> list[str]:
+    """Remove this tool's temporary folders left by killed processes: only folders named by
+    :func:`temp_prefix`, owned by this user, made on this host, whose process is gone.
+    Returns the removed paths."""
+    tmpdir = tmpdir or tempfile.gettempdir()
+    host, me, removed = _host(), os.getpid(), []
+    try:
+        entries = list(os.scandir(tmpdir))
+    except OSError:
+        return removed
+    for entry in entries:
+        if not entry.name.startswith(TEMP_PREFIX):
+            continue
+        parts = entry.name[len(TEMP_PREFIX):].split("-")
+        if len(parts) != 3 or not parts[0].isdigit() or parts[1] != host:
+            continue
+        try:
+            st = entry.stat(follow_symlinks=False)
+        except OSError:
+            continue
+        pid = int(parts[0])
+        if not stat.S_ISDIR(st.st_mode) or st.st_uid != os.getuid() or pid == me or _alive(pid):
+            continue
+        shutil.rmtree(entry.path, ignore_errors=True)
+        removed.append(entry.path)
+    return removed
+
+
+Vet = Callable[[bytes, int], None]
+
+
+def _read_head(src: BinaryIO, n: int) -> bytes:
+    chunks, left = [], n
+    while left > 0:
+        chunk = src.read(left)
+        if not chunk:
+            break
+        chunks.append(chunk)
+        left -= len(chunk)
+    return b"".join(chunks)
 
 
 @contextlib.contextmanager
-def materialize(scan: Scan) -> Iterator[Path]:
-    """A local file path for the scan: the file itself, or one archive member copied (streamed)
-    into a private temporary folder that is removed afterwards."""
-    if scan.member is None:
-        yield Path(scan.path)
+def _open_member(scan: Scan) -> Iterator[BinaryIO]:
+    """The member's byte stream, found by its position (names can repeat in an archive)."""
+    changed = InputError(f"{scan.name}: the archive changed since it was listed; run again")
+    if scan.path.lower().endswith(".zip"):
+        with zipfile.ZipFile(scan.path) as zf:
+            infos = zf.infolist()
+            if scan.index is None or scan.index >= len(infos) or \
+                    infos[scan.index].filename != scan.member:
+                raise changed
+            with zf.open(infos[scan.index]) as src:
+                yield src
         return
-    with tempfile.TemporaryDirectory(prefix="splatdeform-batch-") as tmp:
+    with tarfile.open(scan.path) as tf:
+        members = tf.getmembers()
+        if scan.index is None or scan.index >= len(members) or \
+                members[scan.index].name != scan.member:
+            raise changed
+        src = tf.extractfile(members[scan.index])
+        if src is None:
+            raise InputError(f"{scan.name}: not a regular file in the archive")
+        with src:
+            yield src
+
+
+def _open_regular(path: Path) -> BinaryIO:
+    """Open for reading without ever blocking on a FIFO; InputError for a non-regular file."""
+    try:
+        fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | getattr(os, "O_CLOEXEC", 0))
+    except OSError as exc:
+        raise InputError(f"{path}: cannot read it: {exc.strerror or exc}") from exc
+    mode = os.fstat(fd).st_mode
+    if not stat.S_ISREG(mode):
+        os.close(fd)
+        raise InputError(f"{path}: not a regular file ({_kind(mode)}); expected a model file")
+    os.set_blocking(fd, True)
+    return os.fdopen(fd, "rb")
+
+
+def _copy_capped(src: BinaryIO, dst: BinaryIO, head: bytes, size: int, name: str) -> None:
+    dst.write(head)
+    written = len(head)
+    while True:
+        chunk = src.read(1 << 20)
+        if not chunk:
+            break
+        written += len(chunk)
+        if written > size:
+            raise InputError(f"{name}: the member holds more than the {size:,} bytes the archive "
+                             "declares; refusing to extract it")
+        dst.write(chunk)
+
+
+@contextlib.contextmanager
+def materialize(scan: Scan, vet: Vet | None = None) -> Iterator[Path]:
+    """A local file path for the scan: the file itself, or one archive member copied (streamed)
+    into a private temporary folder that is removed afterwards.
+
+    ``vet(head, size)`` sees the first bytes (up to ``probe.HEAD_BYTES``) and the size before
+    anything is extracted, and raises to refuse the scan. A member is never extracted past the
+    size the archive declares for it, nor into a temp folder without room for it."""
+    from .probe import HEAD_BYTES
+
+    if scan.member is None:
+        path = Path(scan.path)
+        with _open_regular(path) as f:
+            size = os.fstat(f.fileno()).st_size
+            if vet is not None:
+                vet(_read_head(f, HEAD_BYTES), size)
+        yield path
+        return
+    tmp = tempfile.mkdtemp(prefix=temp_prefix())
+    try:
         target = Path(tmp) / scan.filename
         try:
-            if scan.path.lower().endswith(".zip"):
-                with zipfile.ZipFile(scan.path) as zf, zf.open(scan.member) as src, \
-                        open(target, "wb") as dst:
-                    shutil.copyfileobj(src, dst, 1 << 20)
-            else:
-                with tarfile.open(scan.path) as tf:
-                    src = tf.extractfile(scan.member)
-                    if src is None:
-                        raise InputError(f"{scan.name}: not a regular file in the archive")
-                    with src, open(target, "wb") as dst:
-                        shutil.copyfileobj(src, dst, 1 << 20)
-        except (zipfile.BadZipFile, tarfile.TarError, KeyError, EOFError, OSError) as exc:
+            with _open_member(scan) as src:
+                size = scan.size if scan.size is not None else 0
+                head = _read_head(src, min(HEAD_BYTES, size + 1))
+                if len(head) > size:
+                    raise InputError(f"{scan.name}: the member holds more than the {size:,} "
+                                     "bytes the archive declares; refusing to extract it")
+                if vet is not None:
+                    vet(head, size)
+                free = shutil.disk_usage(tmp).free
+                if size > free:
+                    raise InputError(f"{scan.name}: extracting it needs {size / 2**20:.0f} MiB "
+                                     f"in {Path(tmp).parent}, only {free / 2**20:.0f} MiB free")
+                with open(target, "wb") as dst:
+                    _copy_capped(src, dst, head, size, scan.name)
+        except (zipfile.BadZipFile, tarfile.TarError, KeyError, EOFError, OSError,
+                RuntimeError) as exc:
             raise InputError(f"{scan.name}: cannot read the archive member: {exc}") from exc
         yield target
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)

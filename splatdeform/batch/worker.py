@@ -12,7 +12,7 @@ from __future__ import annotations
 import contextlib
 import json
 import os
-import re
+import signal
 import threading
 import time
 import traceback
@@ -20,24 +20,6 @@ from pathlib import Path
 from typing import Any
 
 from .config import Job
-
-BYTES_PER_POINT = 2048          # model copies, kNN graph, basis rows, render buffers
-BASE_BYTES = 150 * 2**20        # interpreter + numpy + fitting matrices
-
-
-def estimate_points(path: Path) -> int:
-    """Vertex count from a PLY header; elsewhere a bound from the file size (12 B a point)."""
-    if path.suffix.lower() == ".ply":
-        with open(path, "rb") as f:
-            head = f.read(65536)
-        m = re.search(rb"element\s+vertex\s+(\d+)", head)
-        if m:
-            return int(m.group(1))
-    return path.stat().st_size // 12
-
-
-def estimate_memory(points: int) -> int:
-    return BASE_BYTES + BYTES_PER_POINT * points
 
 
 def available_memory() -> int:
@@ -80,20 +62,24 @@ def process_scan(job: Job) -> dict[str, Any]:
     from ..edit import run_edit
     from ..errors import SplatdeformError
     from ..io import atomic_write
-    from .sources import materialize
+    from .probe import check, probe
+    from .sources import clean_stale_temps, materialize
 
     t0 = time.perf_counter()
+    if job.problem is not None:
+        return _row(job, "failed", seconds=0.0, error=job.problem)
+    clean_stale_temps()   # on a Dask node this is the only place that sees its temp folder
     warning = ""
     local: Path | None = None
+
+    def vet(head: bytes, size: int) -> None:
+        """Before loading (and before extracting a member): header vs size, memory budget."""
+        p = probe(job.scan.name, head, size, suffix=job.scan.suffix)
+        check(job.scan.name, p, job.memory_budget,
+              None if job.memory_budget is not None else available_memory())
+
     try:
-        with materialize(job.scan) as local:
-            points = estimate_points(local)
-            need = estimate_memory(points)
-            if job.memory_budget is not None and need > job.memory_budget:
-                return _row(job, "failed", points=points, seconds=time.perf_counter() - t0,
-                            error=f"needs about {need / 2**20:.0f} MiB for {points:,} points, "
-                                  f"more than the {job.memory_budget / 2**20:.0f} MiB per "
-                                  "worker; use fewer workers or set memory_per_worker_mb")
+        with materialize(job.scan, vet) as local:
             cfg = parse_edit({**job.edit, "input": str(local), "output": job.output},
                              job.scan.name, "edit")
             result = run_edit(cfg, job.base_dir, output=job.output)
@@ -147,6 +133,19 @@ def _watch_parent(parent: int) -> None:
             os._exit(1)   # the batch was killed: stop instead of finishing orphaned work
 
 
-def worker_init(parent: int) -> None:
-    """Local pool initializer: exit when the batch process dies."""
-    threading.Thread(target=_watch_parent, args=(parent,), daemon=True).start()
+def _terminated(signum: int, frame: Any) -> None:
+    raise SystemExit(128 + signum)   # unwinds: temp folders and atomic outputs are cleaned up
+
+
+def worker_init(parent: int | None = None) -> None:
+    """Worker process set-up: SIGTERM unwinds (cleanup handlers run) and, given the batch
+    process's pid, exit when that process dies."""
+    signal.signal(signal.SIGTERM, _terminated)
+    if parent is not None:
+        threading.Thread(target=_watch_parent, args=(parent,), daemon=True).start()
+
+
+def warm_up() -> None:
+    """Import what a scan needs, so a per-scan timeout measures the scan, not the imports."""
+    from .. import config, edit, io  # noqa: F401
+    from . import probe, sources  # noqa: F401
