@@ -75,6 +75,9 @@ def save_deformation(path: str | Path, key: str, d: Deformation) -> Path:
 def load_deformation(path: str | Path, key: str, model: PointModel) -> Deformation | None:
     """The stored deformation if ``path`` exists and matches ``key`` and the model, else None."""
     path = Path(path)
+    if path.exists() and not path.is_file():
+        raise InputError(f"{path}: is not a regular file; expected a precomputed deformation "
+                         "(.npz) or a path to create one")
     if not path.is_file():
         return None
     try:
@@ -97,5 +100,9 @@ def load_deformation(path: str | Path, key: str, model: PointModel) -> Deformati
             constraint_points=z["constraint_points"], constraint_rhs=z["constraint_rhs"],
             control_points=z["control_points"], fit=fit,
             basis=Basis(z["values"], grads if grads.size else None), frame=frame)
-    except (OSError, KeyError, ValueError) as exc:
-        raise InputError(f"{path}: not a splatdeform precomputed deformation ({exc})") from exc
+    except (OSError, KeyError, ValueError, EOFError) as exc:
+        reason = "missing " + str(exc) if isinstance(exc, KeyError) else \
+            "not an .npz written by splatdeform" if "pickle" in str(exc) or not str(exc) else \
+            " ".join(str(exc).split())[:120]
+        raise InputError(f"{path}: not a splatdeform precomputed deformation ({reason}); delete "
+                         "it or choose another --reuse-file") from exc

@@ -17,10 +17,14 @@ from .rbf.fit import DEFAULT_MAX_CENTERS, DEFAULT_TOLERANCE
 from .regions import Box, Indices, Plane, Property, Selector, Sphere
 
 Vec3 = Annotated[list[float], Field(min_length=3, max_length=3)]
+MAX_INDEX = 2**62  # point indices beyond any real model (and inside int64)
+MAX_CONTROL_POINTS = 128  # curve control points (the renderer's storage-buffer limit)
+MIN_IMAGE, MAX_IMAGE = 16, 8192  # image width/height in pixels (as --size)
+MAX_FRAMES = 1000  # render.frames and --frames
 
 
 class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid", strict=False)
+    model_config = ConfigDict(extra="forbid", strict=False, allow_inf_nan=False)
 
 
 class BoxCfg(_Strict):
@@ -49,7 +53,8 @@ class SelectorCfg(_Strict):
     box: BoxCfg | None = None
     sphere: SphereCfg | None = None
     plane: PlaneCfg | None = None
-    indices: list[int] | dict[Literal["file"], str] | None = None
+    indices: list[Annotated[int, Field(ge=0, le=MAX_INDEX)]] | dict[Literal["file"], str] | None \
+        = None
     property: PropertyCfg | None = None
 
     @model_validator(mode="after")
@@ -108,7 +113,7 @@ class HandleCfg(_Strict):
 
 
 class CurveCfg(_Strict):
-    control_points: list[Vec3] = Field(min_length=2)
+    control_points: list[Vec3] = Field(min_length=2, max_length=MAX_CONTROL_POINTS)
     moved_to: list[Vec3]
     degree: int = Field(default=3, ge=1, le=5)
     capture_radius: float = Field(gt=0)
@@ -134,11 +139,27 @@ class FitCfg(_Strict):
 
 class RenderCfg(_Strict):
     output: str
-    size: Annotated[list[int], Field(min_length=2, max_length=2)] = [1200, 600]
+    size: Annotated[list[Annotated[int, Field(ge=MIN_IMAGE, le=MAX_IMAGE)]],
+                    Field(min_length=2, max_length=2)] = [1200, 600]
     azimuth: float = 30.0
     elevation: float = 20.0
-    fov: float = 35.0
-    frames: int = Field(default=0, ge=0, le=1000)
+    fov: float = Field(default=35.0, ge=1, le=179)
+    frames: int = Field(default=0, ge=0, le=MAX_FRAMES)
+
+    @model_validator(mode="after")
+    def _output_kind(self) -> RenderCfg:
+        check_render_output(self.output, self.frames)
+        return self
+
+
+def check_render_output(output: str, frames: int) -> None:
+    """ValueError unless ``output`` suits the image kind: .png for one image; with frames >= 2 a
+    .gif (a .png name becomes .gif) or a suffix-less folder of PNGs."""
+    suffix = Path(output).suffix.lower()
+    allowed = (".png",) if frames < 2 else (".gif", ".png", "")
+    if suffix not in allowed:
+        what = "a .png file" if frames < 2 else "a .gif file or a folder (no suffix)"
+        raise ValueError(f"output: expected {what}, got {output!r}")
 
 
 class EditConfig(_Strict):
@@ -164,6 +185,21 @@ class EditConfig(_Strict):
             raise ValueError(f"curve.moved_to: expected {len(self.curve.control_points)} points "
                              f"(one per control point), got {len(self.curve.moved_to)}")
         return self
+
+
+def input_paths(cfg: EditConfig, base_dir: str | Path) -> list[tuple[str, Path]]:
+    """(label, path) of every file an edit reads: the input model and the indices files its
+    regions name (paths relative to ``base_dir``, the config's folder)."""
+    base_dir = Path(base_dir)
+    found = [("input model", base_dir / cfg.input)]
+    groups = [("regions.fixed", cfg.regions.fixed), ("regions.handle", cfg.regions.handle or [])]
+    for i, h in enumerate(getattr(cfg, "handles", None) or []):
+        groups.append((f"handles[{i}].region", getattr(h, "region", None) or []))
+    for key, selectors in groups:
+        for j, sel in enumerate(selectors):
+            if isinstance(sel.indices, dict):
+                found.append((f"{key}[{j}].indices.file", base_dir / sel.indices["file"]))
+    return found
 
 
 def _loc(loc: tuple[Any, ...]) -> str:
@@ -206,10 +242,17 @@ def format_validation_error(source: str, exc: ValidationError, prefix: str = "")
 def read_yaml(path: str | Path) -> dict[str, Any]:
     """Parse a YAML mapping; ConfigError naming the file for missing/invalid files."""
     path = Path(path)
+    if "\x00" in str(path):
+        raise ConfigError(f"{str(path)!r}: a path must not contain a NUL byte")
     if not path.is_file():
-        raise ConfigError(f"{path}: config file not found")
+        what = "is not a regular file" if path.exists() else "config file not found"
+        raise ConfigError(f"{path}: {what}")
     try:
         data = yaml.safe_load(path.read_text())
+    except OSError as exc:
+        raise ConfigError(f"{path}: cannot read it ({exc.strerror or exc})") from None
+    except RecursionError:
+        raise ConfigError(f"{path}: invalid YAML: nested too deeply") from None
     except yaml.YAMLError as exc:
         mark = getattr(exc, "problem_mark", None)
         where = f" line {mark.line + 1}" if mark is not None else ""

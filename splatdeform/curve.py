@@ -77,11 +77,23 @@ def capture(curve: SplineCurve, positions: np.ndarray, radius: float
     return idx, t[nearest[idx]]
 
 
-def prepare_curve(model: PointModel, fixed: np.ndarray, cfg: CurveCfg, units: str, *,
-                  fit_fn, basis_fn, continuity: int = 2, neighbors: int = 10) -> df.Deformation:
-    """Precompute a curve deformation (k = number of control points)."""
+def _listed(indices: np.ndarray, limit: int = 8) -> str:
+    shown = ", ".join(str(int(i)) for i in indices[:limit])
+    return shown + (f", ... ({indices.size} in all)" if indices.size > limit else "")
+
+
+def curve_band(model: PointModel, cfg: CurveCfg, units: str
+               ) -> tuple[SplineCurve, np.ndarray, np.ndarray]:
+    """The snapped curve, the band's point indices (M,) and their curve parameters t (M,)."""
     raw = np.array([to_model_point(model, p, units) for p in cfg.control_points])
+    if not np.isfinite(raw).all():
+        raise ConfigError("curve.control_points: expected finite coordinates")
     _, snap = cKDTree(model.positions).query(raw)
+    repeated = np.flatnonzero(snap[1:] == snap[:-1])
+    if repeated.size:
+        raise ConfigError(f"curve.control_points: consecutive control points snap to the same "
+                          f"model point after point(s) {_listed(repeated)}; space them further "
+                          "apart than the point spacing")
     control = model.positions[snap]
     curve = SplineCurve(control, cfg.degree, cfg.parametrization)
     radius = cfg.capture_radius * (model.diagonal() if units == "relative" else 1.0)
@@ -92,9 +104,17 @@ def prepare_curve(model: PointModel, fixed: np.ndarray, cfg: CurveCfg, units: st
         raise RegionError("curve.capture_radius: captures every point of the model; lower it")
     influence = curve.weights(band_t).max(axis=0)
     if (influence < 1e-3).any():
-        lost = ", ".join(str(i) for i in np.flatnonzero(influence < 1e-3))
+        lost = _listed(np.flatnonzero(influence < 1e-3))
         raise RegionError(f"curve.capture_radius: captures {band_idx.size} points, none of them "
                           f"under the influence of control point(s) {lost}; raise it")
+    return curve, band_idx, band_t
+
+
+def prepare_curve(model: PointModel, fixed: np.ndarray, cfg: CurveCfg, units: str, *,
+                  fit_fn, basis_fn, continuity: int = 2, neighbors: int = 10) -> df.Deformation:
+    """Precompute a curve deformation (k = number of control points)."""
+    curve, band_idx, band_t = curve_band(model, cfg, units)
+    control = curve.control_points
     band = np.zeros(model.n_points, dtype=bool)
     band[band_idx] = True
     param = np.zeros(model.n_points)

@@ -174,6 +174,14 @@ def apply(deformation: Deformation, model: PointModel, delta_c: np.ndarray, *,
     if model.n_points != deformation.n_points:
         raise ValueError(f"model: expected {deformation.n_points} points, got {model.n_points}")
     delta = np.asarray(delta_c, dtype=np.float64)
+    with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
+        out = _apply(deformation, model, delta, moving_matrix)
+    check_finite(model, out)
+    return out
+
+
+def _apply(deformation: Deformation, model: PointModel, delta: np.ndarray,
+           moving_matrix: np.ndarray | None) -> PointModel:
     out = model.copy()
     free = deformation.free_idx
     values = deformation.basis.values.astype(np.float64, copy=False)
@@ -193,6 +201,56 @@ def apply(deformation: Deformation, model: PointModel, delta_c: np.ndarray, *,
                               ap.jacobians(np.ascontiguousarray(deformation.moving_gradients),
                                            delta))
     return out
+
+
+_F32_MAX = float(np.finfo(np.float32).max)
+
+
+def _stored_limit(model: PointModel, fields: tuple[str, ...], default: float) -> float:
+    """The largest magnitude the output can hold for ``fields``: a PLY source keeps each
+    field's type (float32 unless it was double); new models write positions as double."""
+    vertex = None if model.source is None else model.source.element("vertex")
+    names = () if vertex is None else (vertex.data.dtype.names or ())
+    dtypes = [vertex.data.dtype[f] for f in fields if f in names]
+    if not dtypes:
+        return default
+    return min(float(np.finfo(d).max) if d.kind == "f" else _F32_MAX for d in dtypes)
+
+
+def check_finite(model: PointModel, out: PointModel) -> None:
+    """Guard after a deformation: every float it writes (positions, normals,
+    axes, radii, 3DGS scales and rotations) is finite and fits the output's number type, for
+    every point whose input value was finite. Raises InputError naming the attribute."""
+    from .errors import InputError
+
+    xyz = ("x", "y", "z")
+    checks = [("positions", model.positions, out.positions, xyz, np.inf if model.source is None
+               else _F32_MAX)]
+    if out.normals is not None and model.normals is not None:
+        checks.append(("normals", model.normals, out.normals, ("nx", "ny", "nz"), _F32_MAX))
+    if out.axes is not None and model.axes is not None:
+        checks.append(("surfel axes", model.axes, out.axes,
+                       ("ux", "uy", "uz", "vx", "vy", "vz"), _F32_MAX))
+    if out.radius is not None and model.radius is not None:
+        checks.append(("radii", model.radius, out.radius, ("radius", "surfel_radius"),
+                       _F32_MAX))
+    g, g_in = out.gaussians, model.gaussians
+    if g is not None and g_in is not None:
+        checks.append(("gaussian scales", g_in.scale_log, g.scale_log,
+                       ("scale_0", "scale_1", "scale_2"), _F32_MAX))
+        checks.append(("gaussian rotations", g_in.rotation, g.rotation,
+                       ("rot_0", "rot_1", "rot_2", "rot_3"), _F32_MAX))
+    for what, before, after, fields, default in checks:
+        limit = _stored_limit(model, fields, default)
+        rows_in = np.isfinite(before).reshape(before.shape[0], -1).all(axis=1)
+        with np.errstate(invalid="ignore"):
+            ok = np.isfinite(after) & (np.abs(after) <= limit)
+        ok = ok.reshape(after.shape[0], -1).all(axis=1)
+        bad = int(np.count_nonzero(rows_in & ~ok))
+        if bad:
+            raise InputError(f"the deformation produced non-finite or out-of-range {what} for "
+                             f"{bad:,} points; check the regions and the transform (a move "
+                             "that large cannot be stored)")
 
 
 def full_basis(deformation: Deformation) -> tuple[np.ndarray, np.ndarray]:

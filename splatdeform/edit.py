@@ -15,10 +15,11 @@ import numpy as np
 
 from . import deform as df
 from .basis import compute_basis
-from .config import EditConfig, TransformCfg
+from .config import EditConfig, TransformCfg, input_paths
 from .errors import ConfigError, InputError, ProcessingError
 from .handle import compose_transform, delta_for_transform
-from .io import check_output_path, load, save
+from .io import SUPPORTED, load, save
+from .io.atomic import check_io_paths
 from .model import PointModel
 from .rbf import Normalization, RbfFit, fit_incremental
 from .regions import select, to_model_point, to_model_vector
@@ -154,7 +155,11 @@ def run_edit(cfg: EditConfig, base_dir: str | Path = ".", *, output: str | Path 
     out_path = Path(output) if output is not None else base_dir / cfg.output
     in_path = base_dir / cfg.input
     if save_output:
-        check_output_path(out_path, in_path)
+        if out_path.suffix.lower() not in SUPPORTED:
+            raise InputError(f"{out_path}: unknown output extension {out_path.suffix!r}; "
+                             f"expected one of {', '.join(SUPPORTED)}")
+        check_io_paths(input_paths(cfg, base_dir),
+                       [("output", out_path), ("reuse cache", reuse)])
     timings: dict[str, float] = {}
     model = prepare_model(cfg, base_dir, timings, drop_nonfinite)
     deformation = None
@@ -176,13 +181,15 @@ def run_edit(cfg: EditConfig, base_dir: str | Path = ".", *, output: str | Path 
     else:
         timings.update({"rings": 0.0, "fit": 0.0, "basis": 0.0})
         check_converged(deformation.fit, cfg, warn)
+    if log:
+        from .selection import counts_of_deformation, format_counts
+
+        log(format_counts(counts_of_deformation(
+            deformation, "curve band" if cfg.curve is not None else "handle")))
     delta_c, matrix = control_displacement(cfg, model, deformation)
     t0 = time.perf_counter()
-    deformed = df.apply(deformation, model, delta_c, moving_matrix=matrix)
+    deformed = df.apply(deformation, model, delta_c, moving_matrix=matrix)  # checks finiteness
     timings["apply"] = time.perf_counter() - t0
-    if not np.isfinite(deformed.positions).all():
-        raise InputError("the deformation produced non-finite positions; check the regions "
-                         "and the transform")
     err, err_rms = df.constraint_errors(deformation, delta_c,
                                         partial(compute_basis, gradients=False,
                                                 backend="numpy"))

@@ -8,28 +8,54 @@ from pathlib import Path
 from .config import EditConfig, RenderCfg
 from .deform import full_basis
 from .edit import EditResult
+from .errors import InputError
+
+
+def render_target(out: str | Path, frames: int) -> tuple[Path, list[Path]]:
+    """Where an edit's image goes: (the path written, the files written there). One image: a
+    .png; frames >= 2: a .gif (a .png name becomes .gif) or a folder of ``frame_NNNN.png``.
+    Raises InputError for any other suffix."""
+    from .config import check_render_output
+
+    out = Path(out)
+    try:
+        check_render_output(str(out), frames)
+    except ValueError as exc:
+        raise InputError(f"render {exc}") from None
+    if frames < 2:
+        return out, [out]
+    if out.suffix.lower() == ".png":
+        out = out.with_suffix(".gif")
+    if out.suffix:
+        return out, [out]
+    return out, [out / f"frame_{i:04d}.png" for i in range(frames)]
+
+
+def render_frames_count(cfg: EditConfig, frames: int = 0) -> int:
+    """The frame count an edit renders: ``--frames`` wins over ``render.frames``."""
+    return frames or (cfg.render.frames if cfg.render else 0)
 
 
 def render_result(result: EditResult, cfg: EditConfig, out: str | Path, *,
                   frames: int = 0) -> Path:
     """Write the before/after PNG (or, with frames >= 2, a GIF/PNG sequence of the handle
     moving from identity to the target). The vertex shader deforms, for any number of control
-    DOFs k (k > 4, e.g. curves, reads the basis from a storage buffer); one basis upload."""
+    DOFs k (k > 4, e.g. curves, reads the basis from a storage buffer); one basis upload.
+    Each panel is half of ``render.size``'s width (plus an 18 px label strip on top of the
+    before/after image)."""
     from .render import render_deformation_comparison, render_frames
 
-    opts = cfg.render or RenderCfg(output=str(out))
-    frames = frames or opts.frames
+    frames = render_frames_count(cfg, frames)
+    opts = cfg.render or RenderCfg(output=str(out), frames=frames)
+    target, _ = render_target(out, frames)
     values, gradients = full_basis(result.deformation)
     t0 = time.perf_counter()
     view = dict(azimuth=opts.azimuth, elevation=opts.elevation, fov=opts.fov)
-    out = Path(out)
     if frames >= 2:
-        target = out if out.suffix.lower() == ".gif" or not out.suffix else out.with_suffix(".gif")
         render_frames(result.model, values, gradients, result.delta_c, frames, target,
                       size=(opts.size[0] // 2, opts.size[1]), **view)
-        out = target
     else:
-        render_deformation_comparison(result.model, values, gradients, result.delta_c, out,
+        render_deformation_comparison(result.model, values, gradients, result.delta_c, target,
                                       size=(opts.size[0] // 2, opts.size[1]), **view)
     result.timings["render"] = time.perf_counter() - t0
-    return out
+    return target

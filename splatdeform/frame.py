@@ -4,7 +4,7 @@ Pure array math, no bookkeeping of regions (that is :mod:`splatdeform.deform`):
 
     p' = p + B delta_c                          (N, 3)
     J  = I + sum_k outer(delta_c[k], grad b_k)  (N, 3, 3)
-    n' = normalize(cof(J) n)                    cof(J) = det(J) J^-T, no inverse needed
+    n' = |n| normalize(cof(J) n)                cof(J) = det(J) J^-T, no inverse needed
     u' = J u,  v' = J v                         tangent axes
 """
 
@@ -70,8 +70,10 @@ def normalize_rows(v: np.ndarray) -> np.ndarray:
 
 
 def transform_normals(jac: np.ndarray, normals: np.ndarray) -> np.ndarray:
-    """Deformed unit normals normalize(cof(J) n). jac (N, 3, 3), normals (N, 3) -> (N, 3)."""
-    return normalize_rows(cofactor_apply(jac, normals))
+    """Deformed normals: cof(J) n rescaled to each input normal's length (unit in, unit out; a
+    scan's 6.28-long normals stay 6.28 long). jac (N, 3, 3), normals (N, 3) -> (N, 3)."""
+    length = np.linalg.norm(normals, axis=1, keepdims=True)
+    return normalize_rows(cofactor_apply(jac, normals)) * length
 
 
 def transform_axes(jac: np.ndarray, axes: np.ndarray) -> np.ndarray:
@@ -102,7 +104,8 @@ def axes_to_radius(axes: np.ndarray) -> np.ndarray:
 def deform_frame(positions: np.ndarray, normals: np.ndarray | None, values: np.ndarray,
                  gradients: np.ndarray | None, delta_c: np.ndarray, *,
                  chunk: int = 4096) -> tuple[np.ndarray, np.ndarray | None]:
-    """The fast per-frame path: deformed positions and unit normals in one cache-blocked pass.
+    """The fast per-frame path: deformed positions and normals (input length kept) in one
+    cache-blocked pass.
 
     positions (N, 3), normals (N, 3) or None, values (N, k), gradients (N, k, 3) (needed with
     normals), delta_c (k, 3). Works in the dtype of ``values`` (float32 for the real-time path).
@@ -140,7 +143,9 @@ def deform_frame(positions: np.ndarray, normals: np.ndarray | None, values: np.n
             + (j01 * j20 - j00 * j21) * nz
         oz = (j01 * j12 - j02 * j11) * nx + (j02 * j10 - j00 * j12) * ny \
             + (j00 * j11 - j01 * j10) * nz
-        inv = 1.0 / np.maximum(np.sqrt(ox * ox + oy * oy + oz * oz), np.finfo(dt).tiny)
+        # rescaled to the input normal's length (unit in, unit out)
+        inv = np.sqrt(nx * nx + ny * ny + nz * nz) / np.maximum(
+            np.sqrt(ox * ox + oy * oy + oz * oz), np.finfo(dt).tiny)
         block = out_n[s:e]
         block[:, 0] = ox * inv
         block[:, 1] = oy * inv

@@ -81,18 +81,29 @@ def to_model_vector(model: PointModel, vector, units: str) -> np.ndarray:
 
 def _load_indices(sel: Indices, base_dir: Path | None) -> np.ndarray:
     if sel.file is None:
-        return np.asarray(sel.indices, dtype=np.int64)
+        try:
+            return np.asarray(sel.indices, dtype=np.int64)
+        except OverflowError:
+            raise InputError("indices: expected point indices below 2**63") from None
     path = Path(sel.file)
     if base_dir is not None and not path.is_absolute():
         path = base_dir / path
     if not path.is_file():
-        raise InputError(f"{path}: indices file not found")
+        what = "is not a regular file" if path.exists() else "indices file not found"
+        raise InputError(f"{path}: {what}")
     try:
         if path.suffix == ".npy":
-            return np.load(path).astype(np.int64).ravel()
+            raw = np.load(path, allow_pickle=False)
+            if raw.dtype.kind not in "iu":
+                raise ValueError(f"expected an integer array, got dtype {raw.dtype}")
+            if raw.size and raw.dtype.kind == "u" and raw.max() > np.iinfo(np.int64).max:
+                raise OverflowError("index too large")
+            return raw.astype(np.int64).ravel()
         return np.loadtxt(path, dtype=np.int64, ndmin=1).ravel()
-    except ValueError as exc:
+    except (ValueError, OverflowError) as exc:
         raise InputError(f"{path}: expected integer point indices: {exc}") from exc
+    except OSError as exc:
+        raise InputError(f"{path}: cannot read the indices file ({exc.strerror or exc})") from exc
 
 
 def select_one(model: PointModel, sel: Selector, units: str = "model",

@@ -1,41 +1,169 @@
-"""Atomic output files: write a temporary file in the target folder, then rename it."""
+"""Every output the tool writes goes through here.
+
+- :func:`check_io_paths` is the one check, run before any work starts, that no output is an input
+  or another output (same file by ``os.path.samefile`` when both exist, by resolved path
+  otherwise) and that no output is an existing non-regular file (folder, FIFO, device node).
+- :func:`atomic_path` / :func:`atomic_write`: write a temporary file in the target folder
+  (``.NAME.<pid>-<random>.tmp.EXT``), then rename it over the target, mode 0644. Temporary files
+  of this tool for the same target whose writer is gone (killed) are removed first.
+"""
 
 from __future__ import annotations
 
 import contextlib
+import errno
 import os
+import re
+import stat
 import tempfile
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator
 from pathlib import Path
 
 from ..errors import InputError
 
+PathLike = str | os.PathLike
+Named = tuple[str, PathLike | None]  # (what it is, e.g. "input model", path)
 
-def check_output_path(out: str | Path, *inputs: str | Path | None) -> Path:
-    """Validate an output path: not one of ``inputs``, parent folder creatable, not a folder."""
+
+def _check_chars(what: str, path: PathLike) -> None:
+    if "\x00" in os.fspath(path):
+        raise InputError(f"{what} {os.fspath(path)!r}: a path must not contain a NUL byte")
+
+
+def _stat(path: Path) -> os.stat_result | None:
+    try:
+        return path.stat()
+    except FileNotFoundError:
+        return None
+    except OSError as exc:
+        if exc.errno in (errno.ENOTDIR, errno.ENAMETOOLONG, errno.ELOOP):
+            return None  # cannot exist; creating it will fail with its own clear error
+        raise
+
+
+def _same(a: Path, b: Path) -> bool:
+    sa, sb = _stat(a), _stat(b)
+    if sa is not None and sb is not None:
+        return (sa.st_dev, sa.st_ino) == (sb.st_dev, sb.st_ino)
+    return a.resolve() == b.resolve()
+
+
+NAME_MAX = 255
+TEMP_EXTRA = 32  # ".", ".<pid>-<random>.tmp" around the name of the temporary file
+
+
+def _check_target(what: str, out: Path) -> None:
+    """The output's name fits (with its temporary name) and its folder exists or can be made."""
+    for part in out.parts:
+        if len(os.fsencode(part)) > NAME_MAX:
+            raise InputError(f"{what} {out}: a path component is longer than {NAME_MAX} bytes "
+                             "(name too long)")
+    if len(os.fsencode(out.name)) + TEMP_EXTRA > NAME_MAX:
+        raise InputError(f"{what} {out}: file name too long (at most "
+                         f"{NAME_MAX - TEMP_EXTRA} bytes, the temporary file beside it needs "
+                         "the rest)")
+    folder = out.parent
+    while _stat(folder) is None and folder != folder.parent:
+        folder = folder.parent
+    st = _stat(folder)
+    if st is not None and not stat.S_ISDIR(st.st_mode):
+        raise InputError(f"{what} {out}: cannot create its folder, {folder} is not a directory")
+    if st is not None and not os.access(folder, os.W_OK | os.X_OK):
+        raise InputError(f"{what} {out}: folder {folder} is not writable (read-only or "
+                         "permission denied)")
+
+
+def check_io_paths(inputs: Iterable[Named], outputs: Iterable[Named]) -> None:
+    """Refuse, before any work, outputs that would destroy an input or another output.
+
+    inputs / outputs: (label, path) pairs, path None to skip; labels name the argument or config
+    key (``"--render"``, ``"output"``, ``"input model"``). Raises InputError when an output is the
+    same file as an input or as another output, or exists and is not a regular file; a NUL byte
+    in any path is refused too.
+    """
+    ins = [(w, Path(p)) for w, p in inputs if p is not None]
+    outs = [(w, Path(p)) for w, p in outputs if p is not None]
+    for what, p in ins + outs:
+        _check_chars(what, p)
+    for i, (what, out) in enumerate(outs):
+        st = _stat(out)
+        if st is not None and not stat.S_ISREG(st.st_mode):
+            kind = ("a directory" if stat.S_ISDIR(st.st_mode) else
+                    "a FIFO" if stat.S_ISFIFO(st.st_mode) else
+                    "a device node" if stat.S_ISCHR(st.st_mode) or stat.S_ISBLK(st.st_mode) else
+                    "not a regular file")
+            raise InputError(f"{what} {out}: exists and is {kind}; expected a regular file path "
+                             "to write")
+        _check_target(what, out)
+        for in_what, inp in ins:
+            if _same(out, inp):
+                raise InputError(f"{what} {out}: is the {in_what} ({inp}); refusing to overwrite "
+                                 "an input, choose another output path")
+        for other_what, other in outs[:i]:
+            if _same(out, other):
+                raise InputError(f"{what} {out}: is also the {other_what} output; choose "
+                                 "different output paths")
+
+
+def check_output_path(out: PathLike, *inputs: PathLike | None) -> Path:
+    """Validate one output path against ``inputs`` (see :func:`check_io_paths`)."""
+    check_io_paths([("input file", p) for p in inputs], [("output", out)])
+    return Path(out)
+
+
+# ------------------------------------------------------------------------ temporary files
+
+def _temp_pattern(out: Path) -> re.Pattern[str]:
+    """``.STEM.<pid>-<random>.tmp.EXT`` (and the older ``.STEM.<random>.tmp.EXT``)."""
+    return re.compile(rf"^\.{re.escape(out.stem)}\.(?:(\d+)-)?[A-Za-z0-9_]{{6,12}}"
+                      rf"\.tmp{re.escape(out.suffix)}$")
+
+
+def _alive(pid: int) -> bool:
+    if pid == os.getpid():
+        return True
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except (PermissionError, OverflowError, ValueError):
+        return pid > 0  # someone else's live process (or nonsense: treat as gone)
+    return True
+
+
+def remove_stale_temps(out: PathLike) -> list[Path]:
+    """Remove this tool's temporary files for ``out`` left by a killed writer (its pid is gone,
+    or the name predates pids). Returns the removed paths; never raises."""
     out = Path(out)
-    for inp in inputs:
-        if inp is None:
+    pattern = _temp_pattern(out)
+    removed = []
+    try:
+        names = os.listdir(out.parent)
+    except OSError:
+        return removed
+    for name in names:
+        m = pattern.match(name)
+        if m is None or (m.group(1) is not None and _alive(int(m.group(1)))):
             continue
-        inp = Path(inp)
-        same = out.resolve() == inp.resolve() or (
-            out.exists() and inp.exists() and os.path.samefile(out, inp))
-        if same:
-            raise InputError(f"{out}: refusing to overwrite the input file; choose another output")
-    if out.is_dir():
-        raise InputError(f"{out}: is a directory; expected an output file path")
-    return out
+        p = out.parent / name
+        with contextlib.suppress(OSError):
+            if p.is_file() and not p.is_symlink():
+                p.unlink()
+                removed.append(p)
+    return removed
 
 
 @contextlib.contextmanager
-def atomic_path(out: str | Path) -> Iterator[Path]:
-    """Yield a temporary path beside ``out``; on success rename it to ``out``, else delete it.
-
-    The temporary name keeps ``out``'s suffix (some writers pick the format by extension).
-    """
+def atomic_path(out: PathLike) -> Iterator[Path]:
+    """Yield a temporary path beside ``out``; on success chmod 0644 and rename it to ``out``,
+    else delete it. The temporary name keeps ``out``'s suffix (some writers pick the format by
+    extension). Stale temporaries of ``out`` from killed runs are removed first."""
     out = Path(out)
+    _check_chars("output", out)
     out.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=out.parent, prefix=f".{out.stem}.", suffix=f".tmp{out.suffix}")
+    remove_stale_temps(out)
+    fd, tmp = tempfile.mkstemp(dir=out.parent, prefix=f".{out.stem}.{os.getpid()}-",
+                               suffix=f".tmp{out.suffix}")
     os.close(fd)
     tmp_path = Path(tmp)
     try:
@@ -49,7 +177,7 @@ def atomic_path(out: str | Path) -> Iterator[Path]:
 
 
 @contextlib.contextmanager
-def atomic_write(out: str | Path) -> Iterator:
+def atomic_write(out: PathLike) -> Iterator:
     """Open a binary stream whose contents replace ``out`` atomically when the block succeeds."""
     with atomic_path(out) as tmp, open(tmp, "wb") as stream:
         yield stream

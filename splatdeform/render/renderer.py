@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import contextlib
 import os
-import tempfile
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -388,17 +387,13 @@ def save_png(image: np.ndarray, path: str | os.PathLike[str]) -> Path:
 
 
 def save_pil(image: Any, path: str | os.PathLike[str], **save_kwargs: Any) -> Path:
-    """Save a Pillow image atomically: temp file in the target folder, then os.replace."""
+    """Save a Pillow image atomically, mode 0644 like models (the tool's one atomic writer,
+    :func:`splatdeform.io.atomic.atomic_write`: temp file in the target folder, then rename)."""
+    from splatdeform.io.atomic import atomic_write
+
     out = Path(path)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{out.name}.", suffix=".tmp", dir=out.parent)
-    try:
-        with os.fdopen(fd, "wb") as handle:
-            image.save(handle, **save_kwargs)
-        os.replace(tmp, out)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    with atomic_write(out) as handle:
+        image.save(handle, **save_kwargs)
     return out
 
 

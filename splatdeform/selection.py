@@ -1,0 +1,121 @@
+"""What an edit selects, before (``splatdeform select``) and after (``deform``) the fit.
+
+Counts of the fixed, moving (handle or curve band) and free points and the sizes of the boundary
+rings that become the fit's constraints, and colours by region for a preview image.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+
+import numpy as np
+
+from .config import EditConfig
+from .model import PointModel
+from .regions import check_regions, select
+
+# preview colours (uint8 RGB): free grey, fixed blue / its rings light blue, moving orange /
+# its rings yellow
+FREE_COLOR = (170, 170, 170)
+FIXED_COLOR = (40, 90, 200)
+FIXED_RING_COLOR = (120, 190, 255)
+MOVING_COLOR = (230, 110, 20)
+MOVING_RING_COLOR = (250, 215, 40)
+
+
+@dataclass
+class RegionCounts:
+    """Point counts per region; ring sizes ring 1 first (empty when unknown)."""
+
+    points: int
+    fixed: int
+    moving: int
+    free: int
+    fixed_rings: list[int] = field(default_factory=list)
+    moving_rings: list[int] = field(default_factory=list)
+    moving_name: str = "handle"
+
+
+@dataclass
+class Selection:
+    """Masks (N,) bool of one edit's regions and the ring point indices (int64 arrays)."""
+
+    fixed: np.ndarray
+    moving: np.ndarray
+    fixed_rings: list[np.ndarray]
+    moving_rings: list[np.ndarray]
+    moving_name: str
+
+    def counts(self) -> RegionCounts:
+        n = int(self.fixed.size)
+        nf, nm = int(self.fixed.sum()), int(self.moving.sum())
+        return RegionCounts(n, nf, nm, n - nf - nm, [int(r.size) for r in self.fixed_rings],
+                            [int(r.size) for r in self.moving_rings], self.moving_name)
+
+
+def select_regions(cfg: EditConfig, model: PointModel, base_dir: str | Path) -> Selection:
+    """The edit's fixed and moving masks and rings, exactly as ``deform`` computes them (no fit).
+    Raises RegionError / InputError / ConfigError like ``deform``."""
+    from .rings import boundary_rings, region_adjacency
+
+    base_dir = Path(base_dir)
+    units = cfg.regions.units
+    fixed = select(model, [s.to_selector() for s in cfg.regions.fixed], units, base_dir)
+    if cfg.curve is not None:
+        from .curve import curve_band
+
+        _, band_idx, _ = curve_band(model, cfg.curve, units)
+        moving = np.zeros(model.n_points, dtype=bool)
+        moving[band_idx] = True
+        name = "curve band"
+    else:
+        moving = select(model, [s.to_selector() for s in cfg.regions.handle], units, base_dir)
+        name = "handle"
+    check_regions(fixed, moving, handle_name=name)
+    depth = cfg.boundary.continuity + 1
+    adj = region_adjacency(model, fixed, moving, cfg.boundary.neighbors, depth + 1)
+    fixed_rings, moving_rings = boundary_rings(adj, fixed, moving, depth, name)
+    return Selection(fixed, moving, list(fixed_rings), list(moving_rings), name)
+
+
+def counts_of_deformation(deformation, moving_name: str = "handle") -> RegionCounts:
+    """The counts of a precomputed :class:`~splatdeform.deform.Deformation` (ring sizes per
+    ring when it was computed in this run; one total per region when it was reused)."""
+    n = int(deformation.n_points)
+    nf, nm = int(deformation.fixed.sum()), int(deformation.moving.sum())
+    f_rings, m_rings = (list(r) for r in deformation.ring_sizes)
+    if not f_rings and deformation.constraint_idx.size:
+        in_fixed = int(deformation.fixed[deformation.constraint_idx].sum())
+        f_rings, m_rings = [in_fixed], [int(deformation.constraint_idx.size) - in_fixed]
+    return RegionCounts(n, nf, nm, n - nf - nm, [int(v) for v in f_rings],
+                        [int(v) for v in m_rings], moving_name)
+
+
+def format_counts(c: RegionCounts) -> str:
+    """One line: ``regions: fixed 1,200 (rings 40+38+37)  handle 300 (rings ...)  free 500``."""
+
+    def rings(sizes: list[int]) -> str:
+        return f" (rings {'+'.join(f'{s:,}' for s in sizes)})" if sizes else ""
+
+    return (f"regions: fixed {c.fixed:,}{rings(c.fixed_rings)}  {c.moving_name} "
+            f"{c.moving:,}{rings(c.moving_rings)}  free {c.free:,}  of {c.points:,} points")
+
+
+def region_colors(sel: Selection) -> np.ndarray:
+    """(N, 3) uint8 colours by region (rings lighter than the rest of their region)."""
+    colors = np.empty((sel.fixed.size, 3), dtype=np.uint8)
+    colors[:] = FREE_COLOR
+    colors[sel.fixed] = FIXED_COLOR
+    colors[sel.moving] = MOVING_COLOR
+    for ring in sel.fixed_rings:
+        colors[ring] = FIXED_RING_COLOR
+    for ring in sel.moving_rings:
+        colors[ring] = MOVING_RING_COLOR
+    return colors
+
+
+def preview_model(model: PointModel, sel: Selection) -> PointModel:
+    """A shallow copy of ``model`` coloured by region (stored colours win over 3DGS colours in
+    the renderer)."""
+    return replace(model, colors=region_colors(sel))
