@@ -203,6 +203,7 @@ def deform_gaussians(scale_log: np.ndarray, rotation: np.ndarray, sh_rest: np.nd
     similar[moved] = sim
     q_in = rotation[moved].astype(np.float64)
     q_norm = np.linalg.norm(q_in, axis=1)
+    q_in[q_norm == 0] = (1.0, 0.0, 0.0, 0.0)  # a zero quaternion reads as the identity
     q_norm = np.where(q_norm > 0, q_norm, 1.0)
     q_out = np.empty_like(q_in)
     s_out = scale_log[moved].astype(np.float64)
