@@ -11,10 +11,12 @@ from .basis import compute_basis
 from .handle import delta_for_transform
 from .model import PointModel
 from .rbf import Normalization, fit_incremental
+from .rbf.fit import DEFAULT_MAX_CENTERS, DEFAULT_TOLERANCE
 
 
 def prepare_handle(model: PointModel, fixed: np.ndarray, handle: np.ndarray, *,
-                   tolerance: float = 1e-4, max_centers: int = 2000, continuity: int = 2,
+                   tolerance: float = DEFAULT_TOLERANCE,
+                   max_centers: int = DEFAULT_MAX_CENTERS, continuity: int = 2,
                    neighbors: int = 10, backend: str = "auto",
                    device: str | None = None) -> deform.Deformation:
     """Rings, fit and basis of a handle edit for masks ``fixed``/``handle`` (N,) bool."""

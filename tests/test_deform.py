@@ -452,7 +452,8 @@ def test_cli_end_to_end(bar_file):
     assert res.returncode == 0, res.stderr
     out = bar_file / "out" / "bar_bent.ply"
     assert out.is_file()
-    for word in ("points", "free", "constraints", "centers", "residual"):
+    for word in ("points", "free", "constraints", "centers", "largest |r|", "RMS",
+                 "constraint error"):
         assert word in res.stdout, res.stdout
     lines = res.stdout.splitlines()
     assert any(re.match(r"basis\s+[0-9.]+ s", ln) for ln in lines), res.stdout
