@@ -174,6 +174,7 @@ class EditConfig(_Strict):
     backend: Literal["auto", "numpy", "opencl"] = "auto"
     device: str | None = None
     render: RenderCfg | None = None
+    memory_budget: str | int | None = None  # e.g. 2GB; deform streams above it (stream/)
 
     @model_validator(mode="after")
     def _metaphor(self) -> EditConfig:

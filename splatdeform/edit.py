@@ -146,11 +146,14 @@ def run_edit(cfg: EditConfig, base_dir: str | Path = ".", *, output: str | Path 
              save_output: bool = True, drop_nonfinite: bool = False,
              reuse: str | Path | None = None,
              log: Callable[[str], None] | None = None,
-             warn: Callable[[str], None] | None = None) -> EditResult:
+             warn: Callable[[str], None] | None = None,
+             stream: dict | None = None) -> EditResult:
     """Run one edit. ``output`` overrides ``cfg.output``; ``reuse`` names a precomputed
     deformation file to load when it matches this edit (and to write otherwise). ``warn``
     receives the one-line warning of a fit that stopped above the tolerance (with
-    ``fit.on_not_converged: error`` that is a ProcessingError instead, before any output)."""
+    ``fit.on_not_converged: error`` that is a ProcessingError instead, before any output).
+    ``stream``: {budget, scheduler, workers, quiet} for the out-of-core path
+    (:mod:`splatdeform.stream`), taken when the input exceeds the budget or Dask is asked for."""
     base_dir = Path(base_dir)
     out_path = Path(output) if output is not None else base_dir / cfg.output
     in_path = base_dir / cfg.input
@@ -160,6 +163,14 @@ def run_edit(cfg: EditConfig, base_dir: str | Path = ".", *, output: str | Path 
                              f"expected one of {', '.join(SUPPORTED)}")
         check_io_paths(input_paths(cfg, base_dir),
                        [("output", out_path), ("reuse cache", reuse)])
+        from .stream import maybe_stream  # out of core / on Dask when asked or too big
+
+        streamed = maybe_stream(cfg, base_dir, out_path, reuse=reuse, log=log,
+                                drop_nonfinite=drop_nonfinite,
+                                check_fit=lambda fit: check_converged(fit, cfg, warn),
+                                **(stream or {}))
+        if streamed is not None:
+            return streamed
     timings: dict[str, float] = {}
     model = prepare_model(cfg, base_dir, timings, drop_nonfinite)
     deformation = None
