@@ -155,3 +155,17 @@ def test_batch_report_flags_unconverged_scans(bar_dir):
     assert row["status"] == "ok" and row["converged"] is False
     html = (bar_dir / "bout" / "index.html").read_text()
     assert "unconverged" in html and "not converged" in html
+
+
+def test_deform_imports_only_what_an_edit_needs(bar_dir):
+    """Start-up: a numpy-backend edit of a PLY imports no Open3D, moderngl, Dask, viser, laspy,
+    pyopencl or Pillow."""
+    cfg = write_edit(bar_dir, "imports")
+    code = ("import sys\nfrom splatdeform.cli import main\n"
+            f"rc = main(['deform', {str(cfg)!r}])\n"
+            "heavy = {'open3d', 'moderngl', 'dask', 'distributed', 'viser', 'laspy', 'pyopencl',"
+            " 'PIL'}\n"
+            "print(rc, sorted({m.split('.')[0] for m in sys.modules} & heavy))")
+    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT,
+                         timeout=300)
+    assert res.stdout.strip().splitlines()[-1] == "0 []", res.stdout + res.stderr
