@@ -129,8 +129,10 @@ def process_scan(job: Job) -> dict[str, Any]:
 def _watch_parent(parent: int) -> None:
     while True:
         time.sleep(0.5)
-        if os.getppid() != parent:
-            os._exit(1)   # the batch was killed: stop instead of finishing orphaned work
+        if os.getppid() != parent:   # the batch was killed: stop instead of finishing orphaned
+            os.kill(os.getpid(), signal.SIGTERM)   # work, unwinding (temp folders) if we can
+            time.sleep(5.0)
+            os._exit(1)
 
 
 def _terminated(signum: int, frame: Any) -> None:
