@@ -284,7 +284,7 @@ def test_app_colours_regions_fits_and_follows_the_pose(bar_copy, viser_server):
         app.refresh_regions()
         counts = ed.counts()
         assert f"fixed **{counts['fixed']:,}**" in app.counts_md.content
-        colors = np.asarray(app.node.colors, dtype=float)
+        colors = app.shown()[1].astype(float)
         fixed, handle = ed.masks()[0], ed.masks()[1][0]
         assert colors[fixed, 2].mean() > colors[~fixed & ~handle, 2].mean()  # blue tint
         assert colors[handle, 0].mean() > colors[fixed, 0].mean()            # orange tint
@@ -294,7 +294,8 @@ def test_app_colours_regions_fits_and_follows_the_pose(bar_copy, viser_server):
         matrix = pose_matrix(ed.origin, start, start + (0.0, 0.5, 0.0), (1.0, 0, 0, 0)) @ base
         assert np.allclose(matrix[:3, 3], [0, 0.5, 0])
         app.apply_pose(0, matrix)
-        shown = np.asarray(app.node.points)
+        shown = app.shown()[0]
+        assert np.array_equal(np.sort(shown, axis=0), np.sort(np.asarray(app.node.points), axis=0))
         moved = shown[handle] + ed.origin - ed.model.positions[handle]
         assert np.allclose(moved, [0, 0.5, 0], atol=1e-4)
         assert np.array_equal(shown[fixed], (ed.model.positions[fixed] - ed.origin)
@@ -326,7 +327,7 @@ def test_app_shows_splats_and_meshes(viser_server, tmp_path):
     # viser's own packing of the same splats is byte-identical to ours
     frame = EditorController.open(path).base_frame()
     rgba = np.full((400, 4), 200, np.uint8)
-    ours = view.splat_buffer(frame.positions, frame.covariances, rgba)
+    ours = view.splat_buffer(frame.positions, frame.cov6, rgba)
     handle = viser_server.scene.add_gaussian_splats("/check", frame.positions, frame.covariances,
                                                     rgba[:, :3], rgba[:, 3:])
     theirs = np.asarray(handle.buffer)

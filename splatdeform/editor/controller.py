@@ -45,6 +45,7 @@ from ..io import check_output_path, save
 from ..model import PointModel
 from ..regions import Selector, check_regions, select
 from . import selectors as sl
+from .fastpath import covariance_frame, full_from_triu6, triu6
 
 ROLES = ("fixed", "handle")
 FREE, FIXED, HANDLE = 0, 1, 2
@@ -68,17 +69,25 @@ class Frame:
     """What one pose change produces for the viewer (float32, ``local`` coordinates: model
     coordinates minus :attr:`EditorController.origin`, so large scan offsets stay precise).
 
-    positions: (N, 3) float32. normals: (N, 3) float32 unit or None. axes: (N, 2, 3) float32
-    surfel/splat tangent axes or None. covariances: (N, 3, 3) float32 Gaussian covariances or
-    None. delta_c: (k, 3) float64 control displacements. seconds: compute time.
+    positions: (M, 3) float32. normals: (M, 3) float32 unit or None. axes: (M, 2, 3) float32
+    surfel/splat tangent axes or None. cov6: (M, 6) float32 upper triangles (xx, xy, xz, yy,
+    yz, zz) of the Gaussian covariances or None (:attr:`covariances` gives (M, 3, 3)).
+    index: None when the rows are all N points, else (M,) int64: the points these rows are
+    (the non-fixed ones; fixed points never move). delta_c: (k, 3) float64. seconds: compute.
     """
 
     positions: np.ndarray
     normals: np.ndarray | None
     axes: np.ndarray | None
-    covariances: np.ndarray | None
+    cov6: np.ndarray | None
     delta_c: np.ndarray
     seconds: float = 0.0
+    index: np.ndarray | None = None
+
+    @property
+    def covariances(self) -> np.ndarray | None:
+        """(M, 3, 3) float32 covariances, or None."""
+        return None if self.cov6 is None else full_from_triu6(self.cov6)
 
 
 @dataclass
@@ -90,13 +99,27 @@ class SaveResult:
     image: Path | None
 
 
-def _gaussian_covariances(model: PointModel) -> np.ndarray:
-    """(N, 3, 3) float32 covariances R S^2 R^T of a 3DGS model."""
+def _gaussian_cov6(model: PointModel) -> np.ndarray:
+    """(N, 6) float32 upper triangles of the covariances R S^2 R^T of a 3DGS model."""
     from ..gaussians import scale_rotation_to_factor
 
     g = model.gaussians
     f = scale_rotation_to_factor(g.scale_log, g.rotation)
-    return (f @ f.transpose(0, 2, 1)).astype(np.float32)
+    return triu6(f @ f.transpose(0, 2, 1))
+
+
+_BLAS = None
+
+
+def _one_blas_thread():
+    """Context: one BLAS thread for the per-frame products (an oversubscribed OpenBLAS pool on
+    a busy 2-core machine made them 10-30x slower, measured)."""
+    global _BLAS
+    if _BLAS is None:
+        from threadpoolctl import ThreadpoolController
+
+        _BLAS = ThreadpoolController()
+    return _BLAS.limit(limits=1, user_api="blas")
 
 
 class EditorController:
@@ -332,11 +355,12 @@ class EditorController:
         data["base_active"] = np.ascontiguousarray(data["base"][active])
         if m.normals is not None:
             data["normals"] = m.normals.astype(np.float32)
+            data["normals_active"] = np.ascontiguousarray(data["normals"][active])
         if m.axes is not None:
             data["axes"] = m.axes.astype(np.float32)
         if m.gaussians is not None:
-            data["cov"] = _gaussian_covariances(m)
-            data["cov_active"] = np.ascontiguousarray(data["cov"][active])
+            data["cov6"] = _gaussian_cov6(m)
+            data["cov6_active"] = np.ascontiguousarray(data["cov6"][active])
         return data
 
     def base_frame(self) -> Frame:
@@ -346,7 +370,7 @@ class EditorController:
             positions=(m.positions - self.origin).astype(np.float32),
             normals=None if m.normals is None else m.normals.astype(np.float32),
             axes=None if m.axes is None else m.axes.astype(np.float32),
-            covariances=None if m.gaussians is None else _gaussian_covariances(m),
+            cov6=None if m.gaussians is None else _gaussian_cov6(m),
             delta_c=np.zeros((4, 3)))
 
     def delta_c(self, handle: int = 0) -> np.ndarray:
@@ -355,10 +379,12 @@ class EditorController:
             raise StaleFitError("fit: no fit yet; fit the regions first")
         return delta_for_transform(self.deformation.control_points, self.handles[handle].matrix)
 
-    def set_pose(self, matrix: np.ndarray, handle: int = 0) -> Frame:
+    def set_pose(self, matrix: np.ndarray, handle: int = 0, *, full: bool = True) -> Frame:
         """Set handle ``handle``'s pose (4, 4) affine and deform: delta_c applied to the
         precomputed basis (:func:`splatdeform.frame.deform_frame`); returns the new positions
-        and normals / axes / covariances. Raises StaleFitError when the fit is stale."""
+        and normals / axes / covariances of all points, or with ``full=False`` of the non-fixed
+        points only (``frame.index``; the viewer's fast path). Raises StaleFitError when the
+        fit is stale."""
         m4 = np.asarray(matrix, dtype=np.float64)
         if m4.shape != (4, 4) or not np.allclose(m4[3], [0, 0, 0, 1]) or \
                 not np.isfinite(m4).all():
@@ -372,26 +398,28 @@ class EditorController:
         delta = self.delta_c(handle)
         fd = self._frame_data
         active = fd["active"]
-        normals = fd.get("normals")
-        p_act, n_act = ap.deform_frame(fd["base_active"],
-                                       None if normals is None else normals[active],
-                                       fd["values"], fd["grads"], delta)
-        positions = fd["base"].copy()
-        positions[active] = p_act
-        out_n = None
-        if normals is not None:
-            out_n = normals.copy()
-            out_n[active] = n_act
-        out_axes = out_cov = None
-        if "axes" in fd or "cov" in fd:
-            jac = ap.jacobians(fd["grads"], delta.astype(np.float32))
+        with _one_blas_thread():
+            p, n = ap.deform_frame(fd["base_active"], fd.get("normals_active"), fd["values"],
+                                   fd["grads"], delta)
+            axes = cov6 = None
             if "axes" in fd:
-                out_axes = fd["axes"].copy()
-                out_axes[active] = ap.transform_axes(jac, fd["axes"][active])
-            if "cov" in fd:
-                out_cov = fd["cov"].copy()
-                out_cov[active] = jac @ fd["cov_active"] @ jac.transpose(0, 2, 1)
-        return Frame(positions, out_n, out_axes, out_cov, delta, time.perf_counter() - t0)
+                jac = ap.jacobians(fd["grads"], delta.astype(np.float32))
+                axes = ap.transform_axes(jac, fd["axes"][active]).astype(np.float32)
+            if "cov6" in fd:
+                cov6 = covariance_frame(fd["grads"], delta, fd["cov6_active"])
+        if not full:
+            return Frame(p, n, axes, cov6, delta, time.perf_counter() - t0, index=active)
+
+        def scatter(whole: np.ndarray | None, rows: np.ndarray | None) -> np.ndarray | None:
+            if whole is None:
+                return None
+            out = whole.copy()
+            out[active] = rows
+            return out
+
+        return Frame(scatter(fd["base"], p), scatter(fd.get("normals"), n),
+                     scatter(fd.get("axes"), axes), scatter(fd.get("cov6"), cov6), delta,
+                     time.perf_counter() - t0)
 
     def reset_pose(self, handle: int = 0) -> None:
         """Back to the identity pose (no deformation)."""

@@ -85,12 +85,12 @@ class EditorApp:
         frame = self.ed.base_frame()
         self.labels = self.ed.labels()
         self._tinted = view.tinted(self.colors, self.labels)
+        self._which = 0
         if self.kind == "splats":
-            rgba = view.splat_rgba(m, self._tinted)
-            self._rgba = rgba
+            self._rgba = view.splat_rgba(m, self._tinted)
             self.node = s.add_gaussian_splats(
                 "/model/splats", centers=frame.positions, covariances=frame.covariances,
-                rgbs=rgba[:, :3], opacities=rgba[:, 3:4])
+                rgbs=self._rgba[:, :3], opacities=self._rgba[:, 3:4])
         else:
             if self.kind == "mesh":
                 self.mesh = s.add_mesh_simple("/model/mesh", frame.positions,
@@ -101,31 +101,104 @@ class EditorApp:
                 view.shaded(self._tinted, frame.normals, self.up),
                 point_size=view.point_size(m) * (0.5 if self.kind == "mesh" else 1.0),
                 point_shape="circle", precision="float32", point_shading="flat")
-        self._frame = frame
+        self.reset_buffers(frame)
+
+    def reset_buffers(self, frame: Frame) -> None:
+        """Both viewer double buffers from a whole-model frame, in viewer order: the points a
+        pose moves (non-fixed, ``frame.index`` of later frames) first, so a pose change writes
+        one contiguous block instead of scattering. Called after each fit (the order changes;
+        rows that became fixed show the undeformed points again)."""
+        d = self.ed._frame_data
+        n = self.model.n_points
+        if d is None or self.ed.stale:
+            self._perm, self._n_act = np.arange(n), n
+        else:
+            active = d["active"]
+            fixed = np.ones(n, dtype=bool)
+            fixed[active] = False
+            self._perm, self._n_act = np.concatenate([active, np.flatnonzero(fixed)]), len(active)
+        self._shown_fit = None if self._n_act == n else self.ed.deformation
+        perm = self._perm
+        self._tinted = view.tinted(self.colors, self.labels)[perm]
+        self.cur_normals = None if frame.normals is None else frame.normals[perm]
+        if self.kind == "splats":
+            self._packed = np.ascontiguousarray(self._rgba).view(np.uint32)[perm, 0]
+            buf = view.splat_rows(frame.positions[perm], frame.cov6[perm], self._packed)
+            self._bufs = [buf, buf.copy()]
+        else:
+            colors = view.shaded(self._tinted, self.cur_normals, self.up)
+            self._bufs = [frame.positions[perm], frame.positions[perm]]
+            self._colors = [colors, colors.copy()]
+            if self.kind == "mesh":
+                inverse = np.empty(n, dtype=np.int64)
+                inverse[perm] = np.arange(n)
+                self.mesh.faces = inverse[self.model.faces].astype(np.uint32)
+        self._hand_over()
+
+    def shown(self) -> tuple[np.ndarray, np.ndarray]:
+        """What the viewer holds, in model order: positions (N, 3) float32 (local) and colours
+        (N, 3) uint8 (splats: RGBA packed (N,) uint32)."""
+        w, n = self._which, self.model.n_points
+        pos = np.empty((n, 3), np.float32)
+        if self.kind == "splats":
+            pos[self._perm] = self._bufs[w].view(np.float32)[:, 0:3]
+            col = np.empty(n, np.uint32)
+            col[self._perm] = self._bufs[w][:, 7]
+            return pos, col
+        pos[self._perm] = self._bufs[w]
+        col = np.empty((n, 3), np.uint8)
+        col[self._perm] = self._colors[w]
+        return pos, col
+
+    def _hand_over(self) -> None:
+        """Give viser the current double buffer (it keeps a reference: we write the other)."""
+        w = self._which
+        if self.kind == "splats":
+            self.node.buffer = self._bufs[w]
+            return
+        if self.kind == "mesh":
+            self.mesh.vertices = self._bufs[w]
+        self.node.points = self._bufs[w]
+        self.node.colors = self._colors[w]
 
     def show_frame(self, frame: Frame) -> None:
         """Hand a frame's buffers to the viewer (the end of the measured pose path)."""
-        if self.kind == "splats":
-            self.node.buffer = view.splat_buffer(frame.positions, frame.covariances, self._rgba)
+        if frame.index is None:
+            self.reset_buffers(frame)
             return
-        if self.kind == "mesh":
-            self.mesh.vertices = frame.positions
-        self.node.points = frame.positions
-        if frame.normals is not None:
-            self.node.colors = view.shaded(self._tinted, frame.normals, self.up)
-        self._frame = frame
+        if len(frame.index) != self._n_act:
+            raise RuntimeError("frame: rows do not match the viewer's order; refit")
+        rows = slice(0, self._n_act)
+        self._which ^= 1
+        w = self._which
+        if self.kind == "splats":
+            self._bufs[w][rows] = view.splat_rows(frame.positions, frame.cov6,
+                                                  self._packed[rows])
+        else:
+            self._bufs[w][rows] = frame.positions
+            if frame.normals is not None:
+                self.cur_normals[rows] = frame.normals
+                self._colors[w][rows] = view.shaded(self._tinted[rows], frame.normals, self.up)
+        self._hand_over()
 
     def refresh_regions(self) -> None:
         """Recolour by region and update counts, problems and the stale flag."""
         with self.lock:
             self.labels = self.ed.labels()
-            self._tinted = view.tinted(self.colors, self.labels)
+            tinted = view.tinted(self.colors, self.labels)
+            self._tinted = tinted[self._perm]
+            self._which ^= 1
             if self.kind == "splats":
-                self._rgba = view.splat_rgba(self.model, self._tinted)
-                self.node.buffer = view.splat_buffer(self._frame.positions,
-                                                     self._frame.covariances, self._rgba)
+                self._rgba = view.splat_rgba(self.model, tinted)
+                self._packed = np.ascontiguousarray(self._rgba).view(np.uint32)[self._perm, 0]
+                # new arrays: viser keeps the one it was given and compares against it
+                self._bufs = [buf.copy() for buf in self._bufs]
+                for buf in self._bufs:
+                    buf[:, 7] = self._packed
             else:
-                self.node.colors = view.shaded(self._tinted, self._frame.normals, self.up)
+                colors = view.shaded(self._tinted, self.cur_normals, self.up)
+                self._colors = [colors, colors.copy()]
+            self._hand_over()
             c = self.ed.counts()
             problem = self.ed.problem()
             fit = "none yet" if self.ed.deformation is None else (
@@ -250,8 +323,7 @@ class EditorApp:
         try:
             with self.lock:
                 stats = self.ed.fit(report)
-                frame = self.ed.set_pose(self.ed.handles[0].matrix)
-                self.show_frame(frame)
+                self.reset_buffers(self.ed.set_pose(self.ed.handles[0].matrix))
             self.fit_md.content = (
                 f"centers **{stats['centers']}** · constraints {stats['constraints']:,} · "
                 f"converged {str(stats['converged']).lower()}  \n"
@@ -299,8 +371,9 @@ class EditorApp:
         """Pose received -> new buffers handed to the viewer; returns the seconds it took."""
         t0 = time.perf_counter()
         with self.lock:
-            frame = self.ed.set_pose(matrix, handle)
-            self.show_frame(frame)
+            if self._shown_fit is not self.ed.deformation:  # fitted outside the app
+                self.reset_buffers(self.ed.set_pose(matrix, handle))
+            self.show_frame(self.ed.set_pose(matrix, handle, full=False))
         return time.perf_counter() - t0
 
     def _pose_worker(self) -> None:
@@ -323,7 +396,7 @@ class EditorApp:
         with self.lock:
             self.ed.reset_pose()
             if not self.ed.stale:
-                self.show_frame(self.ed.set_pose(np.eye(4)))
+                self.reset_buffers(self.ed.set_pose(np.eye(4)))
                 self._build_pose_gizmos()
 
     # ---- save --------------------------------------------------------------------------
