@@ -128,6 +128,42 @@ def test_materialize_refuses_a_fifo_without_blocking(tmp_path: Path) -> None:
     assert isinstance(result[0], InputError) and "FIFO" in str(result[0])
 
 
+@pytest.mark.parametrize("case", ["fifo_output", "edit_is_report", "output_dir_is_file",
+                                  "device_thumbnail"])
+def test_outputs_never_replace_inputs_or_special_files(tmp_path: Path, bars, case,
+                                                       capsys) -> None:
+    """Checked before any work: exit 2, one line naming the path, nothing written."""
+    (tmp_path / "scans").mkdir()
+    (tmp_path / "scans" / bars[0].name).write_bytes(bars[0].read_bytes())
+    out = tmp_path / "out"
+    keys = {"scans": "scans", "output_dir": "out"}
+    if case == "fifo_output":
+        out.mkdir()
+        os.mkfifo(out / f"{bars[0].stem}_deformed.ply")
+        expected = "exists and is a FIFO"
+    elif case == "edit_is_report":   # a JSON edit file kept in the output folder
+        out.mkdir()
+        (out / "report.json").write_text(json.dumps(EDIT))
+        keys["edit"] = "out/report.json"
+        expected = "is the edit file"
+    elif case == "output_dir_is_file":
+        out.write_text("a file")
+        expected = "output_dir"
+    else:
+        out.mkdir()
+        (out / f"{bars[0].stem}.png").symlink_to("/dev/null")
+        keys["render"] = {"size": [64, 64]}
+        expected = "character device"
+    cfg = tmp_path / "b.yaml"
+    cfg.write_text(yaml.safe_dump({"edit": EDIT, **keys}))
+    before = sorted(p.name for p in out.iterdir()) if out.is_dir() else None
+    assert main(["batch", str(cfg), "--workers", "1"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and expected in err and "b.yaml" in err, err
+    if before is not None:
+        assert sorted(p.name for p in out.iterdir()) == before
+
+
 # -- archive members that lie about their size ---------------------------------------------------
 
 def test_probe_reads_the_header_with_the_ply_parser() -> None:

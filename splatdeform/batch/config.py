@@ -13,6 +13,7 @@ import copy
 import fnmatch
 import hashlib
 import json
+import stat
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Annotated, Any
@@ -20,9 +21,9 @@ from typing import Annotated, Any
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from .. import __version__
-from ..config import format_validation_error, parse_edit, read_yaml
-from ..errors import ConfigError
-from .sources import Scan, find_scans, glob_base, is_glob
+from ..config import EditConfig, format_validation_error, input_paths, parse_edit, read_yaml
+from ..errors import ConfigError, InputError
+from .sources import Scan, file_kind, find_scans, glob_base, is_glob
 
 PLACEHOLDER_IN = "__batch_input__.ply"
 PLACEHOLDER_OUT = "__batch_output__.ply"
@@ -112,8 +113,14 @@ def _strip_io(edit: dict[str, Any]) -> dict[str, Any]:
     return out
 
 
-def validate_edit(edit: dict[str, Any], source: str, prefix: str) -> None:
-    parse_edit({**edit, "input": PLACEHOLDER_IN, "output": PLACEHOLDER_OUT}, source, prefix)
+def validate_edit(edit: dict[str, Any], source: str, prefix: str) -> EditConfig:
+    return parse_edit({**edit, "input": PLACEHOLDER_IN, "output": PLACEHOLDER_OUT}, source,
+                      prefix)
+
+
+def _index_files(cfg: EditConfig, base: Path) -> list[tuple[str, Path]]:
+    """The files an edit reads besides its input model (indices files)."""
+    return [(what, p) for what, p in input_paths(cfg, base) if what != "input model"]
 
 
 def _hash(data: Any) -> str:
@@ -140,10 +147,13 @@ def load_batch(path: str | Path) -> Batch:
         prefix = ""
     else:
         edit_src, edit, edit_base, prefix = src, _strip_io(cfg.edit), base, "edit"
-    validate_edit(edit, edit_src, prefix)
+    reads: list[tuple[str, Path]] = [("batch file", path)]
+    if isinstance(cfg.edit, str):
+        reads.append(("edit file", edit_path))
+    reads += _index_files(validate_edit(edit, edit_src, prefix), edit_base)
     for i, ov in enumerate(cfg.overrides):
         merged = deep_merge(edit, _strip_io(ov.edit))
-        validate_edit(merged, src, f"overrides[{i}].edit")
+        reads += _index_files(validate_edit(merged, src, f"overrides[{i}].edit"), edit_base)
 
     output_dir = (base / cfg.output_dir).resolve()
     patterns = [cfg.scans] if isinstance(cfg.scans, str) else list(cfg.scans)
@@ -173,8 +183,54 @@ def load_batch(path: str | Path) -> Batch:
         digest = _hash({"edit": merged, "render": render, "source": scan.identity,
                         "version": __version__})
         jobs.append(Job(scan, merged, str(edit_base), str(out), png, render, digest))
+    _check_paths(src, output_dir, reads + [("scan", Path(s.path)) for s in scans], jobs)
     return Batch(path, output_dir, jobs, cfg.workers, cfg.scheduler, cfg.memory_per_worker_mb,
                  cfg.scan_timeout_s, cfg.model_dump())
+
+
+REPORT_FILES = ("report.json", "report.csv", "index.html")
+
+
+def _identity(p: Path) -> tuple:
+    """What makes two paths the same file: (device, inode) when it exists, else the path."""
+    try:
+        st = p.stat()
+        return (st.st_dev, st.st_ino)
+    except OSError:
+        return (str(p.resolve()),)
+
+
+def _check_paths(src: str, output_dir: Path, inputs: list[tuple[str, Path]],
+                 jobs: list[Job]) -> None:
+    """Before any work: no output of the batch is one of its inputs (batch file, edit file,
+    indices files, scans: same file, not same spelling) or another output, and none exists as
+    something other than a regular file (a FIFO, a device, a folder). Linear in the number of
+    scans (one stat per path)."""
+    if output_dir.exists() and not output_dir.is_dir():
+        raise InputError(f"{src}: output_dir: {output_dir} exists and is not a folder")
+    seen: dict[tuple, str] = {}
+    for what, p in inputs:
+        seen.setdefault(_identity(p), f"{what} {p}")
+    outputs = [(f"output_dir: {name}", output_dir / name) for name in REPORT_FILES]
+    for job in jobs:
+        if job.problem is None:
+            outputs += [(f"{job.scan.name}: output", Path(job.output)),
+                        (f"{job.scan.name}: sidecar", Path(job.sidecar))]
+            if job.png:
+                outputs.append((f"{job.scan.name}: thumbnail", Path(job.png)))
+    for what, out in outputs:
+        try:
+            mode = out.stat().st_mode
+        except OSError:
+            mode = None
+        if mode is not None and not stat.S_ISREG(mode):
+            raise InputError(f"{src}: {what} {out} exists and is {file_kind(mode)}; expected a "
+                             "regular file to replace (or nothing)")
+        key = _identity(out)
+        if key in seen:
+            raise InputError(f"{src}: {what} {out} is the {seen[key]}; refusing to overwrite "
+                             "it, choose another output_dir")
+        seen[key] = f"{what} {out}"
 
 
 def _inside(child: Path, parent: Path) -> bool:

@@ -91,7 +91,7 @@ def _supported(name: str) -> bool:
     return not base.startswith(".") and PurePosixPath(name).suffix.lower() in SUPPORTED
 
 
-def _kind(mode: int) -> str:
+def file_kind(mode: int) -> str:
     for test, what in ((stat.S_ISFIFO, "a FIFO"), (stat.S_ISCHR, "a character device"),
                        (stat.S_ISBLK, "a block device"), (stat.S_ISSOCK, "a socket"),
                        (stat.S_ISDIR, "a directory")):
@@ -108,7 +108,7 @@ def not_regular(p: Path) -> str | None:
         return f"cannot read it: {exc.strerror or exc}"
     if stat.S_ISREG(st.st_mode):
         return None
-    return f"not a regular file ({_kind(st.st_mode)}); skipped"
+    return f"not a regular file ({file_kind(st.st_mode)}); skipped"
 
 
 def _file_scan(p: Path) -> Scan:
@@ -311,7 +311,7 @@ def _open_regular(path: Path) -> BinaryIO:
     mode = os.fstat(fd).st_mode
     if not stat.S_ISREG(mode):
         os.close(fd)
-        raise InputError(f"{path}: not a regular file ({_kind(mode)}); expected a model file")
+        raise InputError(f"{path}: not a regular file ({file_kind(mode)}); expected a model file")
     os.set_blocking(fd, True)
     return os.fdopen(fd, "rb")
 
