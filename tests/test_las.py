@@ -194,3 +194,35 @@ def test_chunked_read_matches_whole(tmp_path: Path) -> None:
         writer.write(p)
     writer.close()
     assert np.array_equal(laspy.read(tmp_path / "w.laz").points.array, whole)
+
+
+def test_batch_over_las_members(tmp_path: Path) -> None:
+    """Batch folders and archives may hold .las/.laz scans; outputs keep the format and every
+    other dimension."""
+    import shutil
+    import zipfile
+
+    scans = tmp_path / "scans"
+    scans.mkdir()
+    shutil.copy(shared_file("lidar/simple.laz"), scans / "a.laz")
+    shutil.copy(shared_file("lidar/vegetation_1_3.las"), scans / "b.las")
+    with zipfile.ZipFile(tmp_path / "scans.zip", "w") as z:
+        z.write(scans / "a.laz", "a.laz")
+    edit = {"regions": {"units": "relative",
+                        "fixed": [{"box": {"min": [0, 0, 0], "max": [0.3, 1, 1]}}],
+                        "handle": [{"box": {"min": [0.7, 0, 0], "max": [1, 1, 1]}}]},
+            "handle": {"transform": {"translate": [0, 0, 0.2]}},
+            "fit": {"tolerance": 1e-3}, "backend": "numpy"}
+    for scan_key, out in (("scans", "out"), ("scans.zip", "out_zip")):  # folder, archive
+        cfg = tmp_path / f"{out}.yaml"
+        cfg.write_text(yaml.safe_dump({"scans": scan_key, "edit": edit, "output_dir": out,
+                                       "workers": 1}))
+        assert main(["batch", str(cfg), "--quiet"]) == 0
+    a = laspy.read(scans / "a.laz")
+    for out in ("out", "out_zip"):
+        b = laspy.read(tmp_path / out / "a_deformed.laz")
+        assert b.header.are_points_compressed
+        for name in ("classification", "intensity", "gps_time", "red"):
+            assert np.array_equal(np.asarray(a[name]), np.asarray(b[name])), name
+    v = laspy.read(tmp_path / "out" / "b_deformed.las")
+    assert len(v.points) == len(laspy.read(scans / "b.las").points)
