@@ -90,8 +90,9 @@ def _check_deform_paths(args: argparse.Namespace, cfg, base, output, reuse, rend
                 output if output is not None else base / cfg.output),
                ("--reuse-file" if args.reuse_file else "--reuse cache", reuse)]
     if render_out:
-        _, files = render_target(render_out, render_frames_count(cfg, args.frames))
-        outputs += [("--render" if args.render else "render.output", f) for f in files]
+        what = "--render" if args.render else "render.output"
+        _, files = render_target(render_out, render_frames_count(cfg, args.frames), what)
+        outputs += [(what, f) for f in files]
     check_io_paths([("edit config", args.config), *input_paths(cfg, base)], outputs)
 
 

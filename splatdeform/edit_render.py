@@ -11,17 +11,18 @@ from .edit import EditResult
 from .errors import InputError
 
 
-def render_target(out: str | Path, frames: int) -> tuple[Path, list[Path]]:
+def render_target(out: str | Path, frames: int, what: str = "render.output"
+                  ) -> tuple[Path, list[Path]]:
     """Where an edit's image goes: (the path written, the files written there). One image: a
     .png; frames >= 2: a .gif (a .png name becomes .gif) or a folder of ``frame_NNNN.png``.
-    Raises InputError for any other suffix."""
+    Raises InputError naming ``what`` (the option or key) for any other suffix."""
     from .config import check_render_output
 
     out = Path(out)
     try:
         check_render_output(str(out), frames)
     except ValueError as exc:
-        raise InputError(f"render {exc}") from None
+        raise InputError(f"{what}: {str(exc).removeprefix('output: ')}") from None
     if frames < 2:
         return out, [out]
     if out.suffix.lower() == ".png":

@@ -170,6 +170,12 @@ def atomic_path(out: PathLike) -> Iterator[Path]:
         yield tmp_path
         os.chmod(tmp_path, 0o644)
         os.replace(tmp_path, out)
+    except OSError as exc:  # name the output, not the temporary file that is gone now
+        with contextlib.suppress(OSError):
+            tmp_path.unlink()
+        if exc.filename not in (str(tmp_path), tmp_path) and exc.filename is not None:
+            raise
+        raise OSError(exc.errno, exc.strerror or str(exc), str(out)) from exc
     except BaseException:
         with contextlib.suppress(OSError):
             tmp_path.unlink()
