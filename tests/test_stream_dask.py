@@ -16,6 +16,7 @@ import yaml
 from test_stream import assert_same_result
 
 from data_tools.synth import bumpy_bar
+from splatdeform.cli import main
 from splatdeform.config import load_edit
 from splatdeform.io import save
 from splatdeform.stream import run_stream
@@ -89,3 +90,20 @@ def test_dask_survives_a_killed_worker(scene, client) -> None:
         watcher.join()
     assert killed, "the run finished before a worker could be killed"
     assert_same_result(folder / "local.ply", folder / "killed.ply", folder / "bar.ply")
+
+
+def test_cli_scheduler_address(scene, client) -> None:
+    folder, _ = scene
+    out = folder / "cli.ply"
+    assert main(["deform", str(folder / "edit.yaml"), "-o", str(out), "--scheduler",
+                 client.scheduler.address, "--quiet"]) == 0
+    assert_same_result(folder / "local.ply", out, folder / "bar.ply")
+
+
+def test_cli_workers_refuses_unstreamable_input(tmp_path: Path, capsys) -> None:
+    save(bumpy_bar(3_000, seed=2), tmp_path / "a.ply", text=True)
+    (tmp_path / "e.yaml").write_text(yaml.safe_dump(dict(EDIT, input="a.ply", output="o.ply")))
+    assert main(["deform", str(tmp_path / "e.yaml"), "--workers", "2", "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert "binary PLY" in err and err.count("\n") == 1
+    assert not (tmp_path / "o.ply").exists()
