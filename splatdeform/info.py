@@ -12,7 +12,16 @@ from .model import PointModel
 
 
 def describe(model: PointModel) -> dict[str, Any]:
-    """A JSON-ready summary: kind, counts, properties with types, bbox, normal lengths."""
+    """A JSON-ready summary: kind, counts, properties with types, bbox, normal lengths.
+
+    Non-finite values (a bbox diagonal beyond float64, NaN normals) stay floats here;
+    :func:`to_json` writes them as null.
+    """
+    with np.errstate(over="ignore", invalid="ignore"):
+        return _describe(model)
+
+
+def _describe(model: PointModel) -> dict[str, Any]:
     lo, hi = model.bbox()
     info: dict[str, Any] = {
         "path": model.path,
