@@ -77,10 +77,13 @@ class EditorApp:
     # ---- scene -------------------------------------------------------------------------
     def _build_scene(self) -> None:
         s, m = self.server.scene, self.model
-        s.set_up_direction(self.up)
+        # The viewer is +y up; a y-down model (3DGS) hangs under a frame turned 180 degrees
+        # about x. Gizmo poses are reported in that frame, i.e. in local model coordinates.
+        s.set_up_direction("+y")
+        s.add_frame("/world", show_axes=False,
+                    wxyz=(0.0, 1.0, 0.0, 0.0) if self.up == "-y" else (1.0, 0.0, 0.0, 0.0))
         diag = max(m.diagonal(), 1e-9)
-        sign = -1.0 if self.up == "-y" else 1.0
-        self.server.initial_camera.position = (0.55 * diag, 0.35 * diag * sign, 0.9 * diag)
+        self.server.initial_camera.position = (0.55 * diag, 0.35 * diag, 0.9 * diag)
         self.server.initial_camera.look_at = (0.0, 0.0, 0.0)
         frame = self.ed.base_frame()
         self.labels = self.ed.labels()
@@ -89,15 +92,15 @@ class EditorApp:
         if self.kind == "splats":
             self._rgba = view.splat_rgba(m, self._tinted)
             self.node = s.add_gaussian_splats(
-                "/model/splats", centers=frame.positions, covariances=frame.covariances,
+                "/world/model/splats", centers=frame.positions, covariances=frame.covariances,
                 rgbs=self._rgba[:, :3], opacities=self._rgba[:, 3:4])
         else:
             if self.kind == "mesh":
-                self.mesh = s.add_mesh_simple("/model/mesh", frame.positions,
+                self.mesh = s.add_mesh_simple("/world/model/mesh", frame.positions,
                                               self.model.faces.astype(np.uint32),
                                               color=(200, 200, 200), side="double")
             self.node = s.add_point_cloud(
-                "/model/points", frame.positions,
+                "/world/model/points", frame.positions,
                 view.shaded(self._tinted, frame.normals, self.up),
                 point_size=view.point_size(m) * (0.5 if self.kind == "mesh" else 1.0),
                 point_shape="circle", precision="float32", point_shading="flat")
@@ -224,7 +227,7 @@ class EditorApp:
             shape = self.ed.shape(role, i)
             if shape.kind == "other":
                 continue
-            name = f"/selectors/{role}{i}"
+            name = f"/world/selectors/{role}{i}"
             wxyz = _rotation_to(shape.normal) if shape.kind == "plane" else (1.0, 0, 0, 0)
             size = float(max(self.model.diagonal(), 1e-9))
             gizmo = s.add_transform_controls(
@@ -347,7 +350,7 @@ class EditorApp:
             start = state.matrix[:3, :3] @ d.control_points[0] + state.matrix[:3, 3] \
                 - self.ed.origin
             g = self.server.scene.add_transform_controls(
-                f"/handles/pose{h}", scale=0.25 * max(self.model.diagonal(), 1e-9),
+                f"/world/handles/pose{h}", scale=0.25 * max(self.model.diagonal(), 1e-9),
                 position=start, depth_test=False)
             self._pose_base.append((start, state.matrix.copy()))
             g.on_update(self._pose_moved(h))

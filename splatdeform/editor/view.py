@@ -45,7 +45,7 @@ def shaded(colors: np.ndarray, normals: np.ndarray | None, up: str) -> np.ndarra
     if normals is None:
         return np.clip(colors, 0, 255).astype(np.uint8)
     sign = -1.0 if up.startswith("-") else 1.0
-    light = np.array([0.35, 0.8 * sign, 0.5], dtype=np.float32)
+    light = np.array([0.35, 0.8 * sign, 0.5 * sign], dtype=np.float32)
     light /= np.linalg.norm(light)
     factor = np.abs(normals @ light)
     factor *= 0.65
