@@ -41,6 +41,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import os
+import re
 import sys
 import time
 from pathlib import Path
@@ -51,13 +52,23 @@ from .config import Batch, BatchConfig, Job, load_batch
 __all__ = ["Batch", "BatchConfig", "Job", "load_batch", "run_batch", "register"]
 
 
+_TEMP_NAME = re.compile(r"^\..+?\.(?:(\d+)[-.])?[A-Za-z0-9_]*\.?tmp(?:\.[^.]+)?$")
+
+
 def _clean_stale_temps(output_dir: Path) -> None:
-    """Temporary files left by a killed run (``.<stem>.*.tmp*``) are never trusted: remove."""
+    """Temporary files left by a killed run (``.<stem>.<pid>-<random>.tmp.<ext>``) are never
+    trusted: remove them, unless the process named in them is still running (another batch
+    writing into the same folder). One pass over the folder."""
+    from .sources import pid_alive
+
     if not output_dir.is_dir():
         return
     for p in output_dir.iterdir():
-        if p.name.startswith(".") and ".tmp" in p.name and p.is_file():
-            with contextlib.suppress(OSError):
+        m = _TEMP_NAME.match(p.name)
+        if m is None or (m.group(1) and pid_alive(int(m.group(1)))):
+            continue
+        with contextlib.suppress(OSError):
+            if p.is_file() and not p.is_symlink():
                 p.unlink()
 
 

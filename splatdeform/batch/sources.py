@@ -223,14 +223,15 @@ def temp_prefix() -> str:
     return f"{TEMP_PREFIX}{os.getpid()}-{_host()}-"
 
 
-def _alive(pid: int) -> bool:
+def pid_alive(pid: int) -> bool:
+    """Whether a process ``pid`` exists (someone else's counts; nonsense numbers do not)."""
     try:
         os.kill(pid, 0)
     except ProcessLookupError:
         return False
-    except PermissionError:
-        return True
-    except OSError:
+    except (OverflowError, ValueError):
+        return False
+    except OSError:   # EPERM: another user's live process
         return True
     return True
 
@@ -256,7 +257,7 @@ def clean_stale_temps(tmpdir: str | None = None) -> list[str]:
         except OSError:
             continue
         pid = int(parts[0])
-        if not stat.S_ISDIR(st.st_mode) or st.st_uid != os.getuid() or pid == me or _alive(pid):
+        if not stat.S_ISDIR(st.st_mode) or st.st_uid != os.getuid() or pid == me or pid_alive(pid):
             continue
         shutil.rmtree(entry.path, ignore_errors=True)
         removed.append(entry.path)

@@ -9,7 +9,6 @@ the scan, so a run killed at any moment is redone where it was incomplete.
 
 from __future__ import annotations
 
-import contextlib
 import json
 import os
 import signal
@@ -91,14 +90,7 @@ def process_scan(job: Job) -> dict[str, Any]:
                     cfg.render = RenderCfg(output=job.png, size=[2 * r["size"][0], r["size"][1]],
                                            azimuth=r["azimuth"], elevation=r["elevation"],
                                            fov=r["fov"])
-                    out = Path(job.png)
-                    tmp = out.with_name(f".{out.stem}.{os.getpid()}.tmp.png")
-                    try:
-                        render_result(result, cfg, tmp)
-                        os.replace(tmp, out)
-                    finally:
-                        with contextlib.suppress(OSError):
-                            tmp.unlink()
+                    render_result(result, cfg, job.png)   # written atomically
                 except Exception as exc:  # a thumbnail must not fail the scan
                     warning = f"thumbnail not rendered: {_one_line(exc)}"
     except SplatdeformError as exc:
