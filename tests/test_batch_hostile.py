@@ -185,6 +185,15 @@ def test_probe_reads_the_header_with_the_ply_parser() -> None:
     assert len(BIN_HEADER) < HEAD_BYTES
 
 
+def test_probe_counts_las_points_from_the_header() -> None:
+    from conftest import shared_file
+
+    for name in ("lidar/simple.laz", "lidar/vegetation_1_3.las"):
+        path = shared_file(name)
+        raw = path.read_bytes()
+        assert probe(path.name, raw[:HEAD_BYTES], len(raw)).points == load(path).n_points
+
+
 def test_lying_archive_members_fail_before_extraction(tmp_path: Path, bars) -> None:
     """A PLY header plus 256 MiB of zeros: binary (the header bounds the size) and ascii (the
     memory budget does). Extraction would hit RLIMIT_FSIZE and kill the worker instead."""

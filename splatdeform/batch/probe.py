@@ -8,6 +8,7 @@ header's point count and the file's size, so a lying header cannot slip under th
 
 from __future__ import annotations
 
+import io
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -27,7 +28,7 @@ SLACK_BYTES = 1 << 20           # trailing whitespace the reader tolerates after
 class Probe:
     """A scan's declared and real size."""
 
-    points: int              # vertices the header declares; a bound from the size elsewhere
+    points: int              # points the header declares (PLY, LAS/LAZ); else a bound from the size
     size: int                # bytes
     text: bool               # ascii PLY or a text format
     max_size: int | None     # largest size the header allows (binary PLY); None: no bound
@@ -43,7 +44,10 @@ def probe(name: str, head: bytes, size: int, *, suffix: str | None = None) -> Pr
 
     ``name`` names the scan in errors; ``suffix`` (default: the name's) picks the format.
     Raises FormatError (from the PLY header parser) for a malformed PLY header."""
-    if (suffix or Path(name).suffix).lower() != ".ply":
+    suffix = (suffix or Path(name).suffix).lower()
+    if suffix in (".las", ".laz"):
+        return Probe(_las_points(head), size, False, None)
+    if suffix != ".ply":
         return Probe(size // 12, size, True, None)
     header = _parse_header(Path(name), head)
     points = sum(count for el, count, _ in header.elements if el == "vertex")
@@ -60,6 +64,18 @@ def probe(name: str, head: bytes, size: int, *, suffix: str | None = None) -> Pr
                 row += np.dtype(p.dtype).itemsize
         body += count * row
     return Probe(points, size, False, header.size + body + SLACK_BYTES)
+
+
+def _las_points(head: bytes) -> int:
+    """Point count from a LAS/LAZ header, read by laspy's header parser (a compressed LAZ holds
+    3-10x more points than its size suggests); 0 when it cannot be read (the loader will say
+    why)."""
+    try:
+        import laspy
+
+        return int(laspy.LasHeader.read_from(io.BytesIO(head)).point_count)
+    except Exception:  # laspy raises its own and struct errors; the loader reports them
+        return 0
 
 
 def estimate_memory(p: Probe) -> int:
