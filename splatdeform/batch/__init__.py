@@ -34,6 +34,10 @@ scan and output paths (a shared file system)::
     dask scheduler                                   # prints tcp://HOST:8786
     dask worker tcp://HOST:8786 --nworkers 2 --nthreads 1 --memory-limit 8GB   # on each node
     splatdeform batch batch.yaml --scheduler tcp://HOST:8786
+
+With ``scan_timeout_s`` / ``--scan-timeout`` a local worker running a scan past the limit is
+stopped (SIGTERM, then SIGKILL) and replaced; on Dask, where a running task is a thread that
+cannot be stopped, each scan then runs in a child process of its Dask worker instead.
 """
 
 from __future__ import annotations
