@@ -213,3 +213,21 @@ def test_peak_memory_bounded_by_budget(tmp_path: Path) -> None:
     assert peak_kb * 1024 < budget_mb * 2**20, f"peak RSS {peak_kb / 1024:.0f} MB"
     assert vertex(tmp_path / "out.ply").shape == (n,)
     assert resource.getrusage(resource.RUSAGE_SELF).ru_maxrss > 0
+
+
+def test_big_handle_frame_from_streamed_moments(bar: Path, tmp_path: Path) -> None:
+    """More handle points than the budget keeps whole: the frame comes from streamed moments;
+    the result is the same deformation (fixed points bit-exact, the rest to rounding)."""
+    cfg = load_edit(write_edit(tmp_path, bar, "mem.ply"))
+    run_edit(cfg, tmp_path)
+    result = run_stream(cfg, tmp_path, output=tmp_path / "st.ply", chunk=7_000, quiet=True,
+                        max_handle=1_000)
+    assert result.stats["points"] == 60_000
+    a, b, src = vertex(tmp_path / "mem.ply"), vertex(tmp_path / "st.ply"), vertex(bar)
+    fixed, _ = labels_of(src)
+    pos_a = np.stack([a[c] for c in "xyz"], axis=1)
+    pos_b = np.stack([b[c] for c in "xyz"], axis=1)
+    assert np.array_equal(pos_a[fixed], pos_b[fixed])
+    assert np.abs(pos_a - pos_b).max() <= 1e-9 * float(np.linalg.norm(np.ptp(pos_a, axis=0)))
+    for c in ("nx", "ny", "nz"):
+        assert np.allclose(a[c], b[c], atol=1e-6, rtol=0)

@@ -98,12 +98,13 @@ def should_stream(cfg, in_path: Path, budget: int | None) -> bool:
 def run_stream(cfg, base_dir: str | Path = ".", *, output: str | Path | None = None,
                budget: int | None = None, scheduler: str | None = None,
                workers: int | None = None, quiet: bool = False, log=None, check_fit=None,
-               client=None, chunk: int | None = None):
+               client=None, chunk: int | None = None, max_handle: int | None = None):
     """Run one handle edit out of core (locally, or on Dask with ``scheduler``/``workers``).
 
     Returns an :class:`splatdeform.edit.EditResult` with ``model``/``deformed`` None (the models
     are never whole in memory) and the figures ``format_report`` prints. ``client``: an open
-    Dask client to use; ``chunk``: points per chunk (default: from the budget)."""
+    Dask client to use; ``chunk``: points per chunk (default: from the budget);
+    ``max_handle``: most handle points kept whole for the frame (beyond: streamed moments)."""
     import time
 
     from ..edit import EditResult
@@ -122,20 +123,26 @@ def run_stream(cfg, base_dir: str | Path = ".", *, output: str | Path | None = N
     base = BASE_RSS + 2 * n  # interpreter and libraries, labels
     chunk = chunk or chunk_for_budget(budget, record, fixed_bytes=base)
     max_border = int(max(budget - base, budget // 2) // 500)
+    # handle points kept whole (24 bytes each, ~4 copies in the frame's SVD) up to a quarter
+    if max_handle is None:
+        max_handle = int(max(budget - base, budget // 2) // 4 // 100)
     if log and not quiet:
         log(f"streaming {n:,} points in chunks of {chunk:,} (memory budget "
             f"{budget / 2**20:,.0f} MB)")
     if client is not None:
         plan = stream_deform(src, cfg, base_dir, out_path, chunk=chunk, quiet=quiet,
-                             client=client, max_border=max_border, check_fit=check_fit)
+                             client=client, max_border=max_border, check_fit=check_fit,
+                                 max_handle=max_handle)
     elif scheduler or workers:  # at least ~16 parts, so every worker gets several
         chunk = min(chunk, max(20_000, -(-n // 16)))
         with dask_client(scheduler, workers) as client:
             plan = stream_deform(src, cfg, base_dir, out_path, chunk=chunk, quiet=quiet,
-                                 client=client, max_border=max_border, check_fit=check_fit)
+                                 client=client, max_border=max_border, check_fit=check_fit,
+                                 max_handle=max_handle)
     else:
         plan = stream_deform(src, cfg, base_dir, out_path, chunk=chunk, quiet=quiet,
-                             max_border=max_border, check_fit=check_fit)
+                             max_border=max_border, check_fit=check_fit,
+                             max_handle=max_handle)
     from functools import partial
 
     from .. import deform as df

@@ -148,10 +148,66 @@ def _in_sorted(keys: np.ndarray, table: np.ndarray) -> np.ndarray:
     return table[at] == keys
 
 
+class Moments:
+    """Streaming first and second moments of points (about a reference point ``ref`` (3,))."""
+
+    def __init__(self, ref: np.ndarray) -> None:
+        self.ref = np.asarray(ref, dtype=np.float64)
+        self.n = 0
+        self.s1 = np.zeros(3)
+        self.s2 = np.zeros((3, 3))
+
+    def add(self, points: np.ndarray) -> None:
+        d = points - self.ref
+        self.n += points.shape[0]
+        self.s1 += d.sum(axis=0)
+        self.s2 += d.T @ d
+
+    def centroid_and_axes(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(centroid (3,), singular values (3,) of the centred points, vt (3, 3) rows =
+        principal axes, largest first): what an SVD of the centred points gives."""
+        mean = self.s1 / self.n
+        cov = self.s2 - self.n * np.outer(mean, mean)
+        values, vectors = np.linalg.eigh((cov + cov.T) / 2)
+        order = np.argsort(values)[::-1]
+        return self.ref + mean, np.sqrt(np.maximum(values[order], 0.0)), vectors[:, order].T
+
+
+def frame_from_moments(moments: Moments, extent_of) -> AffineFrame:
+    """The handle frame of :func:`splatdeform.handle.handle_frame` from streamed moments;
+    ``extent_of(centroid, vt)`` -> (3,) largest |(p - centroid) . axis| over the handle."""
+    centroid, sv, vt = moments.centroid_and_axes()
+    if sv[0] <= 0 or sv[1] <= 1e-6 * sv[0]:
+        raise RegionError("regions.handle: the handle points are (nearly) collinear or a single "
+                          "point; an affine handle needs points spanning at least a plane")
+    extent = extent_of(centroid, vt)
+    extent = np.where(extent > 1e-3 * extent[0], extent, extent[0])
+    axes = vt * extent[:, None]
+    if np.linalg.det(vt) < 0:
+        axes[2] *= -1
+    control = np.vstack([centroid, centroid + axes])
+    system = np.vstack([control.T, np.ones(4)])
+    return AffineFrame(control_points=control, inverse=np.linalg.inv(system))
+
+
+def handle_extent_pass(src: ChunkFile, labels: np.ndarray, centroid: np.ndarray,
+                       vt: np.ndarray, chunk: int, quiet: bool) -> np.ndarray:
+    extent = np.zeros(3)
+    progress = Progress("pass 2b (handle extent)", src.n_points, quiet=quiet)
+    for a, b in chunk_ranges(src.n_points, chunk):
+        pts = src.positions(a, b)[labels[a:b] == HANDLE]
+        if pts.size:
+            extent = np.maximum(extent, np.abs((pts - centroid) @ vt.T).max(axis=0))
+        progress.update(b - a)
+    progress.finish()
+    return extent
+
+
 def labels_pass(src: ChunkFile, cfg: EditConfig, base_dir: Path, lo: np.ndarray,
-                hi: np.ndarray, chunk: int, quiet: bool):
-    """(labels (N,) uint8, handle positions (Nh, 3) float64, seconds); region errors as the
-    in-memory path raises them."""
+                hi: np.ndarray, chunk: int, quiet: bool, max_handle: int = 2**62):
+    """(labels (N,) uint8, handle positions (Nh, 3) float64 or None when there are more
+    than ``max_handle``, handle moments, seconds); region errors as the in-memory path
+    raises them."""
     n = src.n_points
     fixed_plain, fixed_idx = _split_selectors([s.to_selector() for s in cfg.regions.fixed])
     handle_plain, handle_idx = _split_selectors([s.to_selector()
@@ -161,7 +217,9 @@ def labels_pass(src: ChunkFile, cfg: EditConfig, base_dir: Path, lo: np.ndarray,
     need_model = any(isinstance(s, Property) for s in fixed_plain + handle_plain)
     units = cfg.regions.units
     labels = np.zeros(n, dtype=np.uint8)
-    handle_pos = []
+    handle_pos: list | None = []
+    kept = 0
+    moments = Moments((lo + hi) / 2)
     overlap = 0
     progress = Progress("pass 2 (regions)", n, quiet=quiet)
     for a, b in chunk_ranges(n, chunk):
@@ -176,7 +234,10 @@ def labels_pass(src: ChunkFile, cfg: EditConfig, base_dir: Path, lo: np.ndarray,
         overlap += int((fixed & handle).sum())
         labels[a:b][fixed] = FIXED
         labels[a:b][handle] = HANDLE
-        handle_pos.append(cm.positions[handle])
+        moments.add(cm.positions[handle])
+        if handle_pos is not None:
+            kept += int(handle.sum())
+            handle_pos = None if kept > max_handle else handle_pos + [cm.positions[handle]]
         progress.update(b - a)
     seconds = progress.finish()
     counts = np.bincount(labels, minlength=3)
@@ -190,7 +251,8 @@ def labels_pass(src: ChunkFile, cfg: EditConfig, base_dir: Path, lo: np.ndarray,
     if counts[FREE] == 0:
         raise RegionError("regions: fixed and handle regions cover every point; leave a free "
                           "region between them")
-    return labels, np.concatenate(handle_pos), seconds
+    return labels, (None if handle_pos is None else np.concatenate(handle_pos)), moments, \
+        seconds
 
 
 def gather_border(src: ChunkFile, labels: np.ndarray, lo: np.ndarray, hi: np.ndarray,
@@ -256,14 +318,21 @@ def kth_distance(points: np.ndarray, k: int, block: int = 500_000) -> np.ndarray
 
 
 def build_plan(src: ChunkFile, cfg: EditConfig, base_dir: Path, *, chunk: int, quiet: bool,
-               max_border: int, make_fit_fn, handle_matrix) -> Plan:
-    """Passes 1-4, the rings on the border set and the fit."""
+               max_border: int, make_fit_fn, handle_matrix, max_handle: int = 2**62) -> Plan:
+    """Passes 1-4, the rings on the border set and the fit. The handle frame and pivot come
+    from the handle's points (as in memory, bit-identical) when at most ``max_handle``, else
+    from streamed moments and one more pass for its extent."""
     timings: dict[str, float] = {}
     n = src.n_points
     lo, hi, sample, timings["bbox"] = bbox_pass(src, chunk, quiet)
-    labels, handle_pos, timings["regions"] = labels_pass(src, cfg, base_dir, lo, hi, chunk,
-                                                         quiet)
-    frame = handle_frame(handle_pos)
+    labels, handle_pos, moments, timings["regions"] = labels_pass(
+        src, cfg, base_dir, lo, hi, chunk, quiet, max_handle)
+    if handle_pos is not None:
+        frame = handle_frame(handle_pos)
+    else:
+        frame = frame_from_moments(moments, lambda c, vt: handle_extent_pass(
+            src, labels, c, vt, chunk, quiet))
+        handle_pos = moments.centroid_and_axes()[0][None, :]  # the centroid pivot
     whole = as_chunk(PointModel(positions=handle_pos), lo, hi)
     matrix = handle_matrix(cfg, whole, np.ones(handle_pos.shape[0], dtype=bool))
     delta_c = delta_for_transform(frame.control_points, matrix)

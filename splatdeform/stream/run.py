@@ -207,12 +207,13 @@ def dask_client(scheduler: str | None, workers: int | None):
 
 def stream_deform(src: ChunkFile, cfg, base_dir: Path, out: Path, *, chunk: int,
                   quiet: bool = False, client=None, max_border: int = 20_000_000,
-                  check_fit=None):
+                  max_handle: int = 2**62, check_fit=None):
     """Plan (passes 1-4, rings, fit) and the second pass. Returns (plan, timings)."""
     from ..edit import handle_matrix, make_fit_fn
 
     plan = build_plan(src, cfg, base_dir, chunk=chunk, quiet=quiet, max_border=max_border,
-                      make_fit_fn=make_fit_fn, handle_matrix=handle_matrix)
+                      make_fit_fn=make_fit_fn, handle_matrix=handle_matrix,
+                      max_handle=max_handle)
     if check_fit is not None:
         check_fit(plan.border.fit)  # warns, or raises before any output
     shared = Shared(plan.border.fit, plan.frame, plan.matrix, plan.delta_c, cfg.backend,
