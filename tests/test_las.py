@@ -226,3 +226,21 @@ def test_batch_over_las_members(tmp_path: Path) -> None:
             assert np.array_equal(np.asarray(a[name]), np.asarray(b[name])), name
     v = laspy.read(tmp_path / "out" / "b_deformed.las")
     assert len(v.points) == len(laspy.read(scans / "b.las").points)
+
+
+def test_truncated_las_streams_to_format_error(tmp_path: Path) -> None:
+    from splatdeform.config import load_edit
+    from splatdeform.errors import FormatError
+    from splatdeform.stream import run_stream
+
+    raw = shared_file("lidar/vegetation_1_3.las").read_bytes()
+    (tmp_path / "t.las").write_bytes(raw[: len(raw) // 2])
+    (tmp_path / "e.yaml").write_text(yaml.safe_dump({
+        "input": "t.las", "output": "o.las",
+        "regions": {"units": "relative",
+                    "fixed": [{"box": {"min": [0, 0, 0], "max": [0.3, 1, 1]}}],
+                    "handle": [{"box": {"min": [0.7, 0, 0], "max": [1, 1, 1]}}]},
+        "handle": {"transform": {"translate": [0, 0, 0.2]}}}))
+    with pytest.raises(FormatError, match="t.las"):
+        run_stream(load_edit(tmp_path / "e.yaml"), tmp_path, chunk=1000, quiet=True)
+    assert not (tmp_path / "o.las").exists()

@@ -380,19 +380,22 @@ def iter_chunks(path: str | Path, chunk: int, start: int = 0,
                 stop: int | None = None) -> Iterator[np.ndarray]:
     """Raw point records of points [start, stop) in chunks of at most ``chunk`` rows."""
     laspy = _laspy()
-    with laspy.open(path) as reader:
-        total = reader.header.point_count
-        stop = total if stop is None else min(stop, total)
-        if start:
-            reader.seek(start)
-        pos = start
-        while pos < stop:
-            n = min(chunk, stop - pos)
-            record = reader.read_points(n)
-            if len(record) == 0:
-                raise FormatError(f"{path}: truncated LAS point data at point {pos}")
-            pos += len(record)
-            yield np.asarray(record.array)
+    try:
+        with laspy.open(path) as reader:
+            total = reader.header.point_count
+            stop = total if stop is None else min(stop, total)
+            if start:
+                reader.seek(start)
+            pos = start
+            while pos < stop:
+                n = min(chunk, stop - pos)
+                record = reader.read_points(n)
+                if len(record) == 0:
+                    raise FormatError(f"{path}: truncated LAS point data at point {pos}")
+                pos += len(record)
+                yield np.asarray(record.array)
+    except (laspy.errors.LaspyException, ValueError, OSError, RuntimeError) as exc:
+        raise FormatError(f"{path}: cannot read LAS/LAZ points: {exc}") from exc
 
 
 class LasWriter:
