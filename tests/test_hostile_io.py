@@ -406,3 +406,35 @@ def test_drop_nonfinite_igea_tristrips(tmp_path: Path) -> None:
     expected = (np.cumsum(~bad) - 1)[full.faces[keep]]
     assert model.n_points == len(vertex) - 300 and model.n_faces == int(keep.sum())
     assert _oriented(model.faces) == _oriented(expected)
+
+
+def test_ragged_lists_ascii_and_binary_agree(tmp_path: Path) -> None:
+    """Polygons of mixed sizes (the per-element vectorised ascii path and the binary per-row
+    path) read the same lists, and fan-triangulate as (f0, fi, fi+1)."""
+    rng = np.random.default_rng(7)
+    polygons = [rng.integers(0, 20, size=k).tolist() for k in rng.integers(3, 7, size=40)]
+    xyz = rng.normal(size=(20, 3)).round(3)
+    head = (f"element vertex 20\n{XYZ}property uchar flag\nelement face {len(polygons)}\n"
+            f"property uchar kind\n{FACE_LIST}property short tag\nend_header\n")
+    ascii_body = "".join(f"{a} {b} {c} {i % 7}\n" for i, (a, b, c) in enumerate(xyz))
+    ascii_body += "".join(f"{i % 3} {len(p)} {' '.join(map(str, p))} {-i}\n"
+                          for i, p in enumerate(polygons))
+    (tmp_path / "a.ply").write_text("ply\nformat ascii 1.0\n" + head + ascii_body)
+    vrec = np.empty(20, dtype=[("x", ">f4"), ("y", ">f4"), ("z", ">f4"), ("flag", "u1")])
+    for i, axis in enumerate("xyz"):
+        vrec[axis] = xyz[:, i]
+    vrec["flag"] = np.arange(20) % 7
+    body = vrec.tobytes() + b"".join(
+        bytes([i % 3, len(p)]) + np.asarray(p, dtype=">i4").tobytes()
+        + np.asarray(-i, dtype=">i2").tobytes() for i, p in enumerate(polygons))
+    (tmp_path / "b.ply").write_bytes(f"ply\nformat binary_big_endian 1.0\n{head}".encode()
+                                     + body)
+    a, b = load(tmp_path / "a.ply"), load(tmp_path / "b.ply")
+    for model in (a, b):
+        face = model.source.element("face").data
+        assert [f.tolist() for f in face["vertex_indices"]] == polygons
+        assert face["tag"].tolist() == [-i for i in range(len(polygons))]
+        assert face["kind"].tolist() == [i % 3 for i in range(len(polygons))]
+        fans = [(p[0], p[i], p[i + 1]) for p in polygons for i in range(1, len(p) - 1)]
+        np.testing.assert_array_equal(model.faces, fans)
+    np.testing.assert_array_equal(a.positions, b.positions)

@@ -34,12 +34,15 @@ def _triangles_from_faces(column: np.ndarray) -> np.ndarray:
     lengths = np.fromiter((len(f) for f in column), dtype=np.int64, count=len(column))
     if (lengths == 3).all():
         return np.stack(column).astype(np.int64).reshape(-1, 3)
-    tris = []
-    for face in column:
-        face = np.asarray(face, dtype=np.int64)
-        for i in range(1, len(face) - 1):
-            tris.append((face[0], face[i], face[i + 1]))
-    return np.asarray(tris, dtype=np.int64).reshape(-1, 3)
+    # fan triangulation of every polygon at once: face f gives (f0, fi, fi+1), i = 1..len-2
+    flat = np.concatenate([np.asarray(f, dtype=np.int64) for f in column]) if lengths.sum() \
+        else np.empty(0, dtype=np.int64)
+    first = np.cumsum(lengths) - lengths
+    fans = np.maximum(lengths - 2, 0)
+    owner = np.repeat(np.arange(len(column)), fans)
+    step = np.arange(int(fans.sum())) - np.repeat(np.cumsum(fans) - fans, fans) + 1
+    start = first[owner]
+    return np.stack([flat[start], flat[start + step], flat[start + step + 1]], axis=1)
 
 
 def _triangles_from_strips(column: np.ndarray) -> np.ndarray:

@@ -270,23 +270,24 @@ def _read_binary_element(path: Path, buf: memoryview, offset: int, name: str, co
 class _AsciiElement:
     """The body rows of one ascii element and how to name a value in an error message.
 
-    rows: the element's non-blank body lines; line_of(i): the file line number of rows[i].
+    rows: the element's non-blank body lines; line_of(i): the file line number of rows[i];
+    starts: (R,) index of each row's first token in the element's flat token array.
     """
 
     def __init__(self, path: Path, name: str, rows: list[bytes],
                  line_of: Callable[[int], int]) -> None:
         self.path, self.name, self.rows, self.line_of = path, name, rows, line_of
+        self.starts = np.zeros(len(rows), dtype=np.int64)
 
     def error(self, row: int, message: str) -> FormatError:
         return FormatError(f"{self.path}: malformed ascii body, line {self.line_of(row)} of "
                            f"element '{self.name}': {message}")
 
-    def convert(self, values: np.ndarray, code: str, what: str, first_col: int,
-                rows: np.ndarray | None = None) -> np.ndarray:
-        """(R, W) float64 parsed tokens -> ``code``; rejects values the type cannot hold
-        (300 in a uchar, -1 in a uint, 1.9 in an int, 1e39 in a float) naming the line.
+    def convert(self, values: np.ndarray, code: str, what: str, at: np.ndarray) -> np.ndarray:
+        """Parsed tokens (float64, any shape) -> ``code``, rejecting values the type cannot
+        hold (300 in a uchar, -1 in a uint, 1.9 in an int, 1e39 in a float) with the line.
 
-        rows: (R,) element row of each row of ``values`` (default 0..R-1).
+        at: flat token index of each value (same shape), to name the offending token.
         """
         with np.errstate(over="ignore", invalid="ignore"):
             if code[0] == "f":
@@ -300,81 +301,72 @@ class _AsciiElement:
                 expected = f"an integer in {info.min}..{info.max}"
                 out = None
         if bad.any():
-            k = int(np.flatnonzero(bad)[0])
-            width = values.shape[1] if values.ndim == 2 else 1
-            row = k // width if rows is None else int(rows[k // width])
+            token_index = int(at.ravel()[np.flatnonzero(bad.ravel())[0]])
+            row = int(np.searchsorted(self.starts, token_index, side="right")) - 1
             tokens = self.rows[row].split()
-            col = first_col + k % width
-            token = tokens[col].decode(errors="replace") if col < len(tokens) else "?"
+            token = tokens[token_index - self.starts[row]].decode(errors="replace")
             raise self.error(row, f"{what} ({TYPE_NAMES[code]}) value {token!r} is not "
                              f"{expected}")
         return values.astype(code) if out is None else out
 
 
 def _parse_ascii_rows(el: _AsciiElement, props: list[PlyProperty]) -> np.ndarray:
+    """All rows of an element at once: every token parsed to float64 in one go, then each
+    property gathered for all rows (lists of varying length included), checked against its
+    type. Work and memory are linear in the element's text."""
     rows = el.rows
     count = len(rows)
     out = _empty(props, count, "=")
     if count == 0:
         return out
-    widths = {len(r.split()) for r in rows}
+    lengths = np.fromiter((len(r.split()) for r in rows), dtype=np.int64, count=count)
     try:
-        if len(widths) == 1:
-            width = widths.pop()
-            table = np.array(b" ".join(rows).split(), dtype=np.float64).reshape(count, width)
-            col = 0
-            for p in props:
-                if col >= width:
-                    raise ValueError("width")
-                if p.is_list:
-                    lengths = el.convert(table[:, col:col + 1], p.len_dtype,
-                                         f"list length of '{p.name}'", col)[:, 0]
-                    n = int(lengths[0])
-                    if n < 0 or not (lengths == n).all() or col + 1 + n > width:
-                        raise ValueError("ragged")
-                    values = el.convert(table[:, col + 1: col + 1 + n], p.dtype, repr(p.name),
-                                        col + 1)
-                    column = np.empty(count, dtype=object)
-                    column[:] = list(values)
-                    out[p.name] = column
-                    col += 1 + n
-                else:
-                    out[p.name] = el.convert(table[:, col:col + 1], p.dtype, repr(p.name),
-                                             col)[:, 0]
-                    col += 1
-            if col != width:
-                raise ValueError("width")
-            return out
+        flat = np.array(b" ".join(rows).split(), dtype=np.float64)
     except ValueError:
-        pass
-    for i, row in enumerate(rows):
-        tokens = row.split()
-        try:
-            values = np.array(tokens, dtype=np.float64).reshape(1, -1)
-        except ValueError as exc:
-            raise el.error(i, f"not a number in {row.decode(errors='replace').strip()[:60]!r}")\
-                from exc
-        pos = 0
-        at = np.array([i])
-        for p in props:
-            if pos >= len(tokens):
-                raise el.error(i, f"expected {len(props)} properties, got "
-                               f"{row.decode(errors='replace').strip()[:60]!r}")
-            if p.is_list:
-                n = int(el.convert(values[:, pos:pos + 1], p.len_dtype,
-                                   f"list length of '{p.name}'", pos, at)[0, 0])
-                if n < 0 or pos + 1 + n > len(tokens):
-                    raise el.error(i, f"list '{p.name}' declares {n} values, "
-                                   f"{len(tokens) - pos - 1} present")
-                out[p.name][i] = el.convert(values[:, pos + 1: pos + 1 + n], p.dtype,
-                                            repr(p.name), pos + 1, at)[0]
-                pos += 1 + n
-            else:
-                out[p.name][i] = el.convert(values[:, pos:pos + 1], p.dtype, repr(p.name),
-                                            pos, at)[0, 0]
-                pos += 1
-        if pos != len(tokens):
-            raise el.error(i, f"{len(tokens) - pos} values too many")
+        for i, row in enumerate(rows):
+            try:
+                np.array(row.split(), dtype=np.float64)
+            except ValueError as exc:
+                raise el.error(i, "not a number in "
+                               f"{row.decode(errors='replace').strip()[:60]!r}") from exc
+        raise
+    el.starts = np.cumsum(lengths) - lengths
+    pos = np.zeros(count, dtype=np.int64)  # next token of each row
+
+    def first(mask: np.ndarray) -> int:
+        return int(np.flatnonzero(mask)[0])
+
+    for p in props:
+        if (pos >= lengths).any():
+            i = first(pos >= lengths)
+            raise el.error(i, f"expected {len(props)} properties, got "
+                           f"{rows[i].decode(errors='replace').strip()[:60]!r}")
+        at = el.starts + pos
+        if not p.is_list:
+            out[p.name] = el.convert(flat[at], p.dtype, repr(p.name), at)
+            pos += 1
+            continue
+        n = el.convert(flat[at], p.len_dtype, f"list length of '{p.name}'", at)\
+            .astype(np.int64)
+        short = (n < 0) | (pos + 1 + n > lengths)
+        if short.any():
+            i = first(short)
+            raise el.error(i, f"list '{p.name}' declares {n[i]} values, "
+                           f"{lengths[i] - pos[i] - 1} present")
+        column = np.empty(count, dtype=object)
+        if (n == n[0]).all():
+            index = (at + 1)[:, None] + np.arange(n[0])
+            column[:] = list(el.convert(flat[index], p.dtype, repr(p.name), index))
+        else:
+            ends = np.cumsum(n)
+            index = np.repeat(at + 1 - (ends - n), n) + np.arange(int(ends[-1]))
+            values = el.convert(flat[index], p.dtype, repr(p.name), index)
+            column[:] = np.split(values, ends[:-1])
+        out[p.name] = column
+        pos += 1 + n
+    if (pos != lengths).any():
+        i = first(pos != lengths)
+        raise el.error(i, f"{lengths[i] - pos[i]} values too many")
     return out
 
 
