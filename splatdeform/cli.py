@@ -101,6 +101,7 @@ def cmd_select(args: argparse.Namespace) -> int:
 
     from .config import input_paths, load_edit
     from .edit import prepare_model
+    from .edit_render import with_camera_file
     from .io.atomic import check_io_paths
     from .selection import format_counts, preview_model, select_regions
 
@@ -109,7 +110,9 @@ def cmd_select(args: argparse.Namespace) -> int:
     if args.output is not None and not args.output.lower().endswith(".png"):
         raise InputError(f"-o/--output: expected a .png file, got {args.output!r}")
     check_io_paths([("edit config", args.config), *input_paths(cfg, base)],
-                   [("-o/--output", args.output)])
+                   [("-o/--output", f) for f in with_camera_file(Path(args.output),
+                                                                 [Path(args.output)])]
+                   if args.output is not None else [])
     model = prepare_model(cfg, base, {}, args.drop_nonfinite)
     try:
         sel = select_regions(cfg, model, base)
@@ -175,7 +178,13 @@ def cmd_render(args: argparse.Namespace) -> int:
         raise InputError(f"--fov: expected degrees between 1 and 179, got {args.fov}")
     if not args.output.lower().endswith(".png"):
         raise InputError(f"-o/--output: expected a .png file, got {args.output!r}")
-    check_io_paths([("model", p) for p in args.models], [("-o/--output", args.output)])
+    from pathlib import Path
+
+    from .edit_render import with_camera_file
+
+    check_io_paths([("model", p) for p in args.models],
+                   [("-o/--output", f) for f in with_camera_file(Path(args.output),
+                                                                 [Path(args.output)])])
     models = [load(p, drop_nonfinite=args.drop_nonfinite) for p in args.models]
     after = models[1] if len(models) > 1 else None
     labels = tuple(args.labels.split(",")) if args.labels else (

@@ -11,6 +11,16 @@ from .edit import EditResult
 from .errors import InputError
 
 
+def with_camera_file(image: Path, files: list[Path]) -> list[Path]:
+    """``files`` plus the ``OUT.camera.json`` the renderer writes beside ``image`` (when this
+    renderer writes one), so the path check covers it too."""
+    try:
+        from .render.camera import camera_sidecar
+    except ImportError:
+        return files
+    return [*files, camera_sidecar(image)]
+
+
 def render_target(out: str | Path, frames: int, what: str = "render.output"
                   ) -> tuple[Path, list[Path]]:
     """Where an edit's image goes: (the path written, the files written there). One image: a
@@ -24,12 +34,12 @@ def render_target(out: str | Path, frames: int, what: str = "render.output"
     except ValueError as exc:
         raise InputError(f"{what}: {str(exc).removeprefix('output: ')}") from None
     if frames < 2:
-        return out, [out]
+        return out, with_camera_file(out, [out])
     if out.suffix.lower() == ".png":
         out = out.with_suffix(".gif")
     if out.suffix:
-        return out, [out]
-    return out, [out / f"frame_{i:04d}.png" for i in range(frames)]
+        return out, with_camera_file(out, [out])
+    return out, with_camera_file(out, [out / f"frame_{i:04d}.png" for i in range(frames)])
 
 
 def render_frames_count(cfg: EditConfig, frames: int = 0) -> int:
