@@ -1,57 +1,82 @@
-"""Cameras: auto-framing on bounding boxes, view and projection matrices.
+"""Cameras: orbit cameras about an up axis, auto-framing, camera files, view/projection matrices.
 
-Conventions: y is up; azimuth rotates the eye about the y axis (0 deg looks down -z, from +z),
-elevation lifts it toward +y. Matrices are (4, 4) float64, row-major in numpy (transpose them
-for GL's column-major upload, see :func:`gl_bytes`).
+A :class:`Camera` is a position, a target, an up vector, a vertical field of view and clip
+distances -- exactly what ``OUT.camera.json`` holds, so a camera file reproduces a render bit
+for bit. Orbit conventions (:func:`orbit`): ``up`` is one of ``+x +y +z -x -y -z``; with ``+y``
+azimuth 0 looks down -z (the eye on +z), azimuth turns the eye about the up axis, elevation
+lifts it toward the up axis; the other axes are the same picture rotated so +y lands on ``up``
+(``+z``: azimuth 0 looks along +y; ``-y``, the 3DGS convention: the y-up picture turned 180
+degrees about x). ``roll`` turns the camera about its viewing direction (positive: the camera's
+up leans to the right, so the picture turns counter-clockwise). Matrices are (4, 4) float64,
+row-major in numpy (transpose them for GL's column-major upload, see :func:`gl_bytes`).
 """
 
 from __future__ import annotations
 
+import json
 import math
+import os
 from collections.abc import Iterable
 from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
 
 import numpy as np
+
+from splatdeform.errors import InputError
+
+UP_AXES = ("+x", "+y", "+z", "-x", "-y", "-z")
+# rotation taking the y-up orbit frame to each up axis: columns are the images of x, y, z
+_FRAMES = {
+    "+y": ((1, 0, 0), (0, 1, 0), (0, 0, 1)),
+    "-y": ((1, 0, 0), (0, -1, 0), (0, 0, -1)),
+    "+z": ((1, 0, 0), (0, 0, 1), (0, -1, 0)),
+    "-z": ((1, 0, 0), (0, 0, -1), (0, 1, 0)),
+    "+x": ((0, -1, 0), (1, 0, 0), (0, 0, 1)),
+    "-x": ((0, 1, 0), (-1, 0, 0), (0, 0, 1)),
+}
+CAMERA_KEYS = ("position", "target", "up", "fov_y_degrees", "width", "height", "near", "far")
 
 
 @dataclass(frozen=True)
 class Camera:
-    """A perspective camera looking at ``target`` from ``distance``.
+    """A perspective camera.
 
-    target: (3,) float64 point looked at. distance: eye-target distance (> 0).
-    azimuth, elevation, fov: degrees (fov is vertical). near, far: clip distances (> 0).
+    position, target: (3,) float64 eye and looked-at point. up: (3,) float64 up direction (not
+    parallel to target - position; cameras made by :func:`orbit` store it orthonormal to the
+    viewing direction). fov: vertical field of view in degrees. near, far: clip distances.
     """
 
+    position: np.ndarray
     target: np.ndarray
-    distance: float
-    azimuth: float = 30.0
-    elevation: float = 20.0
+    up: np.ndarray
     fov: float = 35.0
     near: float = 0.01
     far: float = 100.0
 
     def eye(self) -> np.ndarray:
         """(3,) float64 eye position."""
-        az, el = math.radians(self.azimuth), math.radians(self.elevation)
-        direction = np.array(
-            [math.cos(el) * math.sin(az), math.sin(el), math.cos(el) * math.cos(az)]
-        )
-        return np.asarray(self.target, dtype=np.float64) + self.distance * direction
+        return np.asarray(self.position, dtype=np.float64)
+
+    def basis(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(right, true_up, forward): three (3,) float64 orthonormal vectors of the view."""
+        forward = np.asarray(self.target, np.float64) - np.asarray(self.position, np.float64)
+        forward = forward / np.linalg.norm(forward)
+        right = np.cross(forward, np.asarray(self.up, dtype=np.float64))
+        norm = np.linalg.norm(right)
+        if norm < 1e-12:  # up parallel to the view: any perpendicular will do
+            helper = np.eye(3)[int(np.argmin(np.abs(forward)))]
+            right = np.cross(forward, helper)
+            norm = np.linalg.norm(right)
+        right = right / norm
+        return right, np.cross(right, forward), forward
 
     def view(self, origin: np.ndarray | None = None) -> np.ndarray:
         """(4, 4) world -> view matrix; ``origin`` (3,) is subtracted from world coordinates first
         (the renderer uploads positions relative to an origin to keep float32 precise)."""
         shift = np.zeros(3) if origin is None else np.asarray(origin, dtype=np.float64)
+        right, true_up, forward = self.basis()
         eye = self.eye() - shift
-        target = np.asarray(self.target, dtype=np.float64) - shift
-        forward = target - eye
-        forward /= np.linalg.norm(forward)
-        up = np.array([0.0, 1.0, 0.0])
-        if abs(float(forward @ up)) > 0.999:  # looking straight up or down
-            up = np.array([0.0, 0.0, -1.0 if forward[1] < 0 else 1.0])
-        right = np.cross(forward, up)
-        right /= np.linalg.norm(right)
-        true_up = np.cross(right, forward)
         m = np.eye(4)
         m[0, :3], m[1, :3], m[2, :3] = right, true_up, -forward
         m[:3, 3] = -m[:3, :3] @ eye
@@ -68,6 +93,45 @@ class Camera:
         m[2, 3] = 2.0 * fa * n / (n - fa)
         m[3, 2] = -1.0
         return m
+
+
+def up_frame(up: str) -> np.ndarray:
+    """(3, 3) rotation taking the y-up orbit frame to the ``up`` axis (``+x`` ... ``-z``)."""
+    if up not in _FRAMES:
+        raise ValueError(f"up: expected one of {' '.join(UP_AXES)}, got {up!r}")
+    return np.array(_FRAMES[up], dtype=np.float64).T
+
+
+def orbit(
+    target: np.ndarray,
+    distance: float,
+    *,
+    azimuth: float = 30.0,
+    elevation: float = 20.0,
+    fov: float = 35.0,
+    up: str = "+y",
+    roll: float = 0.0,
+    near: float = 0.01,
+    far: float = 100.0,
+) -> Camera:
+    """A camera ``distance`` from ``target`` (3,), placed by azimuth/elevation (degrees) about
+    the ``up`` axis and rolled by ``roll`` degrees (see the module doc)."""
+    frame = up_frame(up)
+    az, el = math.radians(azimuth), math.radians(elevation)
+    local = np.array([math.cos(el) * math.sin(az), math.sin(el), math.cos(el) * math.cos(az)])
+    direction = frame @ local
+    target = np.asarray(target, dtype=np.float64)
+    position = target + float(distance) * direction
+    forward = -direction
+    hint = frame[:, 1]
+    if abs(float(forward @ hint)) > 0.999:  # looking straight along the up axis
+        hint = frame @ np.array([0.0, 0.0, -1.0 if local[1] > 0 else 1.0])
+    right = np.cross(forward, hint)
+    right /= np.linalg.norm(right)
+    true_up = np.cross(right, forward)
+    r = math.radians(roll)
+    cam_up = math.cos(r) * true_up + math.sin(r) * right
+    return Camera(position, target, cam_up, fov=fov, near=near, far=far)
 
 
 def union_bbox(point_sets: Iterable[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
@@ -93,6 +157,8 @@ def frame_bbox(
     fov: float = 35.0,
     aspect: float = 1.0,
     margin: float = 1.05,
+    up: str = "+y",
+    roll: float = 0.0,
 ) -> Camera:
     """A camera that sees the whole box (lo, hi) from any direction: its bounding sphere fits the
     narrower of the two fields of view, times ``margin``."""
@@ -104,12 +170,14 @@ def frame_bbox(
     half_v = math.radians(fov) / 2.0
     half = min(half_v, math.atan(math.tan(half_v) * aspect))
     distance = margin * radius / math.sin(half)
-    return Camera(
-        target=center,
-        distance=distance,
+    return orbit(
+        center,
+        distance,
         azimuth=azimuth,
         elevation=elevation,
         fov=fov,
+        up=up,
+        roll=roll,
         near=max(distance - 2.0 * radius, distance * 1e-3),
         far=distance + 2.0 * radius,
     )
@@ -122,13 +190,120 @@ def frame_points(
     elevation: float = 20.0,
     fov: float = 35.0,
     aspect: float = 1.0,
+    up: str = "+y",
+    roll: float = 0.0,
 ) -> Camera:
     """Auto-framing on the union of the bounding boxes of (M_i, 3) point arrays (e.g. a model
     before and after a deformation, so both images share one camera)."""
     lo, hi = union_bbox(point_sets)
-    return frame_bbox(lo, hi, azimuth=azimuth, elevation=elevation, fov=fov, aspect=aspect)
+    return frame_bbox(lo, hi, azimuth=azimuth, elevation=elevation, fov=fov, aspect=aspect,
+                      up=up, roll=roll)
+
+
+def default_up(models: Iterable[Any]) -> str:
+    """The up axis of the models' file convention: ``-y`` for 3D Gaussian splat scenes (3DGS
+    files are stored y-down), else ``+y``."""
+    return "-y" if any(getattr(m, "gaussians", None) is not None for m in models) else "+y"
 
 
 def gl_bytes(matrix: np.ndarray) -> bytes:
     """A (4, 4) numpy matrix as column-major float32 bytes for a GL ``mat4`` uniform."""
     return np.ascontiguousarray(np.asarray(matrix, dtype=np.float32).T).tobytes()
+
+
+# -- camera files -----------------------------------------------------------------------------
+def camera_sidecar(image_path: str | os.PathLike[str]) -> Path:
+    """Where the camera of an image goes: ``OUT.png`` -> ``OUT.camera.json`` (also for a GIF, or
+    ``FOLDER.camera.json`` beside a folder of frames)."""
+    p = Path(image_path)
+    return p.with_name(f"{p.stem if p.suffix else p.name}.camera.json")
+
+
+def camera_dict(camera: Camera, size: tuple[int, int]) -> dict[str, Any]:
+    """The JSON mapping of ``camera`` for a panel of ``size`` (W, H) pixels."""
+    return {
+        "position": [float(v) for v in camera.position],
+        "target": [float(v) for v in camera.target],
+        "up": [float(v) for v in camera.up],
+        "fov_y_degrees": float(camera.fov),
+        "width": int(size[0]),
+        "height": int(size[1]),
+        "near": float(camera.near),
+        "far": float(camera.far),
+    }
+
+
+def write_camera(image_path: str | os.PathLike[str], camera: Camera,
+                 size: tuple[int, int]) -> Path:
+    """Write ``OUT.camera.json`` beside ``image_path`` atomically; returns its path."""
+    from splatdeform.io.atomic import atomic_write
+
+    out = camera_sidecar(image_path)
+    text = json.dumps(camera_dict(camera, size), indent=2) + "\n"
+    with atomic_write(out) as stream:
+        stream.write(text.encode())
+    return out
+
+
+def _vector(data: dict[str, Any], key: str, where: str) -> np.ndarray:
+    value = data.get(key)
+    try:
+        arr = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        arr = np.zeros(0)
+    if arr.shape != (3,) or not np.all(np.isfinite(arr)):
+        raise InputError(f"{where}: {key}: expected a list of 3 finite numbers, got {value!r}")
+    return arr
+
+
+def _number(data: dict[str, Any], key: str, where: str, lo: float, hi: float) -> float:
+    value = data.get(key)
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not lo < value < hi:
+        raise InputError(f"{where}: {key}: expected a number in ({lo:g}, {hi:g}), got {value!r}")
+    return float(value)
+
+
+def parse_camera(data: Any, where: str) -> tuple[Camera, tuple[int, int]]:
+    """A camera mapping (the ``OUT.camera.json`` keys) -> (Camera, (width, height)).
+    Raises InputError naming ``where`` and the key."""
+    if not isinstance(data, dict):
+        raise InputError(f"{where}: expected a JSON object with keys {', '.join(CAMERA_KEYS)}")
+    unknown = sorted(set(data) - set(CAMERA_KEYS))
+    missing = [k for k in CAMERA_KEYS if k not in data]
+    if unknown or missing:
+        what = "; ".join(filter(None, [missing and f"missing {', '.join(missing)}",
+                                       unknown and f"unknown {', '.join(unknown)}"]))
+        raise InputError(f"{where}: expected the keys {', '.join(CAMERA_KEYS)} ({what})")
+    position, target = _vector(data, "position", where), _vector(data, "target", where)
+    up = _vector(data, "up", where)
+    if np.linalg.norm(target - position) == 0:
+        raise InputError(f"{where}: position and target: expected two different points")
+    forward = target - position
+    if np.linalg.norm(np.cross(forward, up)) <= 1e-9 * np.linalg.norm(forward) * max(
+            np.linalg.norm(up), 1e-300):
+        raise InputError(f"{where}: up: expected a direction not parallel to target - position")
+    fov = _number(data, "fov_y_degrees", where, 0.0, 180.0)
+    near = _number(data, "near", where, 0.0, math.inf)
+    far = _number(data, "far", where, near, math.inf)
+    size = []
+    for key in ("width", "height"):
+        value = data[key]
+        if isinstance(value, bool) or not isinstance(value, int) or not 1 <= value <= 8192:
+            raise InputError(f"{where}: {key}: expected an integer pixel count in 1..8192, "
+                             f"got {value!r}")
+        size.append(value)
+    return Camera(position, target, up, fov=fov, near=near, far=far), (size[0], size[1])
+
+
+def load_camera(path: str | os.PathLike[str]) -> tuple[Camera, tuple[int, int]]:
+    """Read a camera file (the ``OUT.camera.json`` a render wrote) -> (Camera, (W, H) of one
+    panel). Raises InputError naming the file."""
+    try:
+        text = Path(path).read_text()
+    except OSError as exc:
+        raise InputError(f"{path}: cannot read the camera file ({exc.strerror})") from None
+    try:
+        data = json.loads(text)
+    except ValueError as exc:
+        raise InputError(f"{path}: not valid JSON ({exc})") from None
+    return parse_camera(data, str(path))

@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from splatdeform.model import PointModel
-from splatdeform.render.camera import frame_points
+from splatdeform.render.camera import Camera, default_up, frame_points, write_camera
 from splatdeform.render.renderer import Renderer, deformation_session, save_png
 
 LABEL_HEIGHT = 18
@@ -49,20 +49,28 @@ def render_comparison(
     elevation: float = 20.0,
     fov: float = 35.0,
     labels: Sequence[str] = ("before", "after"),
+    up: str | None = None,
+    roll: float = 0.0,
+    camera: Camera | None = None,
 ) -> np.ndarray:
     """Render two CPU-side models with one camera (framing both) side by side, or ``before``
-    alone when ``after`` is None. ``size`` is one panel (W, H). Writes a PNG to ``out_path``
-    (atomically) when given; returns the composed (H', W', 3) uint8 image."""
+    alone when ``after`` is None. ``size`` is one panel (W, H). ``up`` (None: the models'
+    convention), ``roll``: see :func:`splatdeform.render.camera.orbit`; ``camera`` replaces
+    the framing. Writes a PNG to ``out_path`` (atomically) and its camera to
+    ``OUT.camera.json`` when given; returns the composed (H', W', 3) uint8 image."""
     models = [before] if after is None else [before, after]
     renderer = Renderer(size)
     try:
-        camera = frame_points(
-            [m.positions for m in models],
-            azimuth=azimuth,
-            elevation=elevation,
-            fov=fov,
-            aspect=renderer.size[0] / renderer.size[1],
-        )
+        if camera is None:
+            camera = frame_points(
+                [m.positions for m in models],
+                azimuth=azimuth,
+                elevation=elevation,
+                fov=fov,
+                aspect=renderer.size[0] / renderer.size[1],
+                up=up or default_up(models),
+                roll=roll,
+            )
         images = []
         for model in models:
             gpu = renderer.upload(model)
@@ -75,6 +83,7 @@ def render_comparison(
     image = side_by_side(images, list(labels)[: len(images)])
     if out_path is not None:
         save_png(image, out_path)
+        write_camera(out_path, camera, renderer.size)
     return image
 
 
@@ -90,14 +99,21 @@ def render_deformation_comparison(
     elevation: float = 20.0,
     fov: float = 35.0,
     labels: Sequence[str] = ("before", "after"),
+    up: str | None = None,
+    roll: float = 0.0,
+    camera: Camera | None = None,
 ) -> np.ndarray:
     """Before (delta C = 0) and after (``delta_c`` (k, 3)) from ONE upload of the basis
-    ``values`` (N, k) / ``gradients`` (N, k, 3): the shader deforms, the CPU only frames.
-    Writes a PNG to ``out_path`` when given; returns the composed image."""
+    ``values`` (N, k) / ``gradients`` (N, k, 3): the shader deforms, the CPU only frames
+    (``up``, ``roll``, ``camera`` as in :func:`render_comparison`). Writes a PNG to
+    ``out_path`` and its ``OUT.camera.json`` when given; returns the composed image."""
     with deformation_session(model, values, gradients, delta_c, size=size, azimuth=azimuth,
-                             elevation=elevation, fov=fov) as (renderer, gpu, camera):
+                             elevation=elevation, fov=fov, camera=camera, up=up,
+                             roll=roll) as (renderer, gpu, camera):
         images = [renderer.draw(gpu, camera, None), renderer.draw(gpu, camera, delta_c)]
+        panel = renderer.size
     image = side_by_side(images, list(labels))
     if out_path is not None:
         save_png(image, Path(out_path))
+        write_camera(out_path, camera, panel)
     return image

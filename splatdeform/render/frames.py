@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from splatdeform.model import PointModel
+from splatdeform.render.camera import Camera, write_camera
 from splatdeform.render.renderer import deformation_session, save_pil, save_png
 
 
@@ -29,10 +30,15 @@ def render_frames(
     elevation: float = 20.0,
     fov: float = 35.0,
     duration_ms: int = 80,
+    up: str | None = None,
+    roll: float = 0.0,
+    camera: Camera | None = None,
 ) -> list[Path]:
     """Render ``n_frames`` (>= 2) frames with delta C = t * ``delta_c`` (k, 3), t = i / (n - 1),
     one camera framing the whole motion. ``out_path``: ``*.gif`` (one animated GIF, looping,
-    ``duration_ms`` per frame) or a folder (PNG sequence). Returns the written paths."""
+    ``duration_ms`` per frame) or a folder (PNG sequence), plus one ``OUT.camera.json`` beside it
+    (``up``, ``roll``, ``camera`` as in :func:`~splatdeform.render.compare.render_comparison`).
+    Returns the written image paths."""
     if int(n_frames) < 2:
         raise ValueError(f"n_frames: expected an integer >= 2, got {n_frames}")
     out = Path(out_path)
@@ -40,10 +46,12 @@ def render_frames(
         raise ValueError(f"out_path: expected a .gif file or a folder, got {out}")
     d = np.asarray(delta_c, dtype=np.float64)
     with deformation_session(model, values, gradients, delta_c, size=size, azimuth=azimuth,
-                             elevation=elevation, fov=fov) as (renderer, gpu, camera):
+                             elevation=elevation, fov=fov, camera=camera, up=up,
+                             roll=roll) as (renderer, gpu, camera):
         frames = [
             renderer.draw(gpu, camera, d * (i / (n_frames - 1))) for i in range(int(n_frames))
         ]
+        panel = renderer.size
     if out.suffix.lower() == ".gif":
         from PIL import Image
 
@@ -59,6 +67,9 @@ def render_frames(
             duration=int(duration_ms),
             loop=0,
         )
+        write_camera(out, camera, panel)
         return [out]
     out.mkdir(parents=True, exist_ok=True)
-    return [save_png(f, out / f"frame_{i:04d}.png") for i, f in enumerate(frames)]
+    written = [save_png(f, out / f"frame_{i:04d}.png") for i, f in enumerate(frames)]
+    write_camera(out, camera, panel)
+    return written

@@ -1,0 +1,87 @@
+"""3D Gaussian splat fields as the renderer uploads them (3DGS file conventions in, floats out).
+
+- covariance Sigma = R S^2 R^T from the log-scales and the quaternion (w, x, y, z; normalised
+  here), as 6 floats (xx, xy, xz, yy, yz, zz);
+- colour: the SH degree-0 term 0.5 + C0 f_dc (unclamped; view-dependent bands are added in the
+  shader), or the stored colour, or a light grey; opacity: sigmoid(logit), 1 when absent;
+- higher SH bands: ``f_rest`` as stored (channel-major: per channel, coefficients 1..r) and the
+  full degree it holds (r = 3, 8, 15 -> degree 1, 2, 3).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from splatdeform.model import PointModel
+from splatdeform.render.splats import DEFAULT_COLOR, SH_C0, quaternion_matrices
+
+SH_REST_PER_DEGREE = {1: 3, 2: 8, 3: 15}
+
+
+@dataclass
+class GaussianData:
+    """cov: (N, 6) float32 (xx, xy, xz, yy, yz, zz). color: (N, 4) float32 (rgb, opacity).
+    sh_rest: (N, 3 r) float32 channel-major f_rest, or None. degree: SH degree used (0..3).
+    rest: r, f_rest coefficients per channel (the storage stride; >= the degree's count)."""
+
+    cov: np.ndarray
+    color: np.ndarray
+    sh_rest: np.ndarray | None
+    degree: int
+    rest: int
+
+
+def covariances(scale_log: np.ndarray, rotation: np.ndarray) -> np.ndarray:
+    """(N, 3, 3) float64 Sigma = R diag(exp(scale_log))^2 R^T from (N, 3) log-scales and (N, 4)
+    quaternions (w, x, y, z)."""
+    rot = quaternion_matrices(rotation)
+    s2 = np.exp(2.0 * np.asarray(scale_log, dtype=np.float64))
+    return np.einsum("nij,nj,nkj->nik", rot, s2, rot)
+
+
+def sh_layout(n_rest: int) -> tuple[int, int]:
+    """(degree, coefficients per channel) of an f_rest block of ``n_rest`` floats (3 channels);
+    the degree is the highest one fully present (0 when fewer than 3 per channel)."""
+    per_channel = int(n_rest) // 3
+    degree = max((d for d, r in SH_REST_PER_DEGREE.items() if per_channel >= r), default=0)
+    return degree, per_channel
+
+
+def sigmoid(x: np.ndarray) -> np.ndarray:
+    """Logistic function, overflow-free, float64."""
+    x = np.asarray(x, dtype=np.float64)
+    return np.exp(-np.logaddexp(0.0, -x))
+
+
+def gaussian_data(model: PointModel) -> GaussianData:
+    """The upload arrays of a model with ``model.gaussians`` (see the module doc)."""
+    g = model.gaussians
+    if g is None:
+        raise ValueError("model: expected 3D Gaussian splat fields (model.gaussians), got none")
+    n = model.n_points
+    sigma = covariances(g.scale_log, g.rotation)
+    cov = np.stack([sigma[:, 0, 0], sigma[:, 0, 1], sigma[:, 0, 2],
+                    sigma[:, 1, 1], sigma[:, 1, 2], sigma[:, 2, 2]], axis=1)
+    color = np.empty((n, 4), dtype=np.float64)
+    if g.sh_dc is not None:
+        color[:, :3] = 0.5 + SH_C0 * np.asarray(g.sh_dc, dtype=np.float64)
+    elif model.colors is not None:
+        color[:, :3] = np.asarray(model.colors, dtype=np.float64) / 255.0
+    else:
+        color[:, :3] = np.array(DEFAULT_COLOR) / 255.0
+    color[:, 3] = 1.0 if g.opacity is None else sigmoid(g.opacity)
+    degree, rest = (0, 0)
+    sh_rest = None
+    if g.sh_rest is not None and g.sh_dc is not None:
+        degree, rest = sh_layout(np.asarray(g.sh_rest).shape[1])
+        if degree:
+            sh_rest = np.ascontiguousarray(np.asarray(g.sh_rest)[:, : 3 * rest], dtype=np.float32)
+    return GaussianData(
+        cov=np.ascontiguousarray(cov, dtype=np.float32),
+        color=np.ascontiguousarray(color, dtype=np.float32),
+        sh_rest=sh_rest,
+        degree=degree,
+        rest=rest if degree else 0,
+    )
