@@ -145,6 +145,9 @@ class RenderCfg(_Strict):
     elevation: float = 20.0
     fov: float = Field(default=35.0, ge=1, le=179)
     frames: int = Field(default=0, ge=0, le=MAX_FRAMES)
+    up: Literal["+x", "+y", "+z", "-x", "-y", "-z"] | None = None  # None: the file's convention
+    roll: float = Field(default=0.0, ge=-360, le=360)
+    camera: str | None = None   # a camera file (OUT.camera.json), relative to the config file
 
     @model_validator(mode="after")
     def _output_kind(self) -> RenderCfg:
