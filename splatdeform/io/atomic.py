@@ -141,7 +141,10 @@ def remove_stale_temps(out: PathLike) -> list[Path]:
         names = os.listdir(out.parent)
     except OSError:
         return removed
+    prefix, suffix = f".{out.stem}.", f".tmp{out.suffix}"
     for name in names:
+        if not (name.startswith(prefix) and name.endswith(suffix)):
+            continue  # cheap filter first: output folders of a batch hold many files
         m = pattern.match(name)
         if m is None or (m.group(1) is not None and _alive(int(m.group(1)))):
             continue
