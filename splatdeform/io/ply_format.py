@@ -238,32 +238,47 @@ def _read_binary_element(path: Path, buf: memoryview, offset: int, name: str, co
         packed = np.frombuffer(buf, dtype=packed_dtype, count=count, offset=offset)
         if all((packed[n + "\nlen"] == L).all() for n, L in lengths.items()):
             return _split_lists(packed, props, bo), offset + packed_dtype.itemsize * count
-    # Variable-length lists: one row at a time (count * the smallest row fits the file: checked
-    # by _check_declared_size, so this loop is bounded by the file size).
-    out = _empty(props, count, bo)
+    # Variable-length lists: a plain-Python walk over the row layout finds where every value
+    # sits (bounded: count * the smallest row fits the file, checked by _check_declared_size),
+    # then numpy gathers each property for all rows at once.
+    layout = [(p.is_list, np.dtype(p.len_dtype if p.is_list else p.dtype).itemsize,
+               np.dtype(p.dtype).itemsize, p.is_list and p.len_dtype[0] == "i") for p in props]
+    byteorder = "little" if bo == "<" else "big"
+    starts: list[list[int]] = [[] for _ in props]  # byte offset of each row's value(s)
+    lengths: list[list[int]] = [[] for _ in props]  # list lengths (list properties only)
     pos = offset
     for row in range(count):
-        for p in props:
-            if p.is_list:
-                size = np.dtype(p.len_dtype).itemsize
-                if pos + size > total:
-                    raise truncated(size)
-                n = int(np.frombuffer(buf, dtype=bo + p.len_dtype, count=1, offset=pos)[0])
+        for i, (is_list, size, item, signed) in enumerate(layout):
+            if pos + size > total:
+                raise truncated(size)
+            if is_list:
+                n = int.from_bytes(buf[pos:pos + size], byteorder, signed=signed)
                 if n < 0:
-                    raise negative(row, p, n)
+                    raise negative(row, props[i], n)
                 pos += size
-                nbytes = n * np.dtype(p.dtype).itemsize
-                if pos + nbytes > total:
-                    raise truncated(nbytes)
-                out[p.name][row] = np.frombuffer(buf, dtype=bo + p.dtype, count=n,
-                                                 offset=pos).copy()
-                pos += nbytes
+                starts[i].append(pos)
+                lengths[i].append(n)
+                pos += n * item
+                if pos > total:
+                    raise truncated(n * item)
             else:
-                size = np.dtype(p.dtype).itemsize
-                if pos + size > total:
-                    raise truncated(size)
-                out[p.name][row] = np.frombuffer(buf, dtype=bo + p.dtype, count=1, offset=pos)[0]
+                starts[i].append(pos)
                 pos += size
+    u8 = np.frombuffer(buf, dtype=np.uint8)
+    out = _empty(props, count, bo)
+    for i, p in enumerate(props):
+        at = np.asarray(starts[i], dtype=np.int64)
+        item = np.dtype(p.dtype).itemsize
+        if p.is_list:
+            n = np.asarray(lengths[i], dtype=np.int64)
+            ends = np.cumsum(n)
+            item_at = np.repeat(at - (ends - n) * item, n) + np.arange(int(ends[-1])) * item
+            values = u8[item_at[:, None] + np.arange(item)].view(bo + p.dtype).ravel()
+            column = np.empty(count, dtype=object)
+            column[:] = np.split(values, ends[:-1])
+            out[p.name] = column
+        else:
+            out[p.name] = u8[at[:, None] + np.arange(item)].view(bo + p.dtype)[:, 0]
     return out, pos
 
 
