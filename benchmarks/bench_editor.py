@@ -78,8 +78,8 @@ def main(argv: list[str] | None = None) -> None:
                                                args.poses, server), 300)]
     finally:
         server.stop()
-    print("\n| model | N | centers | fit | per pose: set_pose (moving rows) | pose -> viewer (median / max) "
-          "| target |\n|---|---|---|---|---|---|---|")
+    print("\n| model | N | centers | fit | per pose: set_pose (moving rows) "
+          "| pose -> viewer (median / max) | target |\n|---|---|---|---|---|---|---|")
     for label, r, target in rows:
         print(f"| {label} | {r['points']:,} | {r['centers']} | {r['fit_s']:.2f} s | "
               f"{r['set_pose_ms']:.0f} ms | {r['median_ms']:.0f} / {r['max_ms']:.0f} ms | "

@@ -181,12 +181,11 @@ class EditorController:
         ed.fixed = [s.to_selector() for s in cfg.regions.fixed]
         ed.handles = [HandleState([s.to_selector() for s in cfg.regions.handle or []])]
         handle_mask = ed.masks()[1][0]
-        try:
-            ed.handles[0].matrix = handle_matrix(cfg, model, handle_mask)
-        except InputError as exc:
-            raise type(exc)(f"{path}: {exc}") from exc
-        if not handle_mask.any():
-            ed.handles[0].matrix = np.eye(4)
+        if handle_mask.any() or cfg.handle.matrix is not None:  # a centroid needs points
+            try:
+                ed.handles[0].matrix = handle_matrix(cfg, model, handle_mask)
+            except InputError as exc:
+                raise type(exc)(f"{path}: {exc}") from exc
         return ed
 
     # ---- regions -----------------------------------------------------------------------
