@@ -19,6 +19,7 @@ from conftest import SHARED_DATA
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+from data_tools.playcanvas import compressed_ply
 from data_tools.synth import bumpy_bar
 from splatdeform.errors import SplatdeformError
 from splatdeform.info import describe, to_json
@@ -72,6 +73,11 @@ def _seeds() -> list[bytes]:
     bar = BytesIO()
     write_model(bumpy_bar(12, seed=5), bar)
     seeds.append(bar.getvalue())
+    rng = np.random.default_rng(9)
+    n = 20
+    seeds.append(compressed_ply(rng.normal(size=(n, 3)), rng.normal(-4, 1, size=(n, 3)),
+                                rng.normal(size=(n, 4)), rng.normal(size=n),
+                                rng.normal(size=(n, 3)), rng.normal(size=(n, 9))))
     for rel, rows in (("splats/tile_3dgs_sh3.ply", 3), ("edge_cases/pepper_extra_elements.ply", 6),
                       ("edge_cases/horse_big_endian.ply", 8), ("scans/head_surfels.ply", 6),
                       ("edge_cases/igea_tristrips.ply", 10)):

@@ -16,6 +16,7 @@ import numpy as np
 
 from ..errors import FormatError
 from ..model import Gaussians, PlyElementData, PlyProperty, PlySource, PointModel, classify
+from . import playcanvas
 from .ply_format import read_ply, write_ply
 
 AXIS_NAMES = ("ux", "uy", "uz", "vx", "vy", "vz")
@@ -70,12 +71,9 @@ def model_from_source(source: PlySource, path: str | Path, *,
     data = vertex.data
     positions = _columns(data, ("x", "y", "z"))
     if positions is None:
-        if "packed_position" in (data.dtype.names or ()):
-            raise FormatError(
-                f"{path}: a PlayCanvas compressed splat file (.compressed.ply: 'chunk' element, "
-                "quantised 'packed_position'/'packed_rotation'/... vertex properties) is not "
-                "supported; decompress it to a standard 3DGS PLY first (e.g. PlayCanvas "
-                "splat-transform)")
+        if playcanvas.is_compressed(source):  # decoded to plain 3DGS properties
+            return model_from_source(playcanvas.decompress(source, path), path,
+                                     drop_nonfinite=drop_nonfinite)
         missing = [n for n in "xyz" if n not in (data.dtype.names or ())]
         raise FormatError(f"{path}: vertex element lacks property {', '.join(missing)} "
                           "(x, y and z are required)")

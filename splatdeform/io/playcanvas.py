@@ -1,0 +1,121 @@
+"""PlayCanvas ``.compressed.ply`` splats (SuperSplat / splat-transform) -> a standard 3DGS source.
+
+The layout: a ``chunk`` element (one row per 256 splats: float min/max of position, log scale
+and, in newer files, colour), a ``vertex`` element of four packed ``uint`` properties per splat
+(``packed_position`` 11/10/11 bits, ``packed_rotation`` 2-bit index of the largest quaternion
+component + three 10-bit others, ``packed_scale`` 11/10/11, ``packed_color`` RGBA 8 bits each) and
+an optional ``sh`` element of ``uchar f_rest_*``. Decoding gives the usual INRIA 3DGS vertex
+properties (x y z f_dc_0..2 opacity scale_0..2 rot_0..3 [f_rest_*], float), so a save writes a
+plain, uncompressed 3DGS PLY (the quantised input is not reproduced).
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import FormatError
+from ..model import PlyElementData, PlyProperty, PlySource
+
+PACKED = ("packed_position", "packed_rotation", "packed_scale", "packed_color")
+CHUNK_BOUNDS = tuple(f"{m}_{a}" for m in ("min", "max") for a in "xyz") + tuple(
+    f"{m}_scale_{a}" for m in ("min", "max") for a in "xyz")
+CHUNK_COLORS = tuple(f"{m}_{c}" for m in ("min", "max") for c in "rgb")
+SPLATS_PER_CHUNK = 256
+SH_C0 = 0.28209479177387814
+# an 8-bit opacity of exactly 0 or 1 has no finite logit: clamp to half a quantisation step
+OPACITY_EPS = 0.5 / 255
+
+
+def is_compressed(source: PlySource) -> bool:
+    """True when the vertex element holds PlayCanvas packed properties instead of x y z."""
+    vertex = source.element("vertex")
+    return vertex is not None and "packed_position" in (vertex.data.dtype.names or ())
+
+
+def _unorm(packed: np.ndarray, shift: int, bits: int) -> np.ndarray:
+    mask = (1 << bits) - 1
+    return ((packed >> np.uint32(shift)) & np.uint32(mask)).astype(np.float64) / mask
+
+
+def _lerp(chunk: np.ndarray, low: str, high: str, t: np.ndarray, owner: np.ndarray) -> np.ndarray:
+    a = chunk[low].astype(np.float64)[owner]
+    b = chunk[high].astype(np.float64)[owner]
+    return a * (1 - t) + b * t
+
+
+def _rotations(packed: np.ndarray) -> np.ndarray:
+    """(N,) uint32 -> (N, 4) quaternions (rot_0..rot_3), the dropped largest one restored."""
+    norm = np.sqrt(2.0)  # the other three lie in [-1/sqrt(2), 1/sqrt(2)]
+    others = np.stack([(_unorm(packed, s, 10) - 0.5) * norm for s in (20, 10, 0)], axis=1)
+    largest = np.sqrt(np.maximum(0.0, 1.0 - (others**2).sum(axis=1)))
+    which = (packed >> np.uint32(30)).astype(np.int64)
+    quat = np.empty((len(packed), 4))
+    for k in range(4):
+        rows = which == k
+        quat[rows] = np.insert(others[rows], k, largest[rows], axis=1)
+    return quat
+
+
+def decompress(source: PlySource, path: str | Path) -> PlySource:
+    """The standard 3DGS PlySource of a PlayCanvas compressed file (raises FormatError naming
+    the file when the layout is not the one described above)."""
+    vertex = source.element("vertex")
+    chunk_el = source.element("chunk")
+    names = vertex.data.dtype.names or ()
+    chunk_names = () if chunk_el is None else (chunk_el.data.dtype.names or ())
+    missing = [n for n in PACKED if n not in names] + [
+        n for n in CHUNK_BOUNDS if n not in chunk_names]
+    if chunk_el is None or missing:
+        raise FormatError(
+            f"{path}: looks like a PlayCanvas compressed splat file (.compressed.ply) but "
+            f"{'has no chunk element' if chunk_el is None else 'lacks ' + ', '.join(missing)}; "
+            "this variant is not supported (decompress it with PlayCanvas splat-transform)")
+    n = vertex.count
+    chunk = chunk_el.data
+    if chunk_el.count * SPLATS_PER_CHUNK < n:
+        raise FormatError(f"{path}: PlayCanvas compressed file: {n} splats need "
+                          f"{-(-n // SPLATS_PER_CHUNK)} chunks, the chunk element has "
+                          f"{chunk_el.count}")
+    if any(vertex.property(p).is_list or vertex.property(p).dtype[0] == "f" for p in PACKED):
+        raise FormatError(f"{path}: PlayCanvas compressed file: packed_* must be integer "
+                          "properties")
+    owner = np.arange(n) // SPLATS_PER_CHUNK
+    packed = {p: vertex.data[p].astype(np.uint32) for p in PACKED}
+    fields: dict[str, np.ndarray] = {}
+    for axis, (shift, bits) in zip("xyz", ((21, 11), (11, 10), (0, 11)), strict=True):
+        t = _unorm(packed["packed_position"], shift, bits)
+        fields[axis] = _lerp(chunk, f"min_{axis}", f"max_{axis}", t, owner)
+    color = [_unorm(packed["packed_color"], s, 8) for s in (24, 16, 8, 0)]
+    has_range = all(c in chunk_names for c in CHUNK_COLORS)
+    for i, c in enumerate("rgb"):
+        value = _lerp(chunk, f"min_{c}", f"max_{c}", color[i], owner) if has_range else color[i]
+        fields[f"f_dc_{i}"] = (value - 0.5) / SH_C0
+    alpha = np.clip(color[3], OPACITY_EPS, 1 - OPACITY_EPS)
+    fields["opacity"] = -np.log(1 / alpha - 1)
+    for i, (axis, (shift, bits)) in enumerate(zip("xyz", ((21, 11), (11, 10), (0, 11)),
+                                                  strict=True)):
+        t = _unorm(packed["packed_scale"], shift, bits)
+        fields[f"scale_{i}"] = _lerp(chunk, f"min_scale_{axis}", f"max_scale_{axis}", t, owner)
+    quat = _rotations(packed["packed_rotation"])
+    for i in range(4):
+        fields[f"rot_{i}"] = quat[:, i]
+    sh = source.element("sh")
+    if sh is not None:
+        if sh.count != n:
+            raise FormatError(f"{path}: PlayCanvas compressed file: the sh element has "
+                              f"{sh.count} rows for {n} splats")
+        rest = sorted((p.name for p in sh.properties
+                       if p.name.startswith("f_rest_") and p.name[7:].isdigit()),
+                      key=lambda name: int(name[7:]))
+        for name in rest:
+            fields[name] = (sh.data[name].astype(np.float64) / 256 - 0.5) * 8.0
+    data = np.empty(n, dtype=[(name, "<f4") for name in fields])
+    for name, values in fields.items():
+        data[name] = values
+    props = [PlyProperty(name, "f4", "float") for name in fields]
+    comments = [*source.comments, "decompressed from a PlayCanvas .compressed.ply by splatdeform"]
+    return replace(source, elements=[PlyElementData("vertex", props, data)], comments=comments,
+                   text=False, byte_order="<")
