@@ -4,7 +4,7 @@ compressed splats decoded (or named), and ``--drop-nonfinite`` keeping every ver
 consistent.
 
 A hang or a memory blow-up must become a test failure, not a stuck suite: those cases run in a
-subprocess under ``RLIMIT_AS`` and a timeout (no timing asserts).
+subprocess under ``RLIMIT_AS``, ``RLIMIT_CPU`` and a timeout (no timing asserts).
 """
 
 from __future__ import annotations
@@ -32,8 +32,12 @@ XYZ = "property float x\nproperty float y\nproperty float z\n"
 FACE_LIST = "property list uchar int vertex_indices\n"
 
 
+CPU_LIMIT_S = 20  # CPU seconds (not wall time): ~2 s needed; quadratic header work took 22+
+
+
 def _limit_memory() -> None:
     resource.setrlimit(resource.RLIMIT_AS, (MEMORY_LIMIT, MEMORY_LIMIT))
+    resource.setrlimit(resource.RLIMIT_CPU, (CPU_LIMIT_S, CPU_LIMIT_S))
 
 
 def run_limited(args: list[str], cwd: Path, stdout=subprocess.PIPE) -> subprocess.CompletedProcess:
