@@ -18,6 +18,7 @@ in vec3 v_color[];
 uniform mat4 u_view;
 uniform mat4 u_proj;
 uniform float u_depth_offset;
+uniform float u_splat_scale;   // axes scaled by this (surface splatting: > 1, overlap)
 
 out vec2 g_local;
 out vec3 g_normal;     // view space
@@ -25,8 +26,8 @@ out vec3 g_view_pos;
 out vec3 g_color;
 
 void main() {
-    vec3 u = v_axis_u[0];
-    vec3 v = v_axis_v[0];
+    vec3 u = v_axis_u[0] * u_splat_scale;
+    vec3 v = v_axis_v[0] * u_splat_scale;
     if (dot(u, u) == 0.0 || dot(v, v) == 0.0) {
         return;
     }

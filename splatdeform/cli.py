@@ -56,6 +56,12 @@ def cmd_deform(args: argparse.Namespace) -> int:
     if args.reuse and reuse is None:
         reuse = str(output or base / cfg.output) + ".deform.npz"
     render_out = args.render or (str(base / cfg.render.output) if cfg.render else None)
+    if cfg.render:   # the options win over the config's render.up / roll / camera
+        args.up = args.up or cfg.render.up
+        args.roll = cfg.render.roll if args.roll is None else args.roll
+        if cfg.render.camera and not args.camera:
+            args.camera = str(base / cfg.render.camera)   # relative to the config file
+    view = _camera_args(args) if render_out else {}
     _check_deform_paths(args, cfg, base, output, reuse, render_out)
     try:
         result = run_edit(cfg, base, output=output, drop_nonfinite=args.drop_nonfinite,
@@ -75,7 +81,7 @@ def cmd_deform(args: argparse.Namespace) -> int:
     if render_out:
         from .edit_render import render_result
 
-        render_result(result, cfg, render_out, frames=args.frames)
+        render_result(result, cfg, render_out, frames=args.frames, view=view)
     print(format_report(result))
     return 0
 
@@ -93,7 +99,8 @@ def _check_deform_paths(args: argparse.Namespace, cfg, base, output, reuse, rend
         what = "--render" if args.render else "render.output"
         _, files = render_target(render_out, render_frames_count(cfg, args.frames), what)
         outputs += [(what, f) for f in files]
-    check_io_paths([("edit config", args.config), *input_paths(cfg, base)], outputs)
+    cam = [("--camera/render.camera", args.camera)] if getattr(args, "camera", None) else []
+    check_io_paths([("edit config", args.config), *input_paths(cfg, base), *cam], outputs)
 
 
 def cmd_select(args: argparse.Namespace) -> int:
@@ -126,6 +133,12 @@ def cmd_select(args: argparse.Namespace) -> int:
         size = (opts.size[0] // 2, opts.size[1]) if opts else (600, 600)
         view = dict(azimuth=opts.azimuth, elevation=opts.elevation, fov=opts.fov) if opts \
             else {}
+        if opts:   # --up / --roll / --camera win over render.up / roll / camera
+            args.up = args.up or opts.up
+            args.roll = opts.roll if args.roll is None else args.roll
+            args.camera = args.camera or (str(base / opts.camera) if opts.camera else None)
+        view.update(_camera_args(args))
+        size = view.pop("size", size)
         render_comparison(preview_model(model, sel), None, args.output, size=size,
                           labels=(f"fixed (blue) / {sel.moving_name} (orange) / free (grey); "
                                   "rings lighter",), **view)
@@ -165,6 +178,27 @@ def _size(text: str) -> tuple[int, int]:
     return w, h
 
 
+def _camera_args(args: argparse.Namespace) -> dict:
+    """--up / --roll / --camera as keyword arguments of the render functions (the camera file
+    wins over azimuth/elevation/fov/size and brings the panel size)."""
+    from .render.camera import camera_options
+
+    return camera_options(args.up, args.roll, args.camera)
+
+
+def _add_camera_args(p: argparse.ArgumentParser) -> None:
+    from .render.camera import UP_AXES
+
+    p.add_argument("--up", choices=UP_AXES, metavar="AXIS",
+                   help="up axis, one of +x +y +z -x -y -z; write --up=-y (default: the file's "
+                        "convention: -y for 3DGS scenes, else +y)")
+    p.add_argument("--roll", type=float, default=None, metavar="DEGREES",
+                   help="turn the camera about its viewing direction")
+    p.add_argument("--camera", metavar="CAMERA.json",
+                   help="a camera file (the OUT.camera.json every render writes); wins over "
+                        "azimuth/elevation/fov/size")
+
+
 def cmd_render(args: argparse.Namespace) -> int:
     from .io import load
     from .io.atomic import check_io_paths
@@ -182,16 +216,19 @@ def cmd_render(args: argparse.Namespace) -> int:
 
     from .edit_render import with_camera_file
 
-    check_io_paths([("model", p) for p in args.models],
+    check_io_paths([("model", p) for p in args.models]
+                   + ([("--camera", args.camera)] if args.camera else []),
                    [("-o/--output", f) for f in with_camera_file(Path(args.output),
                                                                  [Path(args.output)])])
+    view = _camera_args(args)
     models = [load(p, drop_nonfinite=args.drop_nonfinite) for p in args.models]
     after = models[1] if len(models) > 1 else None
     labels = tuple(args.labels.split(",")) if args.labels else (
         (models[0].path, models[1].path) if after is not None else (models[0].path,))
     per = (size[0] // 2, size[1]) if after is not None else size
+    per = view.pop("size", per)
     render_comparison(models[0], after, args.output, size=per, azimuth=args.azimuth,
-                      elevation=args.elevation, fov=args.fov, labels=labels)
+                      elevation=args.elevation, fov=args.fov, labels=labels, **view)
     print(f"wrote {args.output}")
     return 0
 
@@ -231,6 +268,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--workers", type=int, metavar="N",
                    help="split the scan over N local Dask worker processes")
     p.add_argument("--quiet", action="store_true", help="no progress lines")
+    _add_camera_args(p)
     p.set_defaults(func=cmd_deform)
 
     p = sub.add_parser("render", help="render a model, or two side by side (before/after)")
@@ -242,6 +280,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--fov", type=float, default=35.0)
     p.add_argument("--labels", help="comma-separated labels (default: the file names)")
     p.add_argument("--drop-nonfinite", action="store_true")
+    _add_camera_args(p)
     p.set_defaults(func=cmd_render)
 
     p = sub.add_parser("select", help="what an edit selects: fixed / handle / free / ring "
@@ -250,6 +289,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("-o", "--output", help="preview PNG (the model coloured by region)")
     p.add_argument("--drop-nonfinite", action="store_true",
                    help="drop vertices with NaN/Inf coordinates instead of failing")
+    _add_camera_args(p)
     p.set_defaults(func=cmd_select)
 
     p = sub.add_parser("edit", help="local web editor: pick regions, fit, drag the handle, save")

@@ -48,12 +48,14 @@ def render_frames_count(cfg: EditConfig, frames: int = 0) -> int:
 
 
 def render_result(result: EditResult, cfg: EditConfig, out: str | Path, *,
-                  frames: int = 0) -> Path:
+                  frames: int = 0, view: dict | None = None) -> Path:
     """Write the before/after PNG (or, with frames >= 2, a GIF/PNG sequence of the handle
     moving from identity to the target). The vertex shader deforms, for any number of control
     DOFs k (k > 4, e.g. curves, reads the basis from a storage buffer); one basis upload.
     Each panel is half of ``render.size``'s width (plus an 18 px label strip on top of the
-    before/after image)."""
+    before/after image). ``view``: the render functions' up / roll / camera / size keywords
+    (:func:`splatdeform.render.camera.camera_options`); default from ``render.up``,
+    ``render.roll`` and ``render.camera`` (a camera file wins over the other view keys)."""
     from .render import render_deformation_comparison, render_frames
 
     frames = render_frames_count(cfg, frames)
@@ -61,12 +63,18 @@ def render_result(result: EditResult, cfg: EditConfig, out: str | Path, *,
     target, _ = render_target(out, frames)
     values, gradients = full_basis(result.deformation)
     t0 = time.perf_counter()
-    view = dict(azimuth=opts.azimuth, elevation=opts.elevation, fov=opts.fov)
+    if view is None:
+        from .render.camera import camera_options
+
+        view = camera_options(opts.up, opts.roll, opts.camera)
+    view = dict(view)
+    size = view.pop("size", (opts.size[0] // 2, opts.size[1]))
+    view.update(azimuth=opts.azimuth, elevation=opts.elevation, fov=opts.fov)
     if frames >= 2:
         render_frames(result.model, values, gradients, result.delta_c, frames, target,
-                      size=(opts.size[0] // 2, opts.size[1]), **view)
+                      size=size, **view)
     else:
         render_deformation_comparison(result.model, values, gradients, result.delta_c, target,
-                                      size=(opts.size[0] // 2, opts.size[1]), **view)
+                                      size=size, **view)
     result.timings["render"] = time.perf_counter() - t0
     return target

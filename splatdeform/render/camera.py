@@ -307,3 +307,20 @@ def load_camera(path: str | os.PathLike[str]) -> tuple[Camera, tuple[int, int]]:
     except ValueError as exc:
         raise InputError(f"{path}: not valid JSON ({exc})") from None
     return parse_camera(data, str(path))
+
+
+def camera_options(up: str | None = None, roll: float | None = None,
+                   camera_file: str | os.PathLike[str] | None = None) -> dict[str, Any]:
+    """Keyword arguments for the render functions from the user's camera options: ``up``
+    (None: the file's convention), ``roll`` degrees, and a camera file, which wins: it adds
+    ``camera`` and ``size`` (one panel, W x H). Raises InputError for a bad value or file."""
+    if up is not None and up not in UP_AXES:
+        raise InputError(f"--up/render.up: expected one of {' '.join(UP_AXES)}, got {up!r}")
+    roll = 0.0 if roll is None else float(roll)
+    if not math.isfinite(roll):
+        raise InputError(f"--roll/render.roll: expected a finite number of degrees, got {roll}")
+    out: dict[str, Any] = {"up": up, "roll": roll}
+    if camera_file is not None:
+        camera, size = load_camera(camera_file)
+        out.update(camera=camera, size=size)
+    return out

@@ -2,8 +2,10 @@
 
 - covariance Sigma = R S^2 R^T from the log-scales and the quaternion (w, x, y, z; normalised
   here), as 6 floats (xx, xy, xz, yy, yz, zz);
-- colour: the SH degree-0 term 0.5 + C0 f_dc (unclamped; view-dependent bands are added in the
-  shader), or the stored colour, or a light grey; opacity: sigmoid(logit), 1 when absent;
+- colour: the stored colour when it is not just the loader's 8-bit rounding of f_dc (e.g. a
+  preview coloured by region), else
+  the SH degree-0 term 0.5 + C0 f_dc (unclamped; view-dependent bands are added in the shader),
+  else a light grey; opacity: sigmoid(logit), 1 when absent;
 - higher SH bands: ``f_rest`` as stored (channel-major: per channel, coefficients 1..r) and the
   full degree it holds (r = 3, 8, 15 -> degree 1, 2, 3).
 """
@@ -55,6 +57,18 @@ def sigmoid(x: np.ndarray) -> np.ndarray:
     return np.exp(-np.logaddexp(0.0, -x))
 
 
+def _own_colors(model: PointModel) -> bool:
+    """True when ``model.colors`` says more than the 8-bit rounding of the SH DC colour (the
+    loader fills ``colors`` from f_dc when a 3DGS file has no red/green/blue)."""
+    g = model.gaussians
+    if model.colors is None:
+        return False
+    if g is None or g.sh_dc is None:
+        return True
+    derived = np.clip((0.5 + SH_C0 * g.sh_dc) * 255, 0, 255).astype(np.uint8)  # as the loader
+    return not np.array_equal(np.asarray(model.colors), derived)
+
+
 def gaussian_data(model: PointModel) -> GaussianData:
     """The upload arrays of a model with ``model.gaussians`` (see the module doc)."""
     g = model.gaussians
@@ -65,16 +79,17 @@ def gaussian_data(model: PointModel) -> GaussianData:
     cov = np.stack([sigma[:, 0, 0], sigma[:, 0, 1], sigma[:, 0, 2],
                     sigma[:, 1, 1], sigma[:, 1, 2], sigma[:, 2, 2]], axis=1)
     color = np.empty((n, 4), dtype=np.float64)
-    if g.sh_dc is not None:
-        color[:, :3] = 0.5 + SH_C0 * np.asarray(g.sh_dc, dtype=np.float64)
-    elif model.colors is not None:
+    own_colors = _own_colors(model)
+    if own_colors:  # stored colours win (also: previews coloured by region)
         color[:, :3] = np.asarray(model.colors, dtype=np.float64) / 255.0
+    elif g.sh_dc is not None:
+        color[:, :3] = 0.5 + SH_C0 * np.asarray(g.sh_dc, dtype=np.float64)
     else:
         color[:, :3] = np.array(DEFAULT_COLOR) / 255.0
     color[:, 3] = 1.0 if g.opacity is None else sigmoid(g.opacity)
     degree, rest = (0, 0)
     sh_rest = None
-    if g.sh_rest is not None and g.sh_dc is not None:
+    if g.sh_rest is not None and g.sh_dc is not None and not own_colors:
         degree, rest = sh_layout(np.asarray(g.sh_rest).shape[1])
         if degree:
             sh_rest = np.ascontiguousarray(np.asarray(g.sh_rest)[:, : 3 * rest], dtype=np.float32)

@@ -56,6 +56,7 @@ STORAGE_GL_VERSION = 430
 BACKGROUND = (255, 255, 255)
 FEEDBACK_VARYINGS = ("v_position", "v_normal", "v_axis_u", "v_axis_v")
 SURFEL_DEPTH_OFFSET = 1.0  # depth pre-pass pushed back by this many splat radii
+SURFEL_SCALE = 1.25  # surface splatting enlarges the discs so that neighbours overlap
 
 _programs: dict[tuple[str, bool, int, int], Any] = {}
 
@@ -282,6 +283,7 @@ class Renderer:
             color = ctx.texture(self.size, 4, dtype="f4")
             normal = ctx.texture(self.size, 4, dtype="f4")
             depth = ctx.depth_texture(self.size)
+            depth.compare_func = ""  # read as values in the resolve pass
             self._float = {
                 "color": color,
                 "normal": normal,
@@ -442,11 +444,13 @@ class Renderer:
         return np.ascontiguousarray(image[::-1])
 
     def _uniforms(self, prog: Any, gpu: GpuModel, view: np.ndarray, proj: np.ndarray, mode: str,
-                  delta_c: np.ndarray | None, depth_offset: float | None = None) -> None:
+                  delta_c: np.ndarray | None, depth_offset: float | None = None,
+                  splat_scale: float | None = None) -> None:
         prog["u_view"].write(gl_bytes(view))
         prog["u_proj"].write(gl_bytes(proj))
         if depth_offset is not None and "u_depth_offset" in prog:
             prog["u_depth_offset"].value = float(depth_offset)
+            prog["u_splat_scale"].value = 1.0 if splat_scale is None else float(splat_scale)
         if mode == "deform":
             prog["u_delta"].write(pad_delta(delta_c, gpu.k).tobytes())
             gpu.bind_storage()
@@ -463,13 +467,14 @@ class Renderer:
         t["accum"].clear(0.0, 0.0, 0.0, 0.0, depth=1.0)
         # pass 1: depth of the discs pushed back by SURFEL_DEPTH_OFFSET radii
         vao = gpu.vaos[f"surfeldepth_{mode}"]
-        self._uniforms(vao.program, gpu, view, proj, mode, delta_c, SURFEL_DEPTH_OFFSET)
+        self._uniforms(vao.program, gpu, view, proj, mode, delta_c, SURFEL_DEPTH_OFFSET,
+                       SURFEL_SCALE)
         t["depth_only"].use()
         ctx.depth_func = "<"
         vao.render(mode=ctx.POINTS, vertices=gpu.n_points)
         # pass 2: weighted colour and normal of every disc in front of that depth
         vao = gpu.vaos[f"surfelaccum_{mode}"]
-        self._uniforms(vao.program, gpu, view, proj, mode, delta_c, 0.0)
+        self._uniforms(vao.program, gpu, view, proj, mode, delta_c, 0.0, SURFEL_SCALE)
         t["accum"].use()
         t["accum"].depth_mask = False
         ctx.depth_func = "<="
@@ -485,8 +490,12 @@ class Renderer:
         prog = t["resolve"].program
         t["color"].use(location=0)
         t["normal"].use(location=1)
+        t["depth"].use(location=2)
         prog["u_color"].value = 0
         prog["u_normal"].value = 1
+        prog["u_depth"].value = 2
+        near, far = proj[2, 3] / (proj[2, 2] - 1.0), proj[2, 3] / (proj[2, 2] + 1.0)
+        prog["u_near_far"].value = (float(near), float(far))
         prog["u_viewport"].value = tuple(float(s) for s in self.size)
         prog["u_proj_scale"].value = (float(proj[0, 0]), float(proj[1, 1]))
         prog["u_background"].value = self.background
