@@ -16,7 +16,7 @@ import json
 import stat
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Annotated, Any
+from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
@@ -44,6 +44,9 @@ class BatchRenderCfg(_Strict):
     azimuth: float = 30.0
     elevation: float = 20.0
     fov: float = 35.0
+    up: Literal["+x", "+y", "+z", "-x", "-y", "-z"] | None = None  # None: the file's convention
+    roll: float = Field(default=0.0, ge=-360, le=360)
+    camera: str | None = None   # a camera file (OUT.camera.json), relative to the batch file
 
 
 class BatchConfig(_Strict):
@@ -163,6 +166,12 @@ def load_batch(path: str | Path) -> Batch:
     _check_output_dir(patterns, base, output_dir, scans, src)
 
     render = cfg.render.model_dump() if cfg.render else None
+    if render and render.get("camera"):   # relative to the batch file; read, never written
+        render["camera"] = str((base / render["camera"]).resolve())
+        reads.append(("render.camera", Path(render["camera"])))
+        from ..render.camera import load_camera
+
+        load_camera(render["camera"])   # a bad camera file fails the batch up front, named
     jobs: list[Job] = []
     by_output: dict[str, Scan] = {}
     for scan in scans:
