@@ -294,3 +294,41 @@ def test_armadillo_cloud_blends_without_specks():
         r.release()
     assert silhouette_coverage(rgba, min_area=0.05) >= 0.99  # a thin figure in its sphere
     assert specks(rgba) == 0
+
+
+def test_deform_render_takes_the_camera_keys_and_writes_the_camera(tmp_path):
+    import yaml
+    from PIL import Image
+
+    from data_tools.synth import bumpy_bar
+    from splatdeform.io import save
+
+    save(bumpy_bar(3000, seed=2), tmp_path / "bar.ply")
+    edit = {
+        "input": "bar.ply", "output": "bent.ply",
+        "regions": {"units": "relative", "fixed": [{"box": {"min": [0, 0, 0],
+                                                            "max": [0.25, 1, 1]}}],
+                    "handle": [{"box": {"min": [0.75, 0, 0], "max": [1, 1, 1]}}]},
+        "handle": {"transform": {"pivot": [0.75, 0.5, 0.5],
+                                 "rotate": {"axis": [0, 0, 1], "degrees": 30}}},
+        "render": {"output": "a.png", "size": [160, 80], "up": "+z", "roll": 20},
+    }
+    cfg = tmp_path / "edit.yaml"
+    cfg.write_text(yaml.safe_dump(edit))
+    assert main(["deform", str(cfg), "--backend", "numpy"]) == 0
+    data = json.loads((tmp_path / "a.camera.json").read_text())
+    assert (data["width"], data["height"]) == (80, 80)  # one panel
+    cam, _ = load_camera(tmp_path / "a.camera.json")
+    right, true_up, _ = cam.basis()
+    # +z up, rolled 20 degrees: the camera's up leans 20 degrees away from +z, toward its right
+    level = np.cross(right, true_up)  # viewing direction reversed
+    z_in_view = np.array([0, 0, 1]) - (np.array([0, 0, 1]) @ level) * level
+    z_in_view /= np.linalg.norm(z_in_view)
+    assert np.degrees(np.arccos(np.clip(true_up @ z_in_view, -1, 1))) == pytest.approx(20, abs=1e-6)
+    assert right @ z_in_view < 0  # the up leans right, so world +z appears left of it
+    # the same view again from the camera file (the key wins over the others)
+    edit["render"] = {"output": "b.png", "size": [400, 400], "camera": "a.camera.json"}
+    cfg.write_text(yaml.safe_dump(edit))
+    assert main(["deform", str(cfg), "--backend", "numpy"]) == 0
+    a, b = (np.asarray(Image.open(tmp_path / n)) for n in ("a.png", "b.png"))
+    np.testing.assert_array_equal(a, b)
