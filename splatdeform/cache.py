@@ -16,14 +16,14 @@ import numpy as np
 
 from .basis.result import Basis
 from .config import EditConfig
-from .deform import Deformation
+from .deform import Deformation, Group
 from .errors import InputError
 from .handle import AffineFrame
 from .io.atomic import atomic_path
 from .model import PointModel
 from .rbf.result import Normalization, RbfFit
 
-FORMAT_VERSION = 2  # 2: fit max/rms error and method
+FORMAT_VERSION = 3  # 2: fit max/rms error and method; 3: metaphor groups
 
 
 def _file_digest(path: Path) -> str:
@@ -41,10 +41,42 @@ def edit_key(cfg: EditConfig, input_path: str | Path) -> str:
     parts["fit"].pop("on_not_converged", None)  # what to do about a miss, not what is fitted
     if cfg.curve is not None:
         parts["curve"] = cfg.curve.model_dump(exclude={"moved_to"})
-    parts["metaphor"] = "curve" if cfg.curve is not None else "handle"
+    # the handles' regions determine the basis, their transforms do not
+    parts["handles"] = [h.model_dump(include={"region"}) for h in cfg.handles or []]
+    parts["metaphor"] = ("handle" if cfg.handle is not None else "handles" if cfg.handles
+                         else "curve")
     parts["input"] = _file_digest(Path(input_path))
     parts["version"] = FORMAT_VERSION
     return hashlib.sha256(json.dumps(parts, sort_keys=True).encode()).hexdigest()
+
+
+def _groups_arrays(d: Deformation) -> dict[str, np.ndarray]:
+    """The metaphor groups as plain arrays: names, column bounds, each moving point's group,
+    and the handles' frame inverses (zeros for curves)."""
+    owner = np.full(d.moving_idx.size, -1, dtype=np.int64)
+    for j, g in enumerate(d.groups):
+        owner[g.rows] = j
+    inverses = [g.frame.inverse if g.frame is not None else np.zeros((4, 4)) for g in d.groups]
+    return {
+        "group_names": np.array([g.name for g in d.groups], dtype=str),
+        "group_columns": np.array([g.columns for g in d.groups], dtype=np.int64).reshape(-1, 2),
+        "group_owner": owner,
+        "group_has_frame": np.array([g.frame is not None for g in d.groups], dtype=bool),
+        "group_inverses": np.array(inverses).reshape(-1, 4, 4),
+    }
+
+
+def _groups_from(z) -> list[Group]:
+    groups = []
+    for j, name in enumerate(z["group_names"]):
+        start, stop = (int(v) for v in z["group_columns"][j])
+        frame = None
+        if z["group_has_frame"][j]:
+            frame = AffineFrame(control_points=z["control_points"][start:stop],
+                                inverse=z["group_inverses"][j])
+        groups.append(Group(str(name), (start, stop), np.flatnonzero(z["group_owner"] == j),
+                            frame))
+    return groups
 
 
 def save_deformation(path: str | Path, key: str, d: Deformation) -> Path:
@@ -65,6 +97,7 @@ def save_deformation(path: str | Path, key: str, d: Deformation) -> Path:
         "values": d.basis.values,
         "gradients": d.basis.gradients if d.basis.gradients is not None else np.zeros(0),
         "frame_inverse": d.frame.inverse if d.frame is not None else np.zeros(0),
+        **_groups_arrays(d),
     }
     path = Path(path)
     with atomic_path(path) as tmp, open(tmp, "wb") as f:
@@ -99,7 +132,8 @@ def load_deformation(path: str | Path, key: str, model: PointModel) -> Deformati
             moving_gradients=z["moving_gradients"], constraint_idx=z["constraint_idx"],
             constraint_points=z["constraint_points"], constraint_rhs=z["constraint_rhs"],
             control_points=z["control_points"], fit=fit,
-            basis=Basis(z["values"], grads if grads.size else None), frame=frame)
+            basis=Basis(z["values"], grads if grads.size else None), frame=frame,
+            groups=_groups_from(z))
     except (OSError, KeyError, ValueError, EOFError) as exc:
         reason = "missing " + str(exc) if isinstance(exc, KeyError) else \
             "not an .npz written by splatdeform" if "pickle" in str(exc) or not str(exc) else \

@@ -112,6 +112,12 @@ class HandleCfg(_Strict):
         return self
 
 
+class HandleEntryCfg(HandleCfg):
+    """One entry of ``handles:``: the ``handle:`` form plus its own ``region`` (selectors)."""
+
+    region: list[SelectorCfg] = Field(min_length=1)
+
+
 class CurveCfg(_Strict):
     control_points: list[Vec3] = Field(min_length=2, max_length=MAX_CONTROL_POINTS)
     moved_to: list[Vec3]
@@ -170,6 +176,7 @@ class EditConfig(_Strict):
     output: str
     regions: RegionsCfg
     handle: HandleCfg | None = None
+    handles: list[HandleEntryCfg] | None = Field(default=None, min_length=1, max_length=32)
     curve: CurveCfg | None = None
     boundary: BoundaryCfg = BoundaryCfg()
     fit: FitCfg = FitCfg()
@@ -181,10 +188,18 @@ class EditConfig(_Strict):
 
     @model_validator(mode="after")
     def _metaphor(self) -> EditConfig:
-        if (self.handle is None) == (self.curve is None):
-            raise ValueError("expected exactly one of handle, curve")
+        if self.handles is not None and (self.handle is not None or self.regions.handle):
+            raise ValueError("handles: not together with handle or regions.handle; put every "
+                             "handle (with its region) under handles")
+        if self.handle is not None and self.curve is not None:
+            raise ValueError("expected one of handle, curve (use handles: to combine handles "
+                             "with a curve)")
+        if self.handle is None and self.handles is None and self.curve is None:
+            raise ValueError("expected one of handle, handles, curve")
         if self.handle is not None and not self.regions.handle:
             raise ValueError("regions.handle: required with a handle edit")
+        if self.curve is not None and self.regions.handle:
+            raise ValueError("regions.handle: not used by a curve edit (the curve band moves)")
         if self.curve is not None and len(self.curve.moved_to) != len(self.curve.control_points):
             raise ValueError(f"curve.moved_to: expected {len(self.curve.control_points)} points "
                              f"(one per control point), got {len(self.curve.moved_to)}")

@@ -22,6 +22,7 @@ from scipy.spatial import cKDTree
 from . import deform as df
 from .config import CurveCfg
 from .errors import ConfigError, RegionError
+from .metaphor import Metaphor
 from .model import PointModel
 from .regions import to_model_point
 
@@ -110,31 +111,25 @@ def curve_band(model: PointModel, cfg: CurveCfg, units: str
     return curve, band_idx, band_t
 
 
+def curve_metaphor(model: PointModel, cfg: CurveCfg, units: str) -> Metaphor:
+    """The curve metaphor: the capture band moves by N(t) . delta_c (k = control points)."""
+    curve, band_idx, band_t = curve_band(model, cfg, units)
+    order = np.argsort(band_idx)
+    idx, t = band_idx[order], band_t[order]
+    tangent = curve.tangents(t)
+    grad_t = tangent / np.maximum(np.sum(tangent**2, axis=1, keepdims=True), 1e-300)
+    grad_t[(t <= 0) | (t >= 1)] = 0.0  # beyond the ends the parameter is clamped
+    grads = curve.dbasis(np.clip(t, 0, 1))[:, :, None] * grad_t[:, None, :]
+    return Metaphor(name="curve band", idx=idx, control_points=curve.control_points,
+                    coords=curve.weights(t), gradients=grads)
+
+
 def prepare_curve(model: PointModel, fixed: np.ndarray, cfg: CurveCfg, units: str, *,
                   fit_fn, basis_fn, continuity: int = 2, neighbors: int = 10) -> df.Deformation:
     """Precompute a curve deformation (k = number of control points)."""
-    curve, band_idx, band_t = curve_band(model, cfg, units)
-    control = curve.control_points
-    band = np.zeros(model.n_points, dtype=bool)
-    band[band_idx] = True
-    param = np.zeros(model.n_points)
-    param[band_idx] = band_t
-
-    def coordinates(points: np.ndarray) -> np.ndarray:
-        # called with model.positions[moving_idx], in index order
-        return curve.weights(param[band_idx])
-
-    def coordinate_gradients(points: np.ndarray) -> np.ndarray:
-        t = param[band_idx]
-        tangent = curve.tangents(t)
-        grad_t = tangent / np.maximum(np.sum(tangent**2, axis=1, keepdims=True), 1e-300)
-        grad_t[(t <= 0) | (t >= 1)] = 0.0  # beyond the ends the parameter is clamped
-        return curve.dbasis(np.clip(t, 0, 1))[:, :, None] * grad_t[:, None, :]
-
-    return df.prepare(model, fixed, band, control_points=control, coordinates=coordinates,
-                      coordinate_gradients=coordinate_gradients, fit_fn=fit_fn,
-                      basis_fn=basis_fn, continuity=continuity, neighbors=neighbors,
-                      moving_name="curve band")
+    return df.prepare_metaphors(model, fixed, [curve_metaphor(model, cfg, units)],
+                                fit_fn=fit_fn, basis_fn=basis_fn, continuity=continuity,
+                                neighbors=neighbors)
 
 
 def curve_delta(cfg: CurveCfg, model: PointModel, units: str,

@@ -19,12 +19,29 @@ import numpy as np
 
 from . import frame as ap
 from .basis.result import Basis
-from .errors import RegionError
-from .handle import AffineFrame, apply_affine, handle_frame
+from .errors import InputError, RegionError
+from .handle import AffineFrame, apply_affine
+from .metaphor import Metaphor, handle_metaphor
 from .model import PointModel
 from .rbf.result import RbfFit
 from .regions import check_regions
 from .rings import boundary_rings, region_adjacency
+
+
+@dataclass(frozen=True)
+class Group:
+    """One metaphor inside a deformation.
+
+    name: its config key (``regions.handle``, ``handles[1]``, ``curve``).
+    columns: (start, stop): its columns of delta_c (k rows of delta_c in all).
+    rows: (Nm,) int64 positions of its points in ``Deformation.moving_idx``.
+    frame: a handle's affine frame (its points then get the handle's 4x4 map verbatim).
+    """
+
+    name: str
+    columns: tuple[int, int]
+    rows: np.ndarray
+    frame: AffineFrame | None = None
 
 
 @dataclass
@@ -57,6 +74,14 @@ class Deformation:
     frame: AffineFrame | None = None
     timings: dict[str, float] = field(default_factory=dict)
     ring_sizes: tuple[list[int], list[int]] = ((), ())
+    groups: list[Group] = field(default_factory=list)
+
+    def handle_groups(self) -> list[Group]:
+        """The groups whose points get a handle's 4x4 map verbatim (those with a frame)."""
+        if not self.groups:  # one metaphor built without groups (older caches, custom code)
+            rows = np.arange(self.moving_idx.size)
+            return [Group("handle", (0, self.k), rows, self.frame)] if self.frame else []
+        return [g for g in self.groups if g.frame is not None]
 
     @property
     def k(self) -> int:
@@ -73,28 +98,89 @@ def prepare(model: PointModel, fixed: np.ndarray, moving: np.ndarray, *,
             coordinate_gradients: Callable[[np.ndarray], np.ndarray],
             fit_fn: FitFn, basis_fn: BasisFn, continuity: int = 2, neighbors: int = 10,
             moving_name: str = "handle", frame: AffineFrame | None = None) -> Deformation:
-    """Rings, constraints, fit and basis for fixed/moving masks (N,) bool.
+    """:func:`prepare_metaphors` for one metaphor given as masks and callables.
 
-    coordinates(points (M, 3)) -> (M, k) control coordinates of moving points;
-    coordinate_gradients(points (M, 3)) -> (M, k, 3).
+    coordinates(points (M, 3)) -> (M, k) control coordinates of moving points (called with the
+    moving points in index order); coordinate_gradients(points (M, 3)) -> (M, k, 3).
+    """
+    if not moving.any():
+        check_regions(fixed, moving, handle_name=moving_name)
+    idx = np.flatnonzero(moving)
+    pts = model.positions[idx]
+    metaphor = Metaphor(moving_name, idx, np.asarray(control_points, dtype=np.float64),
+                        coordinates(pts), coordinate_gradients(pts), frame)
+    return prepare_metaphors(model, fixed, [metaphor], fit_fn=fit_fn, basis_fn=basis_fn,
+                             continuity=continuity, neighbors=neighbors)
+
+
+def _moving_columns(n_points: int, metaphors: list[Metaphor]
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[Group]]:
+    """Stack the metaphors' columns: moving_idx (Nh,), coords (Nh, k), gradients (Nh, k, 3)
+    and the groups. A point's row is zero outside its own metaphor's columns."""
+    owner = np.full(n_points, -1, dtype=np.int64)
+    for j, mph in enumerate(metaphors):
+        taken = owner[mph.idx] >= 0
+        if taken.any():
+            other = metaphors[int(owner[mph.idx[taken][0]])].name
+            raise RegionError(f"{mph.name}: overlaps {other} in {int(taken.sum())} points; "
+                              "moving regions must be disjoint")
+        owner[mph.idx] = j
+    moving_idx = np.flatnonzero(owner >= 0)
+    lookup = np.full(n_points, -1, dtype=np.int64)
+    lookup[moving_idx] = np.arange(moving_idx.size)
+    k = sum(mph.k for mph in metaphors)
+    coords = np.zeros((moving_idx.size, k))
+    grads = np.zeros((moving_idx.size, k, 3))
+    groups, start = [], 0
+    for mph in metaphors:
+        rows = lookup[mph.idx]
+        coords[rows, start:start + mph.k] = mph.coords
+        grads[rows, start:start + mph.k] = mph.gradients
+        groups.append(Group(mph.name, (start, start + mph.k), rows, mph.frame))
+        start += mph.k
+    return moving_idx, coords, grads, groups
+
+
+def prepare_metaphors(model: PointModel, fixed: np.ndarray, metaphors: list[Metaphor], *,
+                      fit_fn: FitFn, basis_fn: BasisFn, continuity: int = 2,
+                      neighbors: int = 10) -> Deformation:
+    """Rings, constraints, one fit and one basis for a fixed mask (N,) bool and any number of
+    metaphors (handles and curves): k = the sum of their columns.
+
+    Raises RegionError when a metaphor is empty, overlaps the fixed region or another
+    metaphor, or has no point next to the free region.
     """
     if continuity not in (0, 1, 2):
         raise RegionError(f"boundary.continuity: expected 0, 1 or 2, got {continuity}")
-    check_regions(fixed, moving, handle_name=moving_name)
+    if not metaphors:
+        raise RegionError("regions: an edit needs at least one handle or curve")
+    n = model.n_points
+    for mph in metaphors:
+        _check_metaphor(fixed, mph, n)
+    moving_idx, coords_all, grads_all, groups = _moving_columns(n, metaphors)
+    moving = np.zeros(n, dtype=bool)
+    moving[moving_idx] = True
+    name = _short(metaphors[0].name) if len(metaphors) == 1 else "handle"
+    check_regions(fixed, moving, handle_name=name)
     timings: dict[str, float] = {}
     t0 = time.perf_counter()
     adj = region_adjacency(model, fixed, moving, neighbors, continuity + 2)
-    fixed_rings, moving_rings = boundary_rings(adj, fixed, moving, continuity + 1, moving_name)
+    fixed_rings, moving_rings = boundary_rings(adj, fixed, moving, continuity + 1, name)
+    if len(metaphors) > 1:
+        first_ring = moving_rings[0]
+        for mph in metaphors:
+            if not np.isin(mph.idx, first_ring, assume_unique=True).any():
+                raise RegionError(f"{mph.name}: no point of it is adjacent to the free region "
+                                  "(is it enclosed by another region or a separate "
+                                  "component? raise boundary.neighbors)")
     timings["rings"] = time.perf_counter() - t0
 
     fixed_c = np.concatenate(fixed_rings)
     moving_c = np.concatenate(moving_rings)
-    moving_idx = np.flatnonzero(moving)
-    coords_all = coordinates(model.positions[moving_idx])
-    k = coords_all.shape[1]
-    lookup = np.full(model.n_points, -1, dtype=np.int64)
+    lookup = np.full(n, -1, dtype=np.int64)
     lookup[moving_idx] = np.arange(moving_idx.size)
     constraint_idx = np.concatenate([fixed_c, moving_c])
+    k = coords_all.shape[1]
     rhs = np.zeros((constraint_idx.size, k))
     rhs[fixed_c.size:] = coords_all[lookup[moving_c]]
 
@@ -106,32 +192,59 @@ def prepare(model: PointModel, fixed: np.ndarray, moving: np.ndarray, *,
     t0 = time.perf_counter()
     basis = basis_fn(model.positions[free_idx], fit)
     timings["basis"] = time.perf_counter() - t0
+    frames = [g.frame for g in groups if g.frame is not None]
     return Deformation(
-        n_points=model.n_points, fixed=fixed, moving=moving, free_idx=free_idx,
-        moving_idx=moving_idx, moving_coords=coords_all,
-        moving_gradients=coordinate_gradients(model.positions[moving_idx]),
+        n_points=n, fixed=fixed, moving=moving, free_idx=free_idx,
+        moving_idx=moving_idx, moving_coords=coords_all, moving_gradients=grads_all,
         constraint_idx=constraint_idx, constraint_points=model.positions[constraint_idx],
         constraint_rhs=rhs,
-        control_points=np.asarray(control_points, dtype=np.float64), fit=fit, basis=basis,
-        frame=frame, timings=timings,
+        control_points=np.vstack([mph.control_points for mph in metaphors]), fit=fit,
+        basis=basis, frame=frames[0] if len(metaphors) == 1 and frames else None,
+        timings=timings,
         ring_sizes=([r.size for r in fixed_rings], [r.size for r in moving_rings]),
+        groups=groups,
     )
+
+
+def _check_metaphor(fixed: np.ndarray, mph: Metaphor, n: int) -> None:
+    """Empty or overlapping the fixed region: one line naming the metaphor's key."""
+    mask = np.zeros(n, dtype=bool)
+    mask[mph.idx] = True
+    if mph.name.startswith("regions.") or " " in mph.name:
+        check_regions(fixed, mask, handle_name=_short(mph.name))
+        return
+    if not mask.any():
+        raise RegionError(f"{mph.name}: selects no point; widen it")
+    both = fixed & mask
+    if both.any():
+        raise RegionError(f"{mph.name}: overlaps regions.fixed in {int(both.sum())} points; "
+                          "they must be disjoint")
+
+
+def _short(name: str) -> str:
+    """``regions.handle`` -> ``handle`` (check_regions prefixes ``regions.``)."""
+    return name[len("regions."):] if name.startswith("regions.") else name
 
 
 def prepare_handle(model: PointModel, fixed: np.ndarray, handle: np.ndarray, *,
                    fit_fn: FitFn, basis_fn: BasisFn, continuity: int = 2,
                    neighbors: int = 10) -> Deformation:
-    """:func:`prepare` for the handle metaphor (k = 4 affine frame coordinates)."""
+    """:func:`prepare_metaphors` for one handle (k = 4 affine frame coordinates)."""
     if not handle.any():
         check_regions(fixed, handle)
-    frame = handle_frame(model.positions[handle])
-    grads = frame.coordinate_gradients()
-    return prepare(
-        model, fixed, handle, control_points=frame.control_points,
-        coordinates=frame.coordinates,
-        coordinate_gradients=lambda p: np.broadcast_to(grads, (p.shape[0], 4, 3)),
-        fit_fn=fit_fn, basis_fn=basis_fn, continuity=continuity, neighbors=neighbors,
-        frame=frame)
+    return prepare_metaphors(model, fixed, [handle_metaphor(model.positions, handle)],
+                             fit_fn=fit_fn, basis_fn=basis_fn, continuity=continuity,
+                             neighbors=neighbors)
+
+
+def prepare_handles(model: PointModel, fixed: np.ndarray, handles: list[np.ndarray], *,
+                    fit_fn: FitFn, basis_fn: BasisFn, continuity: int = 2,
+                    neighbors: int = 10) -> Deformation:
+    """Several handles in one edit: k = 4 per handle, one fit, one basis, one apply."""
+    metaphors = [handle_metaphor(model.positions, h, f"handles[{i}].region")
+                 for i, h in enumerate(handles)]
+    return prepare_metaphors(model, fixed, metaphors, fit_fn=fit_fn, basis_fn=basis_fn,
+                             continuity=continuity, neighbors=neighbors)
 
 
 def _deform_gaussians(model: PointModel, out: PointModel, idx: np.ndarray,
@@ -163,16 +276,39 @@ def _transform_attributes(model: PointModel, out: PointModel, idx: np.ndarray,
         _deform_gaussians(model, out, idx, jac)
 
 
+def handle_matrices(deformation: Deformation, moving_matrix
+                    ) -> list[tuple[Group, np.ndarray]]:
+    """Pair the handle groups with their 4x4 maps: ``moving_matrix`` is None (every moving
+    point by its coordinates), one (4, 4) matrix (exactly one handle), or a sequence with one
+    matrix (or None) per handle, in the deformation's handle order."""
+    if moving_matrix is None:
+        return []
+    groups = deformation.handle_groups()
+    if isinstance(moving_matrix, np.ndarray) and moving_matrix.shape == (4, 4):
+        if len(groups) != 1:
+            raise InputError(f"moving_matrix: one 4x4 matrix given for {len(groups)} handles; "
+                             "pass one matrix (or None) per handle")
+        return [(groups[0], moving_matrix)]
+    matrices = list(moving_matrix)
+    if len(matrices) != len(groups):
+        raise InputError(f"moving_matrix: expected {len(groups)} matrices (one per handle), "
+                         f"got {len(matrices)}")
+    return [(g, np.asarray(m, dtype=np.float64)) for g, m in zip(groups, matrices, strict=True)
+            if m is not None]
+
+
 def apply(deformation: Deformation, model: PointModel, delta_c: np.ndarray, *,
-          moving_matrix: np.ndarray | None = None) -> PointModel:
+          moving_matrix=None) -> PointModel:
     """The deformed copy of ``model`` for control displacements delta_c (k, 3).
 
     Positions, normals (cof(J) n), tangent axes (J u), radius-only surfels (area-preserving
-    radius) and 3DGS covariances follow. moving_matrix: the handle's 4x4 affine map, used
-    verbatim for handle points (else it is recovered from delta_c).
+    radius) and 3DGS covariances follow. moving_matrix: the handles' 4x4 affine maps (one
+    matrix for a single handle, or one per handle), used verbatim for handle points (else they
+    move by their coordinates, m . delta_c).
     """
     if model.n_points != deformation.n_points:
-        raise ValueError(f"model: expected {deformation.n_points} points, got {model.n_points}")
+        raise InputError(f"model: expected {deformation.n_points} points, got "
+                         f"{model.n_points}")
     delta = np.asarray(delta_c, dtype=np.float64)
     with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
         out = _apply(deformation, model, delta, moving_matrix)
@@ -187,14 +323,14 @@ def _apply(deformation: Deformation, model: PointModel, delta: np.ndarray,
     values = deformation.basis.values.astype(np.float64, copy=False)
     out.positions[free] = ap.displace(model.positions[free], values, delta)
     mov = deformation.moving_idx
-    if moving_matrix is not None:
-        out.positions[mov] = apply_affine(moving_matrix, model.positions[mov])
-    else:
-        out.positions[mov] = model.positions[mov] + deformation.moving_coords @ delta
+    out.positions[mov] = model.positions[mov] + deformation.moving_coords @ delta
+    for group, matrix in handle_matrices(deformation, moving_matrix):
+        rows = mov[group.rows]
+        out.positions[rows] = apply_affine(matrix, model.positions[rows])
     needs_jac = any(a is not None for a in (model.normals, model.axes, model.gaussians))
     if needs_jac:
         if deformation.basis.gradients is None:
-            raise ValueError("deformation: basis has no gradients; normals/axes need them")
+            raise InputError("deformation: basis has no gradients; normals/axes need them")
         grads = deformation.basis.gradients.astype(np.float64, copy=False)
         _transform_attributes(model, out, free, ap.jacobians(grads, delta))
         _transform_attributes(model, out, mov,

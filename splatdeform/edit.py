@@ -15,11 +15,12 @@ import numpy as np
 
 from . import deform as df
 from .basis import compute_basis
-from .config import EditConfig, TransformCfg, input_paths
+from .config import EditConfig, HandleCfg, TransformCfg, input_paths
 from .errors import ConfigError, InputError, ProcessingError
 from .handle import compose_transform, delta_for_transform
 from .io import SUPPORTED, load, save
 from .io.atomic import check_io_paths
+from .metaphor import Metaphor, handle_metaphor
 from .model import PointModel
 from .rbf import Normalization, RbfFit, fit_incremental
 from .regions import select, to_model_point, to_model_vector
@@ -40,16 +41,16 @@ class EditResult:
     timings: dict[str, float] = field(default_factory=dict)
 
 
-def handle_matrix(cfg: EditConfig, model: PointModel, handle: np.ndarray) -> np.ndarray:
-    """The 4x4 handle transform from ``handle.transform`` or ``handle.matrix``."""
-    h = cfg.handle
+def transform_matrix(h: HandleCfg, key: str, units: str, model: PointModel,
+                     handle: np.ndarray) -> np.ndarray:
+    """The 4x4 transform of one handle from its ``transform`` or ``matrix`` (config key
+    ``key``); ``handle`` (N,) bool or (M,) int64 selects its points (for a centroid pivot)."""
     if h.matrix is not None:
         m = np.asarray(h.matrix, dtype=np.float64)
         if not np.allclose(m[3], [0, 0, 0, 1]):
-            raise ConfigError("handle.matrix: the last row must be [0, 0, 0, 1] (affine)")
+            raise ConfigError(f"{key}.matrix: the last row must be [0, 0, 0, 1] (affine)")
         return m
     t: TransformCfg = h.transform
-    units = cfg.regions.units
     if t.pivot == "centroid":
         pivot = model.positions[handle].mean(axis=0)
     else:
@@ -57,6 +58,36 @@ def handle_matrix(cfg: EditConfig, model: PointModel, handle: np.ndarray) -> np.
     return compose_transform(pivot=pivot, scale=t.scale, axis=t.rotate.axis,
                              degrees=t.rotate.degrees,
                              translate=to_model_vector(model, t.translate, units))
+
+
+def handle_matrix(cfg: EditConfig, model: PointModel, handle: np.ndarray) -> np.ndarray:
+    """The 4x4 handle transform of the single ``handle:`` form."""
+    return transform_matrix(cfg.handle, "handle", cfg.regions.units, model, handle)
+
+
+def handle_configs(cfg: EditConfig) -> list[tuple[str, HandleCfg]]:
+    """(config key, handle config) of every handle, in the order of the edit's columns."""
+    if cfg.handle is not None:
+        return [("handle", cfg.handle)]
+    return [(f"handles[{i}]", h) for i, h in enumerate(cfg.handles or [])]
+
+
+def metaphors(cfg: EditConfig, model: PointModel, base_dir: Path) -> list[Metaphor]:
+    """The config turned into model-unit metaphors: every handle (4 columns each), then the
+    curve (one column per control point)."""
+    units = cfg.regions.units
+    out = []
+    if cfg.handle is not None:
+        mask = select(model, [s.to_selector() for s in cfg.regions.handle], units, base_dir)
+        out.append(handle_metaphor(model.positions, mask, "regions.handle"))
+    for i, h in enumerate(cfg.handles or []):
+        mask = select(model, [s.to_selector() for s in h.region], units, base_dir)
+        out.append(handle_metaphor(model.positions, mask, f"handles[{i}].region"))
+    if cfg.curve is not None:
+        from .curve import curve_metaphor
+
+        out.append(curve_metaphor(model, cfg.curve, units))
+    return out
 
 
 def make_fit_fn(cfg: EditConfig, model: PointModel) -> Callable:
@@ -101,32 +132,35 @@ def prepare_model(cfg: EditConfig, base_dir: Path, timings: dict[str, float],
 
 
 def precompute(cfg: EditConfig, model: PointModel, base_dir: Path) -> df.Deformation:
-    """Regions, rings, fit and basis for a handle or curve edit."""
+    """Regions, rings, one fit and one basis for every handle and curve of the edit."""
     fixed = select(model, [s.to_selector() for s in cfg.regions.fixed], cfg.regions.units,
                    base_dir)
-    fit_fn, basis_fn = make_fit_fn(cfg, model), make_basis_fn(cfg)
-    if cfg.curve is not None:
-        from .curve import prepare_curve
-
-        return prepare_curve(model, fixed, cfg.curve, cfg.regions.units, fit_fn=fit_fn,
-                             basis_fn=basis_fn, continuity=cfg.boundary.continuity,
-                             neighbors=cfg.boundary.neighbors)
-    handle = select(model, [s.to_selector() for s in cfg.regions.handle], cfg.regions.units,
-                    base_dir)
-    return df.prepare_handle(model, fixed, handle, fit_fn=fit_fn, basis_fn=basis_fn,
-                             continuity=cfg.boundary.continuity,
-                             neighbors=cfg.boundary.neighbors)
+    return df.prepare_metaphors(model, fixed, metaphors(cfg, model, base_dir),
+                                fit_fn=make_fit_fn(cfg, model), basis_fn=make_basis_fn(cfg),
+                                continuity=cfg.boundary.continuity,
+                                neighbors=cfg.boundary.neighbors)
 
 
 def control_displacement(cfg: EditConfig, model: PointModel, deformation: df.Deformation
-                         ) -> tuple[np.ndarray, np.ndarray | None]:
-    """delta_c (k, 3) for the configured edit, and the handle matrix (None for curves)."""
+                         ) -> tuple[np.ndarray, np.ndarray | list[np.ndarray] | None]:
+    """delta_c (k, 3) for the configured edit (every handle's T(C) - C, then the curve's
+    moved_to - control_points) and the handle matrices: one 4x4 for the ``handle:`` form, a
+    list (one per handle) for ``handles:``, None for a curve alone."""
+    parts, matrices = [], []
+    groups = deformation.handle_groups()
+    for (key, h), group in zip(handle_configs(cfg), groups, strict=True):
+        points = deformation.moving_idx[group.rows]
+        matrix = transform_matrix(h, key, cfg.regions.units, model, points)
+        parts.append(delta_for_transform(group.frame.control_points, matrix))
+        matrices.append(matrix)
     if cfg.curve is not None:
         from .curve import curve_delta
 
-        return curve_delta(cfg.curve, model, cfg.regions.units, deformation), None
-    matrix = handle_matrix(cfg, model, deformation.moving)
-    return delta_for_transform(deformation.control_points, matrix), matrix
+        parts.append(curve_delta(cfg.curve, model, cfg.regions.units, deformation))
+    delta = np.vstack(parts)
+    if cfg.handle is not None:
+        return delta, matrices[0]
+    return delta, matrices or None
 
 
 def check_converged(fit: RbfFit, cfg: EditConfig,

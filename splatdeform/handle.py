@@ -31,7 +31,7 @@ class AffineFrame:
         return self.inverse[:, :3].copy()
 
 
-def handle_frame(points: np.ndarray) -> AffineFrame:
+def handle_frame(points: np.ndarray, name: str = "regions.handle") -> AffineFrame:
     """Affine frame of the handle points (M, 3).
 
     Raises RegionError when the handle is degenerate (a single point or collinear points): an
@@ -43,7 +43,7 @@ def handle_frame(points: np.ndarray) -> AffineFrame:
     centred = pts - centroid
     _, sv, vt = np.linalg.svd(centred, full_matrices=False)
     if sv.size < 2 or sv[0] <= 0 or sv[1] <= 1e-6 * sv[0]:
-        raise RegionError("regions.handle: the handle points are (nearly) collinear or a single "
+        raise RegionError(f"{name}: the handle points are (nearly) collinear or a single "
                           "point; an affine handle needs points spanning at least a plane")
     extent = np.abs(centred @ vt.T).max(axis=0)
     extent = np.where(extent > 1e-3 * extent[0], extent, extent[0])
@@ -91,11 +91,3 @@ def apply_affine(matrix: np.ndarray, points: np.ndarray) -> np.ndarray:
 def delta_for_transform(control_points: np.ndarray, matrix: np.ndarray) -> np.ndarray:
     """delta_c (4, 3) = T(C) - C for a 4x4 affine matrix T."""
     return apply_affine(matrix, control_points) - control_points
-
-
-def affine_from_delta(frame: AffineFrame, delta_c: np.ndarray) -> np.ndarray:
-    """The 4x4 affine map T(x) = x + m(x)^T delta_c that a handle delta_c (4, 3) encodes."""
-    m = np.eye(4)
-    m[:3, :3] += delta_c.T @ frame.inverse[:, :3]
-    m[:3, 3] = delta_c.T @ frame.inverse[:, 3]
-    return m
