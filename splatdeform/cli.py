@@ -338,10 +338,22 @@ def _stdout_gone() -> int:
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
     debug = "--debug" in argv
-    if not debug:  # numpy RuntimeWarnings must not turn one error line into several
-        warnings.simplefilter("ignore", RuntimeWarning)
+    previous = None
     with contextlib.suppress(ValueError):  # not in the main thread (tests calling main())
-        signal.signal(signal.SIGTERM, _on_sigterm)
+        previous = signal.signal(signal.SIGTERM, _on_sigterm)
+    try:
+        with warnings.catch_warnings():
+            if not debug:  # numpy RuntimeWarnings must not turn one error line into several
+                warnings.simplefilter("ignore", RuntimeWarning)
+            return _run(argv, debug)
+    finally:  # callers in the same process (tests, the API) get their handler back
+        if previous is not None:
+            with contextlib.suppress(ValueError):
+                signal.signal(signal.SIGTERM, previous)
+
+
+def _run(argv: list[str], debug: bool) -> int:
+    """Parse and run one verb; every failure becomes one line and an exit code."""
 
     def fail(line: str, code: int) -> int:
         if debug:
