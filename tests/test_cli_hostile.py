@@ -469,3 +469,22 @@ def test_images_are_0644(scans, tmp_path):
     assert res.returncode == 0, res.stderr
     assert stat.S_IMODE((tmp_path / "r.png").stat().st_mode) == 0o644
     assert not [p.name for p in tmp_path.iterdir() if ".tmp" in p.name]
+
+
+def test_frame_paths_keep_normal_lengths():
+    """The whole-array and the cache-blocked per-frame paths both keep each normal's length."""
+    from splatdeform.frame import deform_frame, jacobians, transform_normals
+
+    rng = np.random.default_rng(5)
+    n, k = 500, 4
+    values = rng.normal(size=(n, k))
+    gradients = rng.normal(scale=0.1, size=(n, k, 3))
+    delta = rng.normal(scale=0.3, size=(k, 3))
+    normals = rng.normal(size=(n, 3))
+    normals *= rng.uniform(0.5, 7.0, size=(n, 1)) / np.linalg.norm(normals, axis=1, keepdims=True)
+    whole = transform_normals(jacobians(gradients, delta), normals)
+    _, blocked = deform_frame(rng.normal(size=(n, 3)), normals, values, gradients, delta,
+                              chunk=64)
+    length = np.linalg.norm(normals, axis=1)
+    np.testing.assert_allclose(np.linalg.norm(whole, axis=1), length, rtol=1e-12)
+    np.testing.assert_allclose(blocked, whole, rtol=1e-10, atol=1e-12)
