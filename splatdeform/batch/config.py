@@ -21,7 +21,7 @@ from typing import Annotated, Any, Literal
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from .. import __version__
-from ..config import EditConfig, format_validation_error, input_paths, parse_edit, read_yaml
+from ..config import EditConfig, input_paths, parse_edit, read_yaml, validation_error
 from ..errors import ConfigError, InputError
 from .sources import Scan, file_kind, find_scans, glob_base, is_glob
 
@@ -138,7 +138,7 @@ def load_batch(path: str | Path) -> Batch:
     try:
         cfg = BatchConfig.model_validate(data)
     except ValidationError as exc:
-        raise ConfigError(format_validation_error(src, exc)) from None
+        raise validation_error(src, exc, roots=(_Strict, EditConfig)) from None
     base = path.resolve().parent
 
     # the edit: a file or an inline mapping
@@ -226,7 +226,10 @@ def _check_paths(src: str, output_dir: Path, inputs: list[tuple[str, Path]],
             outputs += [(f"{job.scan.name}: output", Path(job.output)),
                         (f"{job.scan.name}: sidecar", Path(job.sidecar))]
             if job.png:
-                outputs.append((f"{job.scan.name}: thumbnail", Path(job.png)))
+                from ..render.camera import camera_sidecar  # where its camera file goes
+
+                outputs += [(f"{job.scan.name}: thumbnail", Path(job.png)),
+                            (f"{job.scan.name}: thumbnail camera", camera_sidecar(job.png))]
     for what, out in outputs:
         try:
             mode = out.stat().st_mode
