@@ -174,6 +174,33 @@ def test_saved_yaml_reproduces_the_saved_model_byte_for_byte(bar_copy):
     assert not list(folder.glob(".*tmp*"))
 
 
+def test_two_handles_save_as_handles_and_reopen(bar_copy):
+    ed = EditorController.open(bar_copy)
+    ed.add_selector("fixed", Box((1.6, -1, -1), (2.4, 1, 1)))
+    ed.add_selector("handle", Box((-1, -1, -1), (0.6, 1, 1)))
+    second = ed.add_handle([Box((3.4, -1, -1), (5, 1, 1))])
+    ed.settings.fit.tolerance = 1e-3
+    stats = ed.fit()
+    assert second == 1 and ed.deformation.k == 8 and stats["centers"] > 0
+    ed.set_pose(compose_transform(pivot=np.zeros(3), translate=(0, 0.3, 0)), handle=0)
+    frame = ed.set_pose(POSE, handle=1)
+    assert frame.delta_c.shape == (8, 3)
+    result = ed.save(image=False)
+    data = yaml.safe_load(result.config.read_text())
+    assert "handle" not in data and len(data["handles"]) == 2
+    run = _cli("deform", str(result.config), "-o", str(bar_copy.parent / "again.ply"))
+    assert run.returncode == 0, run.stderr
+    again = (bar_copy.parent / "again.ply").read_bytes()
+    assert again == result.model.read_bytes()
+    moved = sd.load(result.model).positions
+    assert np.abs(frame.positions + ed.origin - moved).max() < 1e-5 * ed.model.diagonal()
+    back = EditorController.from_config(result.config)
+    assert len(back.handles) == 2
+    assert all(np.array_equal(a.matrix, b.matrix)
+               for a, b in zip(back.handles, ed.handles, strict=True))
+    assert back.to_yaml_dict() == ed.to_yaml_dict()
+
+
 def test_stale_fit_is_detected(fitted):
     ed = fitted
     assert not ed.stale
@@ -396,22 +423,28 @@ def test_chromium_shows_the_scene(bar_path, tmp_path):
     chromium = shutil.which("chromium")
     assert chromium, "chromium is missing: `make test` installs it (APT_PKGS in the Makefile)"
     proc, port = _start_editor(bar_path)
-    shot = tmp_path / "shot.png"
+    drawn, run = 0.0, None
     try:
-        run = subprocess.run(
-            [chromium, "--headless", "--no-sandbox", "--disable-gpu", "--disable-quic",
-             "--no-first-run", "--disable-background-networking", "--disable-component-update",
-             "--disable-sync", "--enable-unsafe-swiftshader", f"--user-data-dir={tmp_path / 'p'}",
-             "--window-size=1200,800", "--virtual-time-budget=20000", f"--screenshot={shot}",
-             f"http://127.0.0.1:{port}/"], capture_output=True, text=True, timeout=120)
-        assert shot.is_file(), run.stderr[-2000:]
+        # a loaded machine can need more (virtual) time for the page, websocket and first frame
+        for attempt, budget in enumerate((20000, 40000, 80000)):
+            shot = tmp_path / f"shot{attempt}.png"
+            run = subprocess.run(
+                [chromium, "--headless", "--no-sandbox", "--disable-gpu", "--disable-quic",
+                 "--no-first-run", "--disable-background-networking",
+                 "--disable-component-update", "--disable-sync", "--enable-unsafe-swiftshader",
+                 f"--user-data-dir={tmp_path / 'profile'}", "--window-size=1200,800",
+                 f"--virtual-time-budget={budget}", f"--screenshot={shot}",
+                 f"http://127.0.0.1:{port}/"], capture_output=True, text=True, timeout=180)
+            assert shot.is_file(), run.stderr[-2000:]
+            image = np.asarray(Image.open(shot).convert("RGB")).astype(int)
+            scene = image[200:750, 100:800]   # the 3D view, clear of the panel and toasts
+            drawn = float((np.abs(scene - scene[0, 0]).sum(axis=2) > 60).mean())
+            if drawn > 0.02:
+                break
     finally:
         proc.send_signal(signal.SIGTERM)
         proc.communicate(timeout=30)
     assert proc.returncode == 0
-    image = np.asarray(Image.open(shot).convert("RGB")).astype(int)
-    scene = image[200:750, 100:800]             # the 3D view, clear of the panel and toasts
-    model = np.abs(scene - scene[0, 0]).sum(axis=2) > 60
-    assert model.mean() > 0.02, "the model is not drawn"
+    assert drawn > 0.02, f"the model is not drawn ({drawn:.3f}); {run.stderr[-1000:]}"
     panel = image[:, 870:]
     assert panel.std() > 10  # the GUI panel rendered (text and buttons)

@@ -9,7 +9,8 @@ and :meth:`EditorController.save` (deformed model, edit YAML, before/after PNG).
 Everything goes through the same pipeline as ``splatdeform deform``: the config models
 (:mod:`splatdeform.config`), :func:`splatdeform.edit.precompute` for rings, fit and basis, and
 :func:`splatdeform.deform.apply` for the saved model, so the saved YAML reproduces the saved model
-byte for byte. One handle per edit today; the state is a list so several can come.
+byte for byte. One or more handles (``handles:`` in the YAML when there are several): one
+fit, one basis, one 4x4 pose per handle.
 
 Example::
 
@@ -167,25 +168,29 @@ class EditorController:
     @classmethod
     def from_config(cls, path: str | Path) -> EditorController:
         """Load an edit YAML (handle edits) into the editor state."""
-        from ..edit import handle_matrix, prepare_model
+        from ..edit import prepare_model, transform_matrix
 
         path = Path(path)
         cfg = load_edit(path)
         if cfg.curve is not None:
             raise ConfigError(f"{path}: curve: the editor edits handle edits only (regions.fixed "
-                              "+ regions.handle + handle)")
+                              "+ regions.handle + handle, or handles)")
         base = path.resolve().parent
         model = prepare_model(cfg, base, {})
         ed = cls(model, model_path=base / cfg.input, base_dir=base, config=cfg,
                  config_path=path, units=cfg.regions.units)
         ed.fixed = [s.to_selector() for s in cfg.regions.fixed]
-        ed.handles = [HandleState([s.to_selector() for s in cfg.regions.handle or []])]
-        handle_mask = ed.masks()[1][0]
-        if handle_mask.any() or cfg.handle.matrix is not None:  # a centroid needs points
-            try:
-                ed.handles[0].matrix = handle_matrix(cfg, model, handle_mask)
-            except InputError as exc:
-                raise type(exc)(f"{path}: {exc}") from exc
+        if cfg.handles:
+            entries = [(f"handles[{i}]", h, h.region) for i, h in enumerate(cfg.handles)]
+        else:
+            entries = [("handle", cfg.handle, cfg.regions.handle or [])]
+        ed.handles = [HandleState([s.to_selector() for s in region]) for _, _, region in entries]
+        for (key, h, _), state, mask in zip(entries, ed.handles, ed.masks()[1], strict=True):
+            if mask.any() or h.matrix is not None:  # a centroid pivot needs points
+                try:
+                    state.matrix = transform_matrix(h, key, cfg.regions.units, model, mask)
+                except InputError as exc:
+                    raise type(exc)(f"{path}: {exc}") from exc
         return ed
 
     # ---- regions -----------------------------------------------------------------------
@@ -293,11 +298,34 @@ class EditorController:
         return None
 
     def _check_regions(self) -> None:
-        if len(self.handles) != 1:
-            raise RegionError(f"handles: this version fits one handle per edit, the editor has "
-                              f"{len(self.handles)}")
+        """The region checks ``precompute`` makes before the rings, with its messages (empty,
+        collinear or overlapping regions, no free region)."""
+        from .. import deform as df
+        from ..edit import metaphors
+
         fixed, handles = self.masks()
-        check_regions(fixed, handles[0])
+        if not fixed.any():
+            check_regions(fixed, fixed)  # the CLI's line for an empty fixed region
+        for i, state in enumerate(self.handles):
+            if not state.selectors:  # no YAML can say this; the line for an empty region
+                one = len(self.handles) == 1
+                raise RegionError.at("regions.handle" if one else f"handles[{i}].region",
+                                     "selects no point; widen " +
+                                     ("the handle region" if one else "it"))
+        for mph in metaphors(self.to_config(), self.model, self.base_dir):
+            df._check_metaphor(fixed, mph, self.model.n_points)
+        check_regions(fixed, np.logical_or.reduce(handles))
+
+    def add_handle(self, selectors: list[Selector] | None = None) -> int:
+        """A new handle (its own region and pose; one fit for all). Returns its index."""
+        self.handles.append(HandleState(list(selectors or [])))
+        return len(self.handles) - 1
+
+    def remove_handle(self, handle: int) -> None:
+        self._region("handle", handle)
+        if len(self.handles) == 1:
+            raise InputError("handles: an edit needs at least one handle")
+        del self.handles[handle]
 
     # ---- fit and pose ------------------------------------------------------------------
     def _settings_key(self) -> tuple:
@@ -372,11 +400,23 @@ class EditorController:
             cov6=None if m.gaussians is None else _gaussian_cov6(m),
             delta_c=np.zeros((4, 3)))
 
-    def delta_c(self, handle: int = 0) -> np.ndarray:
-        """delta_c (k, 3) = T(C) - C of the current pose (needs a fit: C is the fit's frame)."""
+    def delta_c(self) -> np.ndarray:
+        """delta_c (k, 3) of the current poses: T_h(C_h) - C_h for every handle h, stacked
+        (needs a fit: C_h are the fit's handle frames)."""
         if self.deformation is None:
             raise StaleFitError("fit: no fit yet; fit the regions first")
-        return delta_for_transform(self.deformation.control_points, self.handles[handle].matrix)
+        groups = self.deformation.handle_groups()
+        return np.vstack([delta_for_transform(g.frame.control_points, h.matrix)
+                          for g, h in zip(groups, self.handles, strict=True)])
+
+    def handle_pivot(self, handle: int = 0) -> np.ndarray:
+        """(3,) model-space centre of handle ``handle``'s fitted frame, moved by its pose."""
+        self._region("handle", handle)
+        if self.deformation is None:
+            raise StaleFitError("fit: no fit yet; fit the regions first")
+        c0 = self.deformation.handle_groups()[handle].frame.control_points[0]
+        m = self.handles[handle].matrix
+        return m[:3, :3] @ c0 + m[:3, 3]
 
     def set_pose(self, matrix: np.ndarray, handle: int = 0, *, full: bool = True) -> Frame:
         """Set handle ``handle``'s pose (4, 4) affine and deform: delta_c applied to the
@@ -394,7 +434,7 @@ class EditorController:
         self._region("handle", handle)
         t0 = time.perf_counter()
         self.handles[handle].matrix = m4.copy()
-        delta = self.delta_c(handle)
+        delta = self.delta_c()
         fd = self._frame_data
         active = fd["active"]
         with _one_blas_thread():
@@ -444,23 +484,31 @@ class EditorController:
         cdir = Path(config_dir).resolve() if config_dir is not None else self.base_dir
         out = Path(output) if output is not None else self.default_paths()[0]
         s = self.settings
-        if len(self.handles) != 1:
-            raise RegionError(f"handles: this version fits one handle per edit, the editor has "
-                              f"{len(self.handles)}")
+
+        def rows(m: np.ndarray) -> list[list[float]]:
+            return [[float(v) for v in row] for row in m]
+
+        def region(h: HandleState) -> list[dict[str, Any]]:
+            return [sl.to_yaml(x, self.base_dir) for x in h.selectors]
+
         data: dict[str, Any] = {
             "input": _relative(self.model_path, cdir),
             "output": _relative(out.resolve(), cdir),
-            "regions": {
-                "units": self.units,
-                "fixed": [sl.to_yaml(x, self.base_dir) for x in self.fixed],
-                "handle": [sl.to_yaml(x, self.base_dir) for x in self.handles[0].selectors],
-            },
-            "handle": {"matrix": [[float(v) for v in row] for row in self.handles[0].matrix]},
+            "regions": {"units": self.units,
+                        "fixed": [sl.to_yaml(x, self.base_dir) for x in self.fixed]},
+        }
+        if len(self.handles) == 1:
+            data["regions"]["handle"] = region(self.handles[0])
+            data["handle"] = {"matrix": rows(self.handles[0].matrix)}
+        else:
+            data["handles"] = [{"region": region(h), "matrix": rows(h.matrix)}
+                               for h in self.handles]
+        data.update({
             "boundary": s.boundary.model_dump(),
             "fit": s.fit.model_dump(),
             "normals": s.normals,
             "backend": self.resolved_backend(),
-        }
+        })
         if s.device is not None:
             data["device"] = s.device
         if s.render is not None:
