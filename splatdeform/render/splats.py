@@ -5,7 +5,8 @@ Sources, in order of preference:
 - surfel radius with normals: :func:`splatdeform.frame.radius_to_axes`;
   stored surfels smaller than the local sample spacing are enlarged (``fill_holes``);
 - 3D Gaussians: the two largest principal axes of each Gaussian, ``GAUSSIAN_EXTENT`` standard
-  deviations long, normal along the smallest one (rendered as opaque ellipses for now);
+  deviations long, normal along the smallest one (an ellipse per Gaussian for callers that want
+  surfels; the renderer draws Gaussians with EWA splatting, see ``gaussian_data.py``);
 - anything else: round splats sized from the k-nearest-neighbour spacing (scipy cKDTree) so a
   dense scan renders without holes; missing normals are estimated by local PCA.
 Meshes need no splat axes (they render as triangles); missing mesh normals are area-weighted
