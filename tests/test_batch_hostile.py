@@ -310,7 +310,7 @@ def test_scan_timeout_stops_only_the_slow_scan(tmp_path: Path, bars, monkeypatch
     monkeypatch.setattr(tempfile, "tempdir", str(tmp))   # and this process's
     jobs = load_batch(write_batch(tmp_path / "b.yaml", scans="s.zip", output_dir="out")).jobs
     got = {r["scan"]: r for r in run_local(jobs, 2, lambda r: None, fn=hang_in_slow_scans,
-                                           timeout=4.0)}
+                                           timeout=6.0)}
     assert got["s.zip:slow.ply"]["status"] == "failed"
     assert "timed out" in got["s.zip:slow.ply"]["error"]
     assert all(got[f"s.zip:{p.name}"]["status"] == "ok" for p in bars)
