@@ -332,6 +332,10 @@ def test_app_colours_regions_fits_and_follows_the_pose(bar_copy, viser_server):
         while app.frames < 1 and time.time() < deadline:
             time.sleep(0.05)
         assert app.frames >= 1
+        app._new_handle()                              # a second handle gets the next selector
+        app._add("handle", "box")
+        assert len(ed.handles) == 2 and len(ed.handles[1].selectors) == 1 and ed.stale
+        assert any(label.startswith("handle 1.0") for label in app.selected.options)
     finally:
         app.close()
 

@@ -213,9 +213,17 @@ class EditorApp:
             self.counts_md.content = "  \n".join(lines)
 
     # ---- selectors ---------------------------------------------------------------------
-    def _selector_entries(self) -> list[tuple[str, int]]:
-        return [("fixed", i) for i in range(len(self.ed.fixed))] + \
-               [("handle", i) for i in range(len(self.ed.handles[0].selectors))]
+    def _selector_entries(self) -> dict[str, tuple[str, int, int]]:
+        """GUI label -> (role, handle, index) of every selector."""
+        out = {}
+        for i, sel in enumerate(self.ed.fixed):
+            out[f"fixed {i} ({type(sel).__name__.lower()})"] = ("fixed", 0, i)
+        many = len(self.ed.handles) > 1
+        for h, state in enumerate(self.ed.handles):
+            for i, sel in enumerate(state.selectors):
+                name = f"handle {h}.{i}" if many else f"handle {i}"
+                out[f"{name} ({type(sel).__name__.lower()})"] = ("handle", h, i)
+        return out
 
     def rebuild_selectors(self) -> None:
         """One gizmo + outline per box / sphere / plane selector."""
@@ -223,11 +231,12 @@ class EditorApp:
         for node in self._selector_nodes:
             node.remove()
         self._selector_nodes = []
-        for role, i in self._selector_entries():
-            shape = self.ed.shape(role, i)
+        entries = self._selector_entries()
+        for role, h, i in entries.values():
+            shape = self.ed.shape(role, i, handle=h)
             if shape.kind == "other":
                 continue
-            name = f"/world/selectors/{role}{i}"
+            name = f"/world/selectors/{role}{h}_{i}"
             wxyz = _rotation_to(shape.normal) if shape.kind == "plane" else (1.0, 0, 0, 0)
             size = float(max(self.model.diagonal(), 1e-9))
             gizmo = s.add_transform_controls(
@@ -244,15 +253,13 @@ class EditorApp:
                 outline = s.add_box(f"{name}/outline", color=color,
                                     dimensions=(0.8 * size, 0.8 * size, 1e-3 * size),
                                     opacity=0.25)
-            gizmo.on_update(self._selector_moved(role, i, shape.kind))
+            gizmo.on_update(self._selector_moved(role, h, i, shape.kind))
             self._selector_nodes += [outline, gizmo]
-        labels = [f"{role} {i} ({type(sel).__name__.lower()})" for role, i in
-                  self._selector_entries()
-                  for sel in [self.ed._region(role)[i]]]
-        self.selected.options = tuple(labels) or ("(none)",)
+        self.selected.options = tuple(entries) or ("(none)",)
+        self.active.options = tuple(f"handle {h}" for h in range(len(self.ed.handles)))
         self._on_selected()
 
-    def _selector_moved(self, role: str, index: int, kind: str):
+    def _selector_moved(self, role: str, handle: int, index: int, kind: str):
         def callback(event: Any) -> None:
             g = event.target
             with self.lock:
@@ -260,22 +267,19 @@ class EditorApp:
                 if kind == "plane":
                     normal = quaternion_to_matrix(np.asarray(g.wxyz)[None])[0][:, 2]
                 self.ed.move_selector(role, index, center=np.asarray(g.position) + self.ed.origin,
-                                      normal=normal)
+                                      normal=normal, handle=handle)
             self.refresh_regions()
         return callback
 
-    def _selected_entry(self) -> tuple[str, int] | None:
-        value = self.selected.value
-        if not value or value == "(none)":
-            return None
-        role, idx = value.split(" ")[:2]
-        return role, int(idx)
+    def _selected_entry(self) -> tuple[str, int, int] | None:
+        return self._selector_entries().get(self.selected.value)
 
     def _on_selected(self, *_: Any) -> None:
         entry = self._selected_entry()
         if entry is None:
             return
-        shape = self.ed.shape(*entry)
+        role, h, i = entry
+        shape = self.ed.shape(role, i, handle=h)
         self._syncing = True
         try:
             self.size_input.value = tuple(float(v) for v in shape.size)
@@ -287,20 +291,24 @@ class EditorApp:
         if entry is None or getattr(self, "_syncing", False):
             return
         size = np.abs(np.asarray(self.size_input.value, float))
+        role, h, i = entry
         with self.lock:
             try:
-                if self.ed.shape(*entry).kind == "sphere":
+                if self.ed.shape(role, i, handle=h).kind == "sphere":
                     size = np.full(3, size.max())
-                self.ed.move_selector(*entry, size=size)
+                self.ed.move_selector(role, i, size=size, handle=h)
             except SplatdeformError as exc:
                 self.status(str(exc))
                 return
         self.rebuild_selectors()
         self.refresh_regions()
 
+    def _active_handle(self) -> int:
+        return int(str(self.active.value).split()[-1])
+
     def _add(self, role: str, kind: str) -> None:
         with self.lock:
-            self.ed.add_selector(role, kind)
+            self.ed.add_selector(role, kind, handle=self._active_handle())
         self.rebuild_selectors()
         self.refresh_regions()
 
@@ -308,9 +316,17 @@ class EditorApp:
         entry = self._selected_entry()
         if entry is None:
             return
+        role, h, i = entry
         with self.lock:
-            self.ed.remove_selector(*entry)
+            self.ed.remove_selector(role, i, handle=h)
         self.rebuild_selectors()
+        self.refresh_regions()
+
+    def _new_handle(self, *_: Any) -> None:
+        with self.lock:
+            h = self.ed.add_handle()
+        self.rebuild_selectors()
+        self.active.value = f"handle {h}"
         self.refresh_regions()
 
     # ---- fit and pose ------------------------------------------------------------------
@@ -345,10 +361,8 @@ class EditorApp:
         for g in self._pose_gizmos:
             g.remove()
         self._pose_gizmos, self._pose_base = [], []
-        d = self.ed.deformation
         for h, state in enumerate(self.ed.handles):
-            start = state.matrix[:3, :3] @ d.control_points[0] + state.matrix[:3, 3] \
-                - self.ed.origin
+            start = self.ed.handle_pivot(h) - self.ed.origin
             g = self.server.scene.add_transform_controls(
                 f"/world/handles/pose{h}", scale=0.25 * max(self.model.diagonal(), 1e-9),
                 position=start, depth_test=False)
@@ -428,6 +442,8 @@ class EditorApp:
             for role in ("fixed", "handle"):
                 group = gui.add_button_group(f"add {role}", ("box", "sphere", "plane"))
                 group.on_click(lambda e, role=role: self._add(role, e.target.value))
+            self.active = gui.add_dropdown("adds to", ("handle 0",))
+            gui.add_button("new handle").on_click(self._new_handle)
             self.selected = gui.add_dropdown("selector", ("(none)",))
             self.selected.on_update(self._on_selected)
             self.size_input = gui.add_vector3("size", (0.0, 0.0, 0.0), step=1e-3)
