@@ -50,9 +50,10 @@ def sh_basis(d: np.ndarray, degree: int) -> np.ndarray:
 
 
 def reference_render(model, camera, size, values=None, gradients=None, delta_c=None,
-                     background=(1.0, 1.0, 1.0)) -> np.ndarray:
+                     background=(1.0, 1.0, 1.0), rotate_sh=True) -> np.ndarray:
     """(H, W, 4) float64 image (top row first): rgb composited over ``background``, alpha =
-    1 - transmittance. ``model`` has 3DGS fields; the optional basis deforms it by delta_c."""
+    1 - transmittance. ``model`` has 3DGS fields; the optional basis deforms it by delta_c.
+    ``rotate_sh=False`` evaluates a deformed splat's SH unrotated (a negative control)."""
     g = model.gaussians
     width, height = size
     p = model.positions.astype(np.float64)
@@ -97,7 +98,7 @@ def reference_render(model, camera, size, values=None, gradients=None, delta_c=N
         degree = {3: 1, 8: 2, 15: 3}[rest]
         direction = p - camera.eye()
         direction /= np.linalg.norm(direction, axis=1, keepdims=True)
-        if delta_c is not None and values is not None:
+        if delta_c is not None and values is not None and rotate_sh:
             u, _, vt = np.linalg.svd(jac)
             polar = u @ vt
             direction = np.einsum("nji,nj->ni", polar, direction)  # R^T d
