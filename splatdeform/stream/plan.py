@@ -81,7 +81,7 @@ def bbox_pass(src: ChunkFile, chunk: int, quiet: bool, sample_size: int = 200_00
         pos = src.positions(a, b)
         lo = np.minimum(lo, pos.min(axis=0))
         hi = np.maximum(hi, pos.max(axis=0))
-        sample.append(pos[(-a) % stride::stride])
+        sample.append(pos[(-a) % stride::stride].copy())  # not a view: frees the chunk
         progress.update(b - a)
     seconds = progress.finish()
     return lo, hi, np.concatenate(sample), seconds

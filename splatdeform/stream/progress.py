@@ -2,9 +2,19 @@
 
 from __future__ import annotations
 
+import os
 import sys
 import time
 from collections.abc import Callable
+
+
+def _peak() -> str:
+    """', peak RSS N MB' when SPLATDEFORM_SHOW_RSS is set (benchmarks), else ''."""
+    if not os.environ.get("SPLATDEFORM_SHOW_RSS"):
+        return ""
+    import resource
+
+    return f", peak RSS {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024:.0f} MB"
 
 
 class Progress:
@@ -35,5 +45,5 @@ class Progress:
         seconds = time.perf_counter() - self.t0
         if not self.quiet:
             self.sink(f"{self.name}: {self.done:,} points in {seconds:.1f} s "
-                      f"({self.rate() / 1e6:.2f} M points/s)")
+                      f"({self.rate() / 1e6:.2f} M points/s)" + _peak())
         return seconds
