@@ -70,10 +70,9 @@ def cmd_deform(args: argparse.Namespace) -> int:
                                   "workers": args.workers, "quiet": args.quiet,
                                   "render": bool(args.render or cfg.render)})
     except InputError as exc:
-        # region/curve/transform errors name the key; add the config file they came from
-        if str(exc).split(":")[0].split(".")[0] in ("regions", "handle", "curve", "boundary",
-                                                     "fit"):
-            raise type(exc)(f"{args.config}: {exc}") from exc
+        # an error about a config key is said of the config file it came from
+        if exc.key is not None:
+            raise exc.in_file(args.config) from None
         raise
     if render_out and result.model is None:
         raise InputError("--render/render: not available when deform streams (the model is "
@@ -124,7 +123,7 @@ def cmd_select(args: argparse.Namespace) -> int:
     try:
         sel = select_regions(cfg, model, base)
     except InputError as exc:
-        raise type(exc)(f"{args.config}: {exc}") from exc
+        raise exc.in_file(args.config) from None
     print(format_counts(sel.counts()))
     if args.output is not None:
         from .render import render_comparison

@@ -221,14 +221,28 @@ def input_paths(cfg: EditConfig, base_dir: str | Path) -> list[tuple[str, Path]]
     return found
 
 
-def _loc(loc: tuple[Any, ...]) -> str:
+def _config_fields(roots: tuple[type[BaseModel], ...]) -> frozenset[str]:
+    """Every field name of the config models derived from ``roots``: the only strings a key
+    path is made of."""
+    names, todo = set(), list(roots)
+    while todo:
+        cls = todo.pop()
+        names.update(cls.model_fields)
+        todo.extend(cls.__subclasses__())
+    return frozenset(names)
+
+
+def _loc(loc: tuple[Any, ...], kind: str, roots: tuple[type[BaseModel], ...]) -> str:
+    """The key path of a pydantic error location, from structured data: list indices and the
+    config models' own field names are kept; anything else pydantic puts in ``loc`` (the
+    labels of union members) is not a key. The last part of an unknown-key error is the
+    unknown key itself."""
+    fields = _config_fields(roots)
     out = ""
-    for part in loc:
+    for i, part in enumerate(loc):
         if isinstance(part, int):
             out += f"[{part}]"
-        elif part in ("function-after", "list[float]", "float", "str", "int") or "[" in str(part):
-            continue  # union-branch labels pydantic adds
-        else:
+        elif part in fields or (kind == "extra_forbidden" and i == len(loc) - 1):
             out += ("." if out else "") + str(part)
     return out or "(top level)"
 
@@ -248,14 +262,22 @@ def _message(err: dict[str, Any]) -> str:
     return msg
 
 
-def format_validation_error(source: str, exc: ValidationError, prefix: str = "") -> str:
-    """One line for the first (most specific) validation error."""
+def validation_error(source: str, exc: ValidationError, prefix: str = "",
+                     roots: tuple[type[BaseModel], ...] = ()) -> ConfigError:
+    """A ConfigError (file, key path, message) for the most specific validation error;
+    ``roots``: base classes of the config models validated (default: the edit config's)."""
     errors = exc.errors()
     # prefer errors that are not union-branch noise: the deepest location first
     err = max(errors, key=lambda e: (e["type"] != "model_type", len(e["loc"])))
-    loc = _loc(err["loc"])
+    loc = _loc(err["loc"], err["type"], roots or (_Strict,))
     path = f"{prefix}.{loc}" if prefix and loc != "(top level)" else (prefix or loc)
-    return f"{source}: {path}: {_message(err)}"
+    return ConfigError.at(path, _message(err), file=source)
+
+
+def format_validation_error(source: str, exc: ValidationError, prefix: str = "",
+                            roots: tuple[type[BaseModel], ...] = ()) -> str:
+    """One line for the first (most specific) validation error."""
+    return str(validation_error(source, exc, prefix, roots))
 
 
 def read_yaml(path: str | Path) -> dict[str, Any]:
@@ -289,7 +311,7 @@ def parse_edit(data: dict[str, Any], source: str, prefix: str = "") -> EditConfi
     try:
         return EditConfig.model_validate(data)
     except ValidationError as exc:
-        raise ConfigError(format_validation_error(source, exc, prefix)) from None
+        raise validation_error(source, exc, prefix) from None
 
 
 def load_edit(path: str | Path) -> EditConfig:

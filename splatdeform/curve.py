@@ -37,7 +37,7 @@ def knot_vector(control_points: np.ndarray, degree: int, parametrization: str) -
     else:
         chord = np.linalg.norm(np.diff(control_points, axis=0), axis=1)
         if not chord.sum() > 0:
-            raise ConfigError("curve.control_points: all control points coincide")
+            raise ConfigError.at("curve.control_points", "all control points coincide")
         params = np.concatenate([[0.0], np.cumsum(chord) / chord.sum()])
         inner = np.array([params[j:j + degree].mean() for j in range(1, k - degree)])
     return np.concatenate([np.zeros(degree + 1), inner, np.ones(degree + 1)])
@@ -49,7 +49,7 @@ class SplineCurve:
     def __init__(self, control_points: np.ndarray, degree: int, parametrization: str) -> None:
         k = control_points.shape[0]
         if k < degree + 1:
-            raise ConfigError(f"curve.control_points: a degree-{degree} curve needs at least "
+            raise ConfigError.at("curve.control_points", f"a degree-{degree} curve needs at least "
                               f"{degree + 1} control points, got {k}")
         self.control_points = control_points
         self.knots = knot_vector(control_points, degree, parametrization)
@@ -88,11 +88,11 @@ def curve_band(model: PointModel, cfg: CurveCfg, units: str
     """The snapped curve, the band's point indices (M,) and their curve parameters t (M,)."""
     raw = np.array([to_model_point(model, p, units) for p in cfg.control_points])
     if not np.isfinite(raw).all():
-        raise ConfigError("curve.control_points: expected finite coordinates")
+        raise ConfigError.at("curve.control_points", "expected finite coordinates")
     _, snap = cKDTree(model.positions).query(raw)
     repeated = np.flatnonzero(snap[1:] == snap[:-1])
     if repeated.size:
-        raise ConfigError(f"curve.control_points: consecutive control points snap to the same "
+        raise ConfigError.at("curve.control_points", f"consecutive control points snap to the same "
                           f"model point after point(s) {_listed(repeated)}; space them further "
                           "apart than the point spacing")
     control = model.positions[snap]
@@ -100,14 +100,15 @@ def curve_band(model: PointModel, cfg: CurveCfg, units: str
     radius = cfg.capture_radius * (model.diagonal() if units == "relative" else 1.0)
     band_idx, band_t = capture(curve, model.positions, radius)
     if band_idx.size == 0:
-        raise RegionError("curve.capture_radius: captures no point of the model; raise it")
+        raise RegionError.at("curve.capture_radius", "captures no point of the model; raise it")
     if band_idx.size == model.n_points:
-        raise RegionError("curve.capture_radius: captures every point of the model; lower it")
+        raise RegionError.at("curve.capture_radius", "captures every point of the model; lower it")
     influence = curve.weights(band_t).max(axis=0)
     if (influence < 1e-3).any():
         lost = _listed(np.flatnonzero(influence < 1e-3))
-        raise RegionError(f"curve.capture_radius: captures {band_idx.size} points, none of them "
-                          f"under the influence of control point(s) {lost}; raise it")
+        raise RegionError.at("curve.capture_radius",
+                             f"captures {band_idx.size} points, none of them under the "
+                             f"influence of control point(s) {lost}; raise it")
     return curve, band_idx, band_t
 
 
@@ -138,6 +139,6 @@ def curve_delta(cfg: CurveCfg, model: PointModel, units: str,
     given = np.array([to_model_point(model, p, units) for p in cfg.control_points])
     moved = np.array([to_model_point(model, p, units) for p in cfg.moved_to])
     if moved.shape != given.shape:
-        raise ConfigError(f"curve.moved_to: expected {given.shape[0]} points, got "
+        raise ConfigError.at("curve.moved_to", f"expected {given.shape[0]} points, got "
                           f"{moved.shape[0]}")
     return moved - given

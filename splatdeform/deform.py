@@ -122,7 +122,7 @@ def _moving_columns(n_points: int, metaphors: list[Metaphor]
         taken = owner[mph.idx] >= 0
         if taken.any():
             other = metaphors[int(owner[mph.idx[taken][0]])].name
-            raise RegionError(f"{mph.name}: overlaps {other} in {int(taken.sum())} points; "
+            raise RegionError.at(f"{mph.name}", f"overlaps {other} in {int(taken.sum())} points; "
                               "moving regions must be disjoint")
         owner[mph.idx] = j
     moving_idx = np.flatnonzero(owner >= 0)
@@ -151,9 +151,9 @@ def prepare_metaphors(model: PointModel, fixed: np.ndarray, metaphors: list[Meta
     metaphor, or has no point next to the free region.
     """
     if continuity not in (0, 1, 2):
-        raise RegionError(f"boundary.continuity: expected 0, 1 or 2, got {continuity}")
+        raise RegionError.at("boundary.continuity", f"expected 0, 1 or 2, got {continuity}")
     if not metaphors:
-        raise RegionError("regions: an edit needs at least one handle or curve")
+        raise RegionError.at("regions", "an edit needs at least one handle or curve")
     n = model.n_points
     for mph in metaphors:
         _check_metaphor(fixed, mph, n)
@@ -170,9 +170,9 @@ def prepare_metaphors(model: PointModel, fixed: np.ndarray, metaphors: list[Meta
         first_ring = moving_rings[0]
         for mph in metaphors:
             if not np.isin(mph.idx, first_ring, assume_unique=True).any():
-                raise RegionError(f"{mph.name}: no point of it is adjacent to the free region "
-                                  "(is it enclosed by another region or a separate "
-                                  "component? raise boundary.neighbors)")
+                raise RegionError.at(mph.name, "no point of it is adjacent to the free "
+                                     "region (is it enclosed by another region or a "
+                                     "separate component? raise boundary.neighbors)")
     timings["rings"] = time.perf_counter() - t0
 
     fixed_c = np.concatenate(fixed_rings)
@@ -214,10 +214,10 @@ def _check_metaphor(fixed: np.ndarray, mph: Metaphor, n: int) -> None:
         check_regions(fixed, mask, handle_name=_short(mph.name))
         return
     if not mask.any():
-        raise RegionError(f"{mph.name}: selects no point; widen it")
+        raise RegionError.at(f"{mph.name}", "selects no point; widen it")
     both = fixed & mask
     if both.any():
-        raise RegionError(f"{mph.name}: overlaps regions.fixed in {int(both.sum())} points; "
+        raise RegionError.at(f"{mph.name}", f"overlaps regions.fixed in {int(both.sum())} points; "
                           "they must be disjoint")
 
 

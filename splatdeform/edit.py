@@ -48,7 +48,7 @@ def transform_matrix(h: HandleCfg, key: str, units: str, model: PointModel,
     if h.matrix is not None:
         m = np.asarray(h.matrix, dtype=np.float64)
         if not np.allclose(m[3], [0, 0, 0, 1]):
-            raise ConfigError(f"{key}.matrix: the last row must be [0, 0, 0, 1] (affine)")
+            raise ConfigError.at(f"{key}.matrix", "the last row must be [0, 0, 0, 1] (affine)")
         return m
     t: TransformCfg = h.transform
     if t.pivot == "centroid":

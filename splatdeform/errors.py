@@ -9,9 +9,43 @@ from __future__ import annotations
 
 
 class SplatdeformError(Exception):
-    """Base class of every error the package raises on purpose."""
+    """Base class of every error the package raises on purpose.
+
+    The parts of the one line the CLI prints are fields, not text to parse: ``file`` (the
+    file it is about, e.g. the edit config), ``key`` (the config key path, e.g.
+    ``handles[1].region``) and ``message`` (what was wrong and what was expected). str() is
+    ``file: key: message`` with the missing parts left out.
+    """
 
     exit_code = 1
+
+    def __init__(self, message: str = "", *, key: str | None = None,
+                 file: str | None = None) -> None:
+        self.message = message
+        self.key = key
+        self.file = None if file is None else str(file)
+        super().__init__(message)
+
+    @classmethod
+    def at(cls, key: str, message: str, *, file: str | None = None) -> SplatdeformError:
+        """The error for config key ``key``."""
+        return cls(message, key=key, file=file)
+
+    def in_file(self, file: str) -> SplatdeformError:
+        """This error, said of ``file`` (kept when it already names one)."""
+        if self.file is None:
+            self.file = str(file)
+        return self
+
+    def __str__(self) -> str:
+        return ": ".join(p for p in (self.file, self.key, self.message) if p)
+
+    def __reduce__(self):  # picklable with its fields (batch workers, Dask)
+        return (_rebuild, (type(self), self.message, self.key, self.file))
+
+
+def _rebuild(cls: type, message: str, key: str | None, file: str | None) -> SplatdeformError:
+    return cls(message, key=key, file=file)
 
 
 class InputError(SplatdeformError):

@@ -43,7 +43,7 @@ def handle_frame(points: np.ndarray, name: str = "regions.handle") -> AffineFram
     centred = pts - centroid
     _, sv, vt = np.linalg.svd(centred, full_matrices=False)
     if sv.size < 2 or sv[0] <= 0 or sv[1] <= 1e-6 * sv[0]:
-        raise RegionError(f"{name}: the handle points are (nearly) collinear or a single "
+        raise RegionError.at(f"{name}", "the handle points are (nearly) collinear or a single "
                           "point; an affine handle needs points spanning at least a plane")
     extent = np.abs(centred @ vt.T).max(axis=0)
     extent = np.where(extent > 1e-3 * extent[0], extent, extent[0])
@@ -60,7 +60,7 @@ def rotation_matrix(axis, degrees: float) -> np.ndarray:
     a = np.asarray(axis, dtype=np.float64)
     norm = np.linalg.norm(a)
     if not norm > 0:
-        raise InputError("handle.transform.rotate.axis: expected a non-zero vector")
+        raise InputError.at("handle.transform.rotate.axis", "expected a non-zero vector")
     x, y, z = a / norm
     t = np.radians(degrees)
     c, s, C = np.cos(t), np.sin(t), 1 - np.cos(t)
@@ -74,7 +74,7 @@ def compose_transform(*, pivot: np.ndarray, scale=1.0, axis=(0.0, 0.0, 1.0),
     """4x4 matrix: scale, then rotate, then translate, about ``pivot`` (3,)."""
     s = np.broadcast_to(np.asarray(scale, dtype=np.float64), (3,))
     if np.any(s == 0):
-        raise InputError("handle.transform.scale: expected non-zero scale factors")
+        raise InputError.at("handle.transform.scale", "expected non-zero scale factors")
     linear = rotation_matrix(axis, degrees) @ np.diag(s) if degrees else np.diag(s)
     pivot = np.asarray(pivot, dtype=np.float64)
     m = np.eye(4)

@@ -51,7 +51,7 @@ def handle_metaphor(positions: np.ndarray, mask: np.ndarray, name: str = "region
     idx = np.flatnonzero(mask)
     if idx.size == 0:
         what = "the handle region" if name == "regions.handle" else "it"
-        raise RegionError(f"{name}: selects no point; widen {what}")
+        raise RegionError.at(f"{name}", f"selects no point; widen {what}")
     frame = handle_frame(positions[idx], name)
     grads = np.broadcast_to(frame.coordinate_gradients(), (idx.size, 4, 3))
     return Metaphor(name=name, idx=idx, control_points=frame.control_points,

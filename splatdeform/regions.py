@@ -159,14 +159,14 @@ def select(model: PointModel, selectors: list[Selector], units: str = "model",
 def check_regions(fixed: np.ndarray, handle: np.ndarray, *, handle_name: str = "handle") -> None:
     """Raise RegionError for empty, overlapping or all-covering regions."""
     if not fixed.any():
-        raise RegionError("regions.fixed: selects no point; widen the fixed region")
+        raise RegionError.at("regions.fixed", "selects no point; widen the fixed region")
     if not handle.any():
-        raise RegionError(f"regions.{handle_name}: selects no point; widen the {handle_name} "
-                          "region")
+        raise RegionError.at(f"regions.{handle_name}",
+                             f"selects no point; widen the {handle_name} region")
     both = fixed & handle
     if both.any():
-        raise RegionError(f"regions: fixed and {handle_name} regions overlap in "
+        raise RegionError.at("regions", f"fixed and {handle_name} regions overlap in "
                           f"{int(both.sum())} points; they must be disjoint")
     if (fixed | handle).all():
-        raise RegionError(f"regions: fixed and {handle_name} regions cover every point; "
+        raise RegionError.at("regions", f"fixed and {handle_name} regions cover every point; "
                           "leave a free region between them")

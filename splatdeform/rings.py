@@ -198,14 +198,14 @@ def boundary_rings(adj: sp.csr_matrix, fixed: np.ndarray, handle: np.ndarray, co
     free = ~(fixed | handle)
     touching = neighbours_of(adj, handle) & fixed
     if touching.any():
-        raise RegionError(f"regions: {int(touching.sum())} fixed points are adjacent to "
+        raise RegionError.at("regions", f"{int(touching.sum())} fixed points are adjacent to "
                           f"{handle_name} points; leave a free region between them")
     fixed_rings = rings(adj, fixed, free, count)
     handle_rings = rings(adj, handle, free, count)
     if fixed_rings[0].size == 0:
-        raise RegionError("regions.fixed: no fixed point is adjacent to the free region (is "
+        raise RegionError.at("regions.fixed", "no fixed point is adjacent to the free region (is "
                           "it a separate component? raise boundary.neighbors)")
     if handle_rings[0].size == 0:
-        raise RegionError(f"regions.{handle_name}: no {handle_name} point is adjacent to the "
+        raise RegionError.at(f"regions.{handle_name}", f"no {handle_name} point is adjacent to the "
                           "free region (is it a separate component? raise boundary.neighbors)")
     return fixed_rings, handle_rings

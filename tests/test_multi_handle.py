@@ -195,7 +195,11 @@ def test_reuse_with_new_transforms_for_every_handle(bar_dir):
     assert res.returncode == 0 and "reused precomputed deformation" in res.stdout, res.stderr
     fresh = run_edit(parse_edit(cfg, "fresh.yaml"), bar_dir, save_output=False)
     reused = sd.load(bar_dir / "reuse2.ply")
-    np.testing.assert_array_equal(reused.positions, fresh.deformed.positions)
+    # free points: the same basis, summed in another process (BLAS order): rounding apart
+    np.testing.assert_allclose(reused.positions, fresh.deformed.positions, rtol=0,
+                               atol=1e-12 * fresh.model.diagonal())
+    d = fresh.deformation
+    np.testing.assert_array_equal(reused.positions[d.moving], fresh.deformed.positions[d.moving])
 
 
 def test_bunny_both_ears_bent_by_different_rotations(tmp_path):
