@@ -48,8 +48,11 @@ def _rebuild(cls: type, message: str, key: str | None, file: str | None) -> Spla
     return cls(message, key=key, file=file)
 
 
-class InputError(SplatdeformError):
-    """Bad input: missing/unreadable/malformed file, bad config key or value, bad argument."""
+class InputError(SplatdeformError, ValueError):
+    """Bad input: missing/unreadable/malformed file, bad config key or value, bad argument.
+
+    Also a ValueError, so callers of the numeric functions that catch ValueError keep working.
+    """
 
     exit_code = 2
 

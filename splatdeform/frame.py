@@ -12,11 +12,13 @@ from __future__ import annotations
 
 import numpy as np
 
+from .errors import InputError
+
 
 def _check_delta(delta_c: np.ndarray, k: int) -> np.ndarray:
     d = np.asarray(delta_c)
     if d.shape != (k, 3):
-        raise ValueError(f"delta_c: expected shape ({k}, 3) for a {k}-column basis, got {d.shape}")
+        raise InputError(f"delta_c: expected shape ({k}, 3) for a {k}-column basis, got {d.shape}")
     return d
 
 
@@ -122,7 +124,7 @@ def deform_frame(positions: np.ndarray, normals: np.ndarray | None, values: np.n
     mix = None
     if normals is not None:
         if gradients is None:
-            raise ValueError("gradients: required to transform normals")
+            raise InputError("gradients: required to transform normals")
         mix = np.einsum("ka,bc->kbac", d, np.eye(3, dtype=dt)).reshape(3 * k, 9)
     for s in range(0, n, chunk):
         e = min(s + chunk, n)

@@ -12,6 +12,8 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
+from .errors import InputError
+
 KINDS = ("mesh", "oriented_cloud", "cloud", "surfel_radius", "surfel_axes", "gaussians")
 
 
@@ -124,7 +126,7 @@ class PointModel:
     def __post_init__(self) -> None:
         self.positions = np.asarray(self.positions, dtype=np.float64)
         if self.positions.ndim != 2 or self.positions.shape[1] != 3:
-            raise ValueError(f"positions: expected shape (N, 3), got {self.positions.shape}")
+            raise InputError(f"positions: expected shape (N, 3), got {self.positions.shape}")
 
     @property
     def n_points(self) -> int:

@@ -8,13 +8,15 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from .errors import InputError
+
 _PACKAGE_DIR = Path(__file__).resolve().parent
 
 
 def resource_dir(name: str) -> Path:
     """Return the folder holding the run-time sources ``name`` ("kernels" or "shaders")."""
     if name not in ("kernels", "shaders"):
-        raise ValueError(f"resource name: expected 'kernels' or 'shaders', got {name!r}")
+        raise InputError(f"resource name: expected 'kernels' or 'shaders', got {name!r}")
     for candidate in (_PACKAGE_DIR / "_data" / name, _PACKAGE_DIR.parent / name):
         if candidate.is_dir():
             return candidate
