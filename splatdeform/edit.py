@@ -227,10 +227,9 @@ def run_edit(cfg: EditConfig, base_dir: str | Path = ".", *, output: str | Path 
         timings.update({"rings": 0.0, "fit": 0.0, "basis": 0.0})
         check_converged(deformation.fit, cfg, warn)
     if log:
-        from .selection import counts_of_deformation, format_counts
+        from .selection import counts_of_deformation, format_counts, moving_label
 
-        log(format_counts(counts_of_deformation(
-            deformation, "curve band" if cfg.curve is not None else "handle")))
+        log(format_counts(counts_of_deformation(deformation, moving_label(cfg))))
     delta_c, matrix = control_displacement(cfg, model, deformation)
     t0 = time.perf_counter()
     deformed = df.apply(deformation, model, delta_c, moving_matrix=matrix)  # checks finiteness

@@ -54,29 +54,39 @@ class Selection:
                             [int(r.size) for r in self.moving_rings], self.moving_name)
 
 
+def moving_label(cfg: EditConfig) -> str:
+    """What the moving region is called in the counts line: ``handle``, ``handles``,
+    ``curve band`` or ``handles + curve band``."""
+    n_handles = (1 if cfg.handle is not None else 0) + len(getattr(cfg, "handles", None) or [])
+    handles = "handle" if n_handles == 1 else "handles" if n_handles else ""
+    band = "curve band" if cfg.curve is not None else ""
+    return " + ".join(p for p in (handles, band) if p) or "handle"
+
+
 def select_regions(cfg: EditConfig, model: PointModel, base_dir: str | Path) -> Selection:
-    """The edit's fixed and moving masks and rings, exactly as ``deform`` computes them (no fit).
-    Raises RegionError / InputError / ConfigError like ``deform``."""
+    """The edit's fixed and moving masks and rings, exactly as ``deform`` computes them (the
+    same metaphors, checks and rings as :func:`splatdeform.deform.prepare_metaphors`, without
+    the fit). Raises RegionError / InputError / ConfigError like ``deform``."""
+    from . import deform as df
+    from .edit import metaphors
     from .rings import boundary_rings, region_adjacency
 
     base_dir = Path(base_dir)
-    units = cfg.regions.units
-    fixed = select(model, [s.to_selector() for s in cfg.regions.fixed], units, base_dir)
-    if cfg.curve is not None:
-        from .curve import curve_band
-
-        _, band_idx, _ = curve_band(model, cfg.curve, units)
-        moving = np.zeros(model.n_points, dtype=bool)
-        moving[band_idx] = True
-        name = "curve band"
-    else:
-        moving = select(model, [s.to_selector() for s in cfg.regions.handle], units, base_dir)
-        name = "handle"
+    fixed = select(model, [s.to_selector() for s in cfg.regions.fixed], cfg.regions.units,
+                   base_dir)
+    mphs = metaphors(cfg, model, base_dir)
+    n = model.n_points
+    for mph in mphs:
+        df._check_metaphor(fixed, mph, n)
+    moving_idx = df._moving_columns(n, mphs)[0]
+    moving = np.zeros(n, dtype=bool)
+    moving[moving_idx] = True
+    name = df._short(mphs[0].name) if len(mphs) == 1 else "handle"
     check_regions(fixed, moving, handle_name=name)
     depth = cfg.boundary.continuity + 1
     adj = region_adjacency(model, fixed, moving, cfg.boundary.neighbors, depth + 1)
     fixed_rings, moving_rings = boundary_rings(adj, fixed, moving, depth, name)
-    return Selection(fixed, moving, list(fixed_rings), list(moving_rings), name)
+    return Selection(fixed, moving, list(fixed_rings), list(moving_rings), moving_label(cfg))
 
 
 def counts_of_deformation(deformation, moving_name: str = "handle") -> RegionCounts:
