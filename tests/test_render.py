@@ -273,6 +273,9 @@ def test_frames_gif_and_png_sequence(renderer, bar, tmp_path):
     with Image.open(gif[0]) as im:
         assert im.n_frames == 3
     assert [p.name for p in pngs] == ["frame_0000.png", "frame_0001.png", "frame_0002.png"]
+    # one camera file per sequence, beside it
+    assert (tmp_path / "a.camera.json").is_file() and (tmp_path / "seq.camera.json").is_file()
+    assert not list((tmp_path / "seq").glob("*.json"))
     first, last = (np.asarray(Image.open(p)) for p in (pngs[0], pngs[-1]))
     assert np.any(first != last)
 
