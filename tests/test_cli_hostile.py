@@ -488,3 +488,24 @@ def test_frame_paths_keep_normal_lengths():
     length = np.linalg.norm(normals, axis=1)
     np.testing.assert_allclose(np.linalg.norm(whole, axis=1), length, rtol=1e-12)
     np.testing.assert_allclose(blocked, whole, rtol=1e-10, atol=1e-12)
+
+
+def test_select_several_handles_same_line_as_deform(scans, tmp_path):
+    cfg = base_config(scans)
+    transform = cfg.pop("handle")
+    del cfg["regions"]["handle"]
+    cfg["regions"]["fixed"] = [{"box": {"min": [1.7, -1, -1], "max": [2.3, 1, 1]}}]
+    cfg["handles"] = [{"region": [{"box": {"min": [3.2, -1, -1], "max": [5, 1, 1]}}], **transform},
+                      {"region": [{"box": {"min": [-1, -1, -1], "max": [0.8, 1, 1]}}],
+                       **transform}]
+    path = write_config(tmp_path, cfg)
+    sel = run("select", path, cwd=tmp_path)
+    assert sel.returncode == 0, sel.stderr
+    line = sel.stdout.splitlines()[0]
+    x = sd.load(scans / "bar.ply").positions[:, 0]
+    moving = int(((x >= 3.2) | (x <= 0.8)).sum())
+    assert line.startswith(f"regions: fixed {int(((x >= 1.7) & (x <= 2.3)).sum()):,} (rings ")
+    assert f"handles {moving:,} (rings " in line
+    deform = run("deform", path, cwd=tmp_path)
+    assert deform.returncode == 0, deform.stderr
+    assert deform.stdout.splitlines()[0] == line
