@@ -16,6 +16,7 @@ import sys
 import traceback
 import warnings
 
+from .basis.names import BACKENDS
 from .errors import InputError, SplatdeformError
 
 
@@ -247,7 +248,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("deform", help="run one edit config (handle or curve)")
     p.add_argument("config", help="edit YAML file")
     p.add_argument("-o", "--output", help="output model (overrides the config's output)")
-    p.add_argument("--backend", choices=("auto", "numpy", "opencl"),
+    p.add_argument("--backend", choices=BACKENDS,
                    help="basis backend (overrides the config)")
     p.add_argument("--device", help="OpenCL device: 'P:D' indices or a name substring")
     p.add_argument("--reuse", action="store_true",

@@ -12,6 +12,7 @@ from typing import Annotated, Any, Literal
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
+from .basis.names import BACKENDS
 from .errors import ConfigError
 from .rbf.fit import DEFAULT_MAX_CENTERS, DEFAULT_TOLERANCE
 from .regions import Box, Indices, Plane, Property, Selector, Sphere
@@ -181,7 +182,7 @@ class EditConfig(_Strict):
     boundary: BoundaryCfg = BoundaryCfg()
     fit: FitCfg = FitCfg()
     normals: Literal["keep", "estimate"] = "keep"
-    backend: Literal["auto", "numpy", "opencl"] = "auto"
+    backend: Literal[BACKENDS] = "auto"  # basis.BACKENDS, the one list of names
     device: str | None = None
     render: RenderCfg | None = None
     memory_budget: str | int | None = None  # e.g. 2GB; deform streams above it (stream/)

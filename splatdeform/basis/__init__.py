@@ -13,9 +13,8 @@ import numpy as np
 
 from ..errors import InputError
 from ..rbf.result import RbfFit
+from .names import BACKENDS
 from .result import Basis
-
-BACKENDS = ("auto", "numpy", "opencl")
 
 __all__ = ["BACKENDS", "Basis", "compute_basis", "resolve_backend"]
 

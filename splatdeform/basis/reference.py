@@ -15,30 +15,13 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial.distance import cdist
 
+from splatdeform.basis.checks import check_fit, check_points
 from splatdeform.basis.result import Basis
 from splatdeform.errors import InputError
 from splatdeform.rbf.result import RbfFit
 
 # (N_chunk, n) float64 arrays alive at once per chunk: r, phi / G, and the matmul outputs.
 _TEMPS_PER_ENTRY = 3
-
-
-def _check_points(points: np.ndarray) -> np.ndarray:
-    pts = np.asarray(points)
-    if pts.ndim != 2 or pts.shape[1] != 3:
-        raise InputError(f"points: expected an (N, 3) array, got {pts.shape}")
-    if not np.issubdtype(pts.dtype, np.number):
-        raise InputError(f"points: expected a numeric array, got dtype {pts.dtype}")
-    return pts
-
-
-def _check_fit(fit: RbfFit) -> None:
-    n = fit.centers.shape[0]
-    if fit.centers.shape != (n, 3) or fit.weights.ndim != 2 or fit.weights.shape[0] != 4 + n:
-        raise InputError(
-            f"fit: expected centers (n, 3) and weights (4 + n, k), got {fit.centers.shape} and "
-            f"{fit.weights.shape}"
-        )
 
 
 def _chunk_rows(n_centers: int, k: int, gradients: bool, max_chunk_bytes: int) -> int:
@@ -62,8 +45,8 @@ def compute_basis(
 
     Returns a :class:`Basis` with values (N, k) float64 and gradients (N, k, 3) float64 or None.
     """
-    pts = _check_points(points)
-    _check_fit(fit)
+    pts = check_points(points)
+    check_fit(fit)
     if int(max_chunk_bytes) < 1:
         raise InputError(
             f"max_chunk_bytes: expected a positive byte count, got {max_chunk_bytes!r}"

@@ -1,0 +1,3 @@
+"""The basis backend names, listed once (config, CLI and dispatcher use this tuple)."""
+
+BACKENDS = ("auto", "numpy", "opencl")
