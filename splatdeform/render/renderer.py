@@ -196,10 +196,16 @@ def pad_delta(delta_c: np.ndarray | None, k: int) -> np.ndarray:
     return out
 
 
-def depth_order(positions: np.ndarray, view: np.ndarray) -> np.ndarray:
-    """(N,) uint32 back-to-front drawing order of (N, 3) positions under the (4, 4) ``view``
-    matrix: ascending view-space z (the camera looks down -z), ties in index order."""
-    z = positions @ np.asarray(view[2, :3], dtype=positions.dtype)
+def depth_order(positions: np.ndarray, view: np.ndarray, values: np.ndarray | None = None,
+                delta_c: np.ndarray | None = None) -> np.ndarray:
+    """(N,) uint32 back-to-front drawing order of (N, 3) positions, deformed by ``values``
+    (N, k) and ``delta_c`` (k, 3) when given, under the (4, 4) ``view`` matrix: ascending
+    view-space z (the camera looks down -z), ties in index order. Only z is formed:
+    z = p . v + b . (delta C v), v the view matrix's third row."""
+    v = np.asarray(view[2, :3], dtype=positions.dtype)
+    z = positions @ v
+    if values is not None and delta_c is not None:
+        z += values @ (np.asarray(delta_c, dtype=values.dtype).reshape(values.shape[1], 3) @ v)
     return np.argsort(z, kind="stable").astype(np.uint32)
 
 
@@ -509,11 +515,9 @@ class Renderer:
         """Sort by deformed view depth (CPU), then composite back to front (premultiplied)."""
         ctx = self.ctx
         t0 = time.perf_counter()
-        pos = gpu.positions
-        if mode == "deform" and delta_c is not None and gpu.values is not None:
-            d = np.asarray(delta_c, dtype=np.float32)
-            pos = pos + gpu.values @ d.reshape(gpu.k, 3)
-        order = depth_order(pos, view)
+        deformed = mode == "deform" and delta_c is not None and gpu.values is not None
+        order = depth_order(gpu.positions, view, gpu.values if deformed else None,
+                            delta_c if deformed else None)
         gpu.order.write(order.tobytes())
         gpu.timings["sort"] = time.perf_counter() - t0
         vao = gpu.vaos[f"gauss_{mode}"]
