@@ -9,6 +9,7 @@ writes back unchanged: same elements, property names, type spellings, order and 
 
 from __future__ import annotations
 
+import array
 import io
 import os
 from collections.abc import Callable
@@ -183,15 +184,36 @@ def _packed_dtype(props: list[PlyProperty], lengths: dict[str, int], bo: str) ->
     return np.dtype(fields)
 
 
+def _fixed_lists(values: np.ndarray) -> np.ndarray:
+    """(R, L) values -> (R,) object column of 1-D rows. Empty rows all share one empty array
+    (8 bytes a row instead of an array object each: a body of zero-length lists stays small)."""
+    column = np.empty(values.shape[0], dtype=object)
+    if values.shape[1] == 0:
+        column.fill(np.empty(0, dtype=values.dtype))
+    else:
+        column[:] = list(np.ascontiguousarray(values))
+    return column
+
+
+def _ragged_lists(values: np.ndarray, lengths: np.ndarray) -> np.ndarray:
+    """All rows' values (M,) in row order and each row's length (R,) -> (R,) object column
+    (empty rows share one empty array, as in :func:`_fixed_lists`)."""
+    column = np.empty(len(lengths), dtype=object)
+    column.fill(np.empty(0, dtype=values.dtype))
+    filled = lengths > 0
+    if filled.any():
+        pieces = np.empty(int(filled.sum()), dtype=object)
+        pieces[:] = np.split(values, np.cumsum(lengths)[filled][:-1])
+        column[filled] = pieces
+    return column
+
+
 def _split_lists(packed: np.ndarray, props: list[PlyProperty], byte_order: str) -> np.ndarray:
     """Packed fixed-length records -> the object-field layout."""
     out = _empty(props, packed.shape[0], byte_order)
     for p in props:
         if p.is_list:
-            values = np.ascontiguousarray(packed[p.name])
-            column = np.empty(packed.shape[0], dtype=object)
-            column[:] = list(values)
-            out[p.name] = column
+            out[p.name] = _fixed_lists(packed[p.name])
         else:
             out[p.name] = packed[p.name]
     return out
@@ -201,9 +223,9 @@ def _read_binary_element(path: Path, buf: memoryview, offset: int, name: str, co
                          props: list[PlyProperty], bo: str) -> tuple[np.ndarray, int]:
     total = len(buf)
 
-    def truncated(needed: int) -> FormatError:
+    def truncated(needed: int, at: int = offset) -> FormatError:
         return FormatError(f"{path}: truncated binary body: element '{name}' needs at least "
-                           f"{needed} more bytes, {max(total - offset, 0)} left "
+                           f"{needed} more bytes, {max(total - at, 0)} left "
                            "(file cut short, or the header's count is wrong)")
 
     def negative(row: int, prop: PlyProperty, n: int) -> FormatError:
@@ -244,13 +266,15 @@ def _read_binary_element(path: Path, buf: memoryview, offset: int, name: str, co
     layout = [(p.is_list, np.dtype(p.len_dtype if p.is_list else p.dtype).itemsize,
                np.dtype(p.dtype).itemsize, p.is_list and p.len_dtype[0] == "i") for p in props]
     byteorder = "little" if bo == "<" else "big"
-    starts: list[list[int]] = [[] for _ in props]  # byte offset of each row's value(s)
-    lengths: list[list[int]] = [[] for _ in props]  # list lengths (list properties only)
+    # byte offset of each row's value(s), and list lengths (list properties only); typed
+    # arrays hold 8 bytes a row where lists of Python ints would hold ~40
+    starts = [array.array("q") for _ in props]
+    lengths = [array.array("q") for _ in props]
     pos = offset
     for row in range(count):
         for i, (is_list, size, item, signed) in enumerate(layout):
             if pos + size > total:
-                raise truncated(size)
+                raise truncated(size, pos)
             if is_list:
                 n = int.from_bytes(buf[pos:pos + size], byteorder, signed=signed)
                 if n < 0:
@@ -260,23 +284,21 @@ def _read_binary_element(path: Path, buf: memoryview, offset: int, name: str, co
                 lengths[i].append(n)
                 pos += n * item
                 if pos > total:
-                    raise truncated(n * item)
+                    raise truncated(n * item, pos - n * item)
             else:
                 starts[i].append(pos)
                 pos += size
     u8 = np.frombuffer(buf, dtype=np.uint8)
     out = _empty(props, count, bo)
     for i, p in enumerate(props):
-        at = np.asarray(starts[i], dtype=np.int64)
+        at = np.frombuffer(starts[i], dtype=np.int64)
         item = np.dtype(p.dtype).itemsize
         if p.is_list:
-            n = np.asarray(lengths[i], dtype=np.int64)
+            n = np.frombuffer(lengths[i], dtype=np.int64)
             ends = np.cumsum(n)
             item_at = np.repeat(at - (ends - n) * item, n) + np.arange(int(ends[-1])) * item
             values = u8[item_at[:, None] + np.arange(item)].view(bo + p.dtype).ravel()
-            column = np.empty(count, dtype=object)
-            column[:] = np.split(values, ends[:-1])
-            out[p.name] = column
+            out[p.name] = _ragged_lists(values, n)
         else:
             out[p.name] = u8[at[:, None] + np.arange(item)].view(bo + p.dtype)[:, 0]
     return out, pos
@@ -368,16 +390,14 @@ def _parse_ascii_rows(el: _AsciiElement, props: list[PlyProperty]) -> np.ndarray
             i = first(short)
             raise el.error(i, f"list '{p.name}' declares {n[i]} values, "
                            f"{lengths[i] - pos[i] - 1} present")
-        column = np.empty(count, dtype=object)
         if (n == n[0]).all():
             index = (at + 1)[:, None] + np.arange(n[0])
-            column[:] = list(el.convert(flat[index], p.dtype, repr(p.name), index))
+            out[p.name] = _fixed_lists(el.convert(flat[index], p.dtype, repr(p.name), index))
         else:
             ends = np.cumsum(n)
             index = np.repeat(at + 1 - (ends - n), n) + np.arange(int(ends[-1]))
             values = el.convert(flat[index], p.dtype, repr(p.name), index)
-            column[:] = np.split(values, ends[:-1])
-        out[p.name] = column
+            out[p.name] = _ragged_lists(values, n)
         pos += 1 + n
     if (pos != lengths).any():
         i = first(pos != lengths)
