@@ -32,11 +32,11 @@ _LAZY = {
     "load": "io", "save": "io", "PointModel": "model", "estimate_normals": "normals",
     "Box": "regions", "Indices": "regions", "Plane": "regions", "Property": "regions",
     "Sphere": "regions", "select": "regions",
-    "prepare_handle": "api", "delta_for": "api",
+    "prepare_handle": "api", "prepare_handles": "api", "delta_for": "api",
 }
 
 if TYPE_CHECKING:  # pragma: no cover
-    from .api import delta_for, prepare_handle
+    from .api import delta_for, prepare_handle, prepare_handles
     from .deform import Deformation, apply, full_basis
     from .handle import compose_transform, delta_for_transform
     from .io import load, save
@@ -58,5 +58,5 @@ __all__ = [
     "Box", "ConfigError", "Deformation", "FormatError", "Indices", "InputError", "Plane",
     "PointModel", "ProcessingError", "Property", "Sphere", "SplatdeformError", "apply",
     "compose_transform", "delta_for", "delta_for_transform", "estimate_normals", "full_basis",
-    "load", "prepare_handle", "save", "select",
+    "load", "prepare_handle", "prepare_handles", "save", "select",
 ]
