@@ -126,19 +126,30 @@ def _voxel_keys(pos: np.ndarray, lo: np.ndarray, h: float, dims: np.ndarray) -> 
     return (ijk[:, 0] * dims[1] + ijk[:, 1]) * dims[2] + ijk[:, 2]
 
 
-def _dilate(keys: np.ndarray, dims: np.ndarray) -> np.ndarray:
-    """Keys of the voxels within Chebyshev distance 1 of ``keys`` (sorted unique)."""
+def _near(keys: np.ndarray, others: np.ndarray, dims: np.ndarray, reach: int = 2) -> np.ndarray:
+    """The voxels of ``keys`` (sorted unique) within Chebyshev distance ``reach`` of a voxel of
+    ``others`` (sorted unique); memory O(len(keys)), one lookup per offset."""
     i = keys // (dims[1] * dims[2])
     j = (keys // dims[2]) % dims[1]
     k = keys % dims[2]
-    out = []
-    for di in (-1, 0, 1):
-        for dj in (-1, 0, 1):
-            for dk in (-1, 0, 1):
+    hit = np.zeros(keys.shape, dtype=bool)
+    steps = range(-reach, reach + 1)
+    for di in steps:
+        for dj in steps:
+            for dk in steps:
                 a, b, c = i + di, j + dj, k + dk
                 ok = (a >= 0) & (a < dims[0]) & (b >= 0) & (b < dims[1]) & (c >= 0) & (c < dims[2])
-                out.append(((a * dims[1] + b) * dims[2] + c)[ok])
-    return np.unique(np.concatenate(out))
+                hit[ok] |= _in_sorted((a[ok] * dims[1] + b[ok]) * dims[2] + c[ok], others)
+    return keys[hit]
+
+
+def _merge(parts: list[np.ndarray], new: np.ndarray) -> list[np.ndarray]:
+    """Append sorted unique keys; consolidate when the pending parts outgrow the merged set
+    (chunks of a shuffled scan each touch most voxels: without this, memory grows with N)."""
+    parts = parts + [new]
+    if len(parts) > 2 and sum(p.size for p in parts[1:]) > max(parts[0].size, 1 << 16):
+        parts = [np.unique(np.concatenate(parts))]
+    return parts
 
 
 def _in_sorted(keys: np.ndarray, table: np.ndarray) -> np.ndarray:
@@ -221,6 +232,7 @@ def labels_pass(src: ChunkFile, cfg: EditConfig, base_dir: Path, lo: np.ndarray,
     kept = 0
     moments = Moments((lo + hi) / 2)
     overlap = 0
+    counts = np.zeros(3, dtype=np.int64)
     progress = Progress("pass 2 (regions)", n, quiet=quiet)
     for a, b in chunk_ranges(n, chunk):
         model = src.read(a, b) if need_model else PointModel(positions=src.positions(a, b))
@@ -234,13 +246,13 @@ def labels_pass(src: ChunkFile, cfg: EditConfig, base_dir: Path, lo: np.ndarray,
         overlap += int((fixed & handle).sum())
         labels[a:b][fixed] = FIXED
         labels[a:b][handle] = HANDLE
+        counts += np.bincount(labels[a:b], minlength=3)[:3]
         moments.add(cm.positions[handle])
         if handle_pos is not None:
             kept += int(handle.sum())
             handle_pos = None if kept > max_handle else handle_pos + [cm.positions[handle]]
         progress.update(b - a)
     seconds = progress.finish()
-    counts = np.bincount(labels, minlength=3)
     if counts[FIXED] == 0 and overlap == 0:
         raise RegionError("regions.fixed: selects no point; widen the fixed region")
     if counts[HANDLE] == 0:
@@ -271,14 +283,14 @@ def gather_border(src: ChunkFile, labels: np.ndarray, lo: np.ndarray, hi: np.nda
     for a, b in chunk_ranges(n, chunk):
         keys = _voxel_keys(src.positions(a, b), lo, edge, dims)
         lab = labels[a:b]
-        free_keys.append(np.unique(keys[lab == FREE]))
-        region_keys.append(np.unique(keys[lab != FREE]))
+        free_keys = _merge(free_keys, np.unique(keys[lab == FREE]))
+        region_keys = _merge(region_keys, np.unique(keys[lab != FREE]))
         progress.update(b - a)
     progress.finish()
     free_v = np.unique(np.concatenate(free_keys))
     region_v = np.unique(np.concatenate(region_keys))
-    candidates = np.union1d(np.intersect1d(_dilate(_dilate(free_v, dims), dims), region_v),
-                            np.intersect1d(_dilate(_dilate(region_v, dims), dims), free_v))
+    del free_keys, region_keys
+    candidates = np.union1d(_near(region_v, free_v, dims), _near(free_v, region_v, dims))
     idx, pos, lab = [], [], []
     taken = 0
     progress = Progress("pass 4 (border points)", n, quiet=quiet)
