@@ -181,6 +181,13 @@ def test_not_streamable_inputs(tmp_path: Path, capsys) -> None:
     cfg = write_edit(tmp_path, tmp_path / "b.ply", "o.las")
     with pytest.raises(Exception, match="input's format"):
         run_stream(load_edit(cfg), tmp_path, quiet=True)
+    two = dict(EDIT, input="b.ply", output="o.ply", handles=[
+        {"region": EDIT["regions"]["handle"], **EDIT["handle"]}])
+    two["regions"] = {k: v for k, v in EDIT["regions"].items() if k != "handle"}
+    (tmp_path / "two.yaml").write_text(yaml.safe_dump({k: v for k, v in two.items()
+                                                       if k != "handle"}))
+    with pytest.raises(Exception, match="several handles"):
+        run_stream(load_edit(tmp_path / "two.yaml"), tmp_path, quiet=True)
 
 
 PEAK_SCRIPT = """

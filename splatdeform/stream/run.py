@@ -231,6 +231,8 @@ def check_streamable(cfg, in_path: Path, out_path: Path) -> ChunkFile:
     """The chunk reader, or an InputError saying why this edit cannot stream."""
     if cfg.curve is not None:
         raise InputError("curve edits do not stream yet; raise --memory-budget")
+    if getattr(cfg, "handles", None):
+        raise InputError("handles: several handles do not stream yet; raise --memory-budget")
     if cfg.handles is not None:
         raise InputError("handles: several handles do not stream yet (one handle: does); "
                          "raise --memory-budget")
