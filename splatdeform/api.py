@@ -11,7 +11,7 @@ from .basis import compute_basis
 from .handle import delta_for_transform
 from .model import PointModel
 from .rbf import Normalization, fit_incremental
-from .rbf.fit import DEFAULT_MAX_CENTERS, DEFAULT_TOLERANCE
+from .rbf.defaults import DEFAULT_MAX_CENTERS, DEFAULT_TOLERANCE
 
 
 def _fns(model: PointModel, tolerance: float, max_centers: int, backend: str,

@@ -14,7 +14,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_valida
 
 from .basis.names import BACKENDS
 from .errors import ConfigError
-from .rbf.fit import DEFAULT_MAX_CENTERS, DEFAULT_TOLERANCE
+from .rbf.defaults import DEFAULT_MAX_CENTERS, DEFAULT_TOLERANCE
 from .regions import Box, Indices, Plane, Property, Selector, Sphere
 
 Vec3 = Annotated[list[float], Field(min_length=3, max_length=3)]

@@ -1,19 +1,42 @@
-"""Triharmonic RBF fitting: kernel table, farthest point sampling, incremental QR fitter."""
+"""Triharmonic RBF fitting: kernel table, farthest point sampling, incremental QR fitter, exact
+solve.
 
-from splatdeform.rbf.fit import fit_incremental
-from splatdeform.rbf.fps import farthest_point_order, iter_farthest_points
-from splatdeform.rbf.kernel import KERNELS, Kernel, kernel_matrix, phi, phi_gradient
-from splatdeform.rbf.result import Normalization, RbfFit
+Names are imported on first use, so that importing the plain result types (``RbfFit``,
+``Normalization``) does not load scipy.linalg: ``splatdeform info`` and the CLI's parser start
+without it.
+"""
+
+from __future__ import annotations
+
+import importlib
+from typing import TYPE_CHECKING, Any
+
+_LAZY = {
+    "fit_incremental": "fit", "fit_exact": "exact",
+    "farthest_point_order": "fps", "iter_farthest_points": "fps",
+    "KERNELS": "kernel", "Kernel": "kernel", "kernel_matrix": "kernel", "phi": "kernel",
+    "phi_gradient": "kernel",
+    "Normalization": "result", "RbfFit": "result",
+}
+
+if TYPE_CHECKING:  # pragma: no cover
+    from .exact import fit_exact
+    from .fit import fit_incremental
+    from .fps import farthest_point_order, iter_farthest_points
+    from .kernel import KERNELS, Kernel, kernel_matrix, phi, phi_gradient
+    from .result import Normalization, RbfFit
+
+
+def __getattr__(name: str) -> Any:
+    module = _LAZY.get(name)
+    if module is None:
+        raise AttributeError(f"module 'splatdeform.rbf' has no attribute {name!r}")
+    value = getattr(importlib.import_module(f".{module}", __name__), name)
+    globals()[name] = value
+    return value
+
 
 __all__ = [
-    "KERNELS",
-    "Kernel",
-    "Normalization",
-    "RbfFit",
-    "farthest_point_order",
-    "fit_incremental",
-    "iter_farthest_points",
-    "kernel_matrix",
-    "phi",
-    "phi_gradient",
+    "KERNELS", "Kernel", "Normalization", "RbfFit", "farthest_point_order", "fit_exact",
+    "fit_incremental", "iter_farthest_points", "kernel_matrix", "phi", "phi_gradient",
 ]

@@ -22,6 +22,7 @@ from scipy.linalg import lapack, solve_triangular
 from scipy.spatial.distance import cdist
 
 from splatdeform.errors import InputError, ProcessingError
+from splatdeform.rbf.defaults import DEFAULT_MAX_CENTERS, DEFAULT_TOLERANCE
 from splatdeform.rbf.kernel import triharmonic
 from splatdeform.rbf.result import Normalization, RbfFit
 
@@ -198,10 +199,6 @@ def _tail_residuals(rows: np.ndarray) -> np.ndarray:
 
 Selection = Literal["greedy", "fps"]
 
-#: Centers and tolerance chosen from the measured table in the README (``fit.tolerance`` and
-#: ``fit.max_centers`` defaults; benchmarks/fit_table.py re-measures it).
-DEFAULT_TOLERANCE = 1.5e-4
-DEFAULT_MAX_CENTERS = 2000
 
 
 def blas_threads(threads: int | None) -> AbstractContextManager:
