@@ -5,9 +5,9 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..gaussians import dc_to_colors
 from ..model import PointModel
 
-SH_C0 = 0.28209479177387814
 FIXED_RGB = np.array([50, 110, 255], dtype=np.float32)
 HANDLE_RGB = np.array([255, 120, 30], dtype=np.float32)
 NEUTRAL_RGB = (185, 185, 185)
@@ -25,8 +25,7 @@ def base_colors(model: PointModel) -> np.ndarray:
         return np.asarray(model.colors, dtype=np.uint8)
     g = model.gaussians
     if g is not None and g.sh_dc is not None:
-        rgb = np.clip(0.5 + SH_C0 * g.sh_dc.astype(np.float32), 0.0, 1.0)
-        return (rgb * 255.0 + 0.5).astype(np.uint8)
+        return dc_to_colors(g.sh_dc)
     return np.tile(np.array(NEUTRAL_RGB, dtype=np.uint8), (model.n_points, 1))
 
 

@@ -17,6 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import FormatError
+from ..gaussians import SH_C0
 from ..model import PlyElementData, PlyProperty, PlySource
 
 PACKED = ("packed_position", "packed_rotation", "packed_scale", "packed_color")
@@ -24,7 +25,6 @@ CHUNK_BOUNDS = tuple(f"{m}_{a}" for m in ("min", "max") for a in "xyz") + tuple(
     f"{m}_scale_{a}" for m in ("min", "max") for a in "xyz")
 CHUNK_COLORS = tuple(f"{m}_{c}" for m in ("min", "max") for c in "rgb")
 SPLATS_PER_CHUNK = 256
-SH_C0 = 0.28209479177387814
 # an 8-bit opacity of exactly 0 or 1 has no finite logit: clamp to half a quantisation step
 OPACITY_EPS = 0.5 / 255
 

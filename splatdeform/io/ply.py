@@ -132,8 +132,9 @@ def model_from_source(source: PlySource, path: str | Path, *,
             sh_rest=_columns(data, rest).astype(np.float32) if rest else None,
         )
         if colors is None and gaussians.sh_dc is not None:
-            sh0 = 0.28209479177387814
-            colors = np.clip((0.5 + sh0 * gaussians.sh_dc) * 255, 0, 255).astype(np.uint8)
+            from ..gaussians import dc_to_colors
+
+            colors = dc_to_colors(gaussians.sh_dc)
     kind = classify(has_faces=faces is not None, has_normals=normals is not None,
                     has_radius=radius is not None, has_axes=axes is not None,
                     has_gaussians=gaussians is not None)

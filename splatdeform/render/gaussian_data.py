@@ -16,8 +16,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from splatdeform.gaussians import dc_to_colors, dc_to_rgb
 from splatdeform.model import PointModel
-from splatdeform.render.splats import DEFAULT_COLOR, SH_C0, quaternion_matrices
+from splatdeform.render.splats import DEFAULT_COLOR, quaternion_matrices
 
 SH_REST_PER_DEGREE = {1: 3, 2: 8, 3: 15}
 
@@ -65,7 +66,7 @@ def _own_colors(model: PointModel) -> bool:
         return False
     if g is None or g.sh_dc is None:
         return True
-    derived = np.clip((0.5 + SH_C0 * g.sh_dc) * 255, 0, 255).astype(np.uint8)  # as the loader
+    derived = dc_to_colors(g.sh_dc)  # as the loader
     return not np.array_equal(np.asarray(model.colors), derived)
 
 
@@ -83,7 +84,7 @@ def gaussian_data(model: PointModel) -> GaussianData:
     if own_colors:  # stored colours win (also: previews coloured by region)
         color[:, :3] = np.asarray(model.colors, dtype=np.float64) / 255.0
     elif g.sh_dc is not None:
-        color[:, :3] = 0.5 + SH_C0 * np.asarray(g.sh_dc, dtype=np.float64)
+        color[:, :3] = dc_to_rgb(g.sh_dc)
     else:
         color[:, :3] = np.array(DEFAULT_COLOR) / 255.0
     color[:, 3] = 1.0 if g.opacity is None else sigmoid(g.opacity)

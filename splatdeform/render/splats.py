@@ -20,11 +20,11 @@ from dataclasses import dataclass
 import numpy as np
 
 from splatdeform.frame import axes_to_radius, normalize_rows, radius_to_axes
+from splatdeform.gaussians import dc_to_colors, quaternion_to_matrix
 from splatdeform.model import PointModel
 
 DEFAULT_COLOR = (190, 190, 190)
 GAUSSIAN_EXTENT = 1.5  # ellipse semi-axes in standard deviations
-SH_C0 = 0.28209479177387814
 SPACING_NEIGHBORS = 8  # kNN used to estimate the sampling spacing
 SPACING_FACTOR = 1.0  # splat radius = factor * mean distance to the SPACING_NEIGHBORS nearest
 SPACING_CAP = 4.0  # outliers: spacing capped at this multiple of the median spacing
@@ -50,25 +50,11 @@ def model_colors(model: PointModel) -> np.ndarray:
         return np.asarray(model.colors, dtype=np.uint8)
     g = model.gaussians
     if g is not None and g.sh_dc is not None:
-        rgb = 0.5 + SH_C0 * np.asarray(g.sh_dc, dtype=np.float64)
-        return np.clip(np.round(rgb * 255.0), 0, 255).astype(np.uint8)
+        return dc_to_colors(g.sh_dc)
     return np.tile(np.array(DEFAULT_COLOR, dtype=np.uint8), (model.n_points, 1))
 
 
-def quaternion_matrices(wxyz: np.ndarray) -> np.ndarray:
-    """(N, 4) quaternions (w, x, y, z), not necessarily unit -> (N, 3, 3) rotation matrices."""
-    q = np.asarray(wxyz, dtype=np.float64)
-    length = np.linalg.norm(q, axis=1, keepdims=True)
-    q = np.divide(q, length, out=np.tile([1.0, 0.0, 0.0, 0.0], (q.shape[0], 1)), where=length > 0)
-    w, x, y, z = q.T
-    return np.stack(
-        [
-            np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
-            np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
-            np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1),
-        ],
-        axis=1,
-    )
+quaternion_matrices = quaternion_to_matrix  # one quaternion helper (splatdeform.gaussians)
 
 
 def gaussian_axes(scale_log: np.ndarray, rotation: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
