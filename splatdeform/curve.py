@@ -20,11 +20,9 @@ from scipy.interpolate import BSpline
 from scipy.spatial import cKDTree
 
 from . import deform as df
-from .config import CurveCfg
 from .errors import ConfigError, RegionError
 from .metaphor import Metaphor
 from .model import PointModel
-from .regions import to_model_point
 
 SAMPLES_PER_SPAN = 64
 
@@ -83,10 +81,15 @@ def _listed(indices: np.ndarray, limit: int = 8) -> str:
     return shown + (f", ... ({indices.size} in all)" if indices.size > limit else "")
 
 
-def curve_band(model: PointModel, cfg: CurveCfg, units: str
+def curve_band(model: PointModel, control_points: np.ndarray, *, degree: int = 3,
+               parametrization: str = "chord", capture_radius: float
                ) -> tuple[SplineCurve, np.ndarray, np.ndarray]:
-    """The snapped curve, the band's point indices (M,) and their curve parameters t (M,)."""
-    raw = np.array([to_model_point(model, p, units) for p in cfg.control_points])
+    """The snapped curve, the band's point indices (M,) and their curve parameters t (M,).
+
+    control_points: (k, 3) model units (snapped to the nearest model points);
+    capture_radius: model units.
+    """
+    raw = np.asarray(control_points, dtype=np.float64)
     if not np.isfinite(raw).all():
         raise ConfigError.at("curve.control_points", "expected finite coordinates")
     _, snap = cKDTree(model.positions).query(raw)
@@ -96,9 +99,8 @@ def curve_band(model: PointModel, cfg: CurveCfg, units: str
                           f"model point after point(s) {_listed(repeated)}; space them further "
                           "apart than the point spacing")
     control = model.positions[snap]
-    curve = SplineCurve(control, cfg.degree, cfg.parametrization)
-    radius = cfg.capture_radius * (model.diagonal() if units == "relative" else 1.0)
-    band_idx, band_t = capture(curve, model.positions, radius)
+    curve = SplineCurve(control, degree, parametrization)
+    band_idx, band_t = capture(curve, model.positions, float(capture_radius))
     if band_idx.size == 0:
         raise RegionError.at("curve.capture_radius", "captures no point of the model; raise it")
     if band_idx.size == model.n_points:
@@ -112,9 +114,13 @@ def curve_band(model: PointModel, cfg: CurveCfg, units: str
     return curve, band_idx, band_t
 
 
-def curve_metaphor(model: PointModel, cfg: CurveCfg, units: str) -> Metaphor:
-    """The curve metaphor: the capture band moves by N(t) . delta_c (k = control points)."""
-    curve, band_idx, band_t = curve_band(model, cfg, units)
+def curve_metaphor(model: PointModel, control_points: np.ndarray, *, degree: int = 3,
+                   parametrization: str = "chord", capture_radius: float) -> Metaphor:
+    """The curve metaphor: the capture band moves by N(t) . delta_c (k = control points);
+    control points (k, 3) and capture radius in model units."""
+    curve, band_idx, band_t = curve_band(model, control_points, degree=degree,
+                                         parametrization=parametrization,
+                                         capture_radius=capture_radius)
     order = np.argsort(band_idx)
     idx, t = band_idx[order], band_t[order]
     tangent = curve.tangents(t)
@@ -125,20 +131,11 @@ def curve_metaphor(model: PointModel, cfg: CurveCfg, units: str) -> Metaphor:
                     coords=curve.weights(t), gradients=grads)
 
 
-def prepare_curve(model: PointModel, fixed: np.ndarray, cfg: CurveCfg, units: str, *,
+def prepare_curve(model: PointModel, fixed: np.ndarray, control_points: np.ndarray, *,
+                  capture_radius: float, degree: int = 3, parametrization: str = "chord",
                   fit_fn, basis_fn, continuity: int = 2, neighbors: int = 10) -> df.Deformation:
-    """Precompute a curve deformation (k = number of control points)."""
-    return df.prepare_metaphors(model, fixed, [curve_metaphor(model, cfg, units)],
-                                fit_fn=fit_fn, basis_fn=basis_fn, continuity=continuity,
-                                neighbors=neighbors)
-
-
-def curve_delta(cfg: CurveCfg, model: PointModel, units: str,
-                deformation: df.Deformation) -> np.ndarray:
-    """delta_c (k, 3) = moved_to - control_points, both as given in the config's units."""
-    given = np.array([to_model_point(model, p, units) for p in cfg.control_points])
-    moved = np.array([to_model_point(model, p, units) for p in cfg.moved_to])
-    if moved.shape != given.shape:
-        raise ConfigError.at("curve.moved_to", f"expected {given.shape[0]} points, got "
-                          f"{moved.shape[0]}")
-    return moved - given
+    """Precompute a curve deformation (k = number of control points), model units."""
+    mph = curve_metaphor(model, control_points, degree=degree, parametrization=parametrization,
+                         capture_radius=capture_radius)
+    return df.prepare_metaphors(model, fixed, [mph], fit_fn=fit_fn, basis_fn=basis_fn,
+                                continuity=continuity, neighbors=neighbors)

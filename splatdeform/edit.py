@@ -86,8 +86,23 @@ def metaphors(cfg: EditConfig, model: PointModel, base_dir: Path) -> list[Metaph
     if cfg.curve is not None:
         from .curve import curve_metaphor
 
-        out.append(curve_metaphor(model, cfg.curve, units))
+        given, _, radius = curve_points(cfg, model)
+        out.append(curve_metaphor(model, given, degree=cfg.curve.degree,
+                                  parametrization=cfg.curve.parametrization,
+                                  capture_radius=radius))
     return out
+
+
+def curve_points(cfg: EditConfig, model: PointModel) -> tuple[np.ndarray, np.ndarray, float]:
+    """The curve in model units: control points (k, 3), moved_to (k, 3), capture radius."""
+    units = cfg.regions.units
+    given = np.array([to_model_point(model, p, units) for p in cfg.curve.control_points])
+    moved = np.array([to_model_point(model, p, units) for p in cfg.curve.moved_to])
+    if moved.shape != given.shape:
+        raise ConfigError.at("curve.moved_to", f"expected {given.shape[0]} points, got "
+                                               f"{moved.shape[0]}")
+    radius = cfg.curve.capture_radius * (model.diagonal() if units == "relative" else 1.0)
+    return given, moved, radius
 
 
 def make_fit_fn(cfg: EditConfig, model: PointModel) -> Callable:
@@ -154,9 +169,8 @@ def control_displacement(cfg: EditConfig, model: PointModel, deformation: df.Def
         parts.append(delta_for_transform(group.frame.control_points, matrix))
         matrices.append(matrix)
     if cfg.curve is not None:
-        from .curve import curve_delta
-
-        parts.append(curve_delta(cfg.curve, model, cfg.regions.units, deformation))
+        given, moved, _ = curve_points(cfg, model)
+        parts.append(moved - given)  # delta_c: the user's points as given (not snapped)
     delta = np.vstack(parts)
     if cfg.handle is not None:
         return delta, matrices[0]

@@ -101,7 +101,9 @@ def prepare(model, cp, mv, *, tolerance=1e-3, parametrization="chord", backend="
     cfg = CurveCfg(control_points=cp.tolist(), moved_to=mv.tolist(), degree=degree,
                    capture_radius=radius, parametrization=parametrization)
     fit_fn, basis_fn = fit_and_basis(model, tolerance, backend)
-    d = prepare_curve(model, bar_fixed(model), cfg, "model", fit_fn=fit_fn, basis_fn=basis_fn)
+    d = prepare_curve(model, bar_fixed(model), np.asarray(cp, dtype=float),
+                      capture_radius=radius, degree=degree, parametrization=parametrization,
+                      fit_fn=fit_fn, basis_fn=basis_fn)
     return d, cfg
 
 
