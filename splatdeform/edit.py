@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from . import deform as df
+from . import units as u
 from .basis import compute_basis
 from .config import EditConfig, HandleCfg, TransformCfg, input_paths
 from .errors import ConfigError, InputError, ProcessingError
@@ -23,7 +24,8 @@ from .io.atomic import check_io_paths
 from .metaphor import Metaphor, handle_metaphor
 from .model import PointModel
 from .rbf import Normalization, RbfFit, fit_incremental
-from .regions import select, to_model_point, to_model_vector
+from .regions import select
+from .units import Frame
 
 
 @dataclass
@@ -51,13 +53,14 @@ def transform_matrix(h: HandleCfg, key: str, units: str, model: PointModel,
             raise ConfigError.at(f"{key}.matrix", "the last row must be [0, 0, 0, 1] (affine)")
         return m
     t: TransformCfg = h.transform
+    frame = Frame.of(model)
     if t.pivot == "centroid":
         pivot = model.positions[handle].mean(axis=0)
     else:
-        pivot = to_model_point(model, t.pivot, units)
+        pivot = u.point(t.pivot, units, frame)
     return compose_transform(pivot=pivot, scale=t.scale, axis=t.rotate.axis,
                              degrees=t.rotate.degrees,
-                             translate=to_model_vector(model, t.translate, units))
+                             translate=u.vector(t.translate, units, frame))
 
 
 def handle_matrix(cfg: EditConfig, model: PointModel, handle: np.ndarray) -> np.ndarray:
@@ -75,13 +78,12 @@ def handle_configs(cfg: EditConfig) -> list[tuple[str, HandleCfg]]:
 def metaphors(cfg: EditConfig, model: PointModel, base_dir: Path) -> list[Metaphor]:
     """The config turned into model-unit metaphors: every handle (4 columns each), then the
     curve (one column per control point)."""
-    units = cfg.regions.units
     out = []
     if cfg.handle is not None:
-        mask = select(model, [s.to_selector() for s in cfg.regions.handle], units, base_dir)
+        mask = region_mask(cfg, cfg.regions.handle, model, base_dir)
         out.append(handle_metaphor(model.positions, mask, "regions.handle"))
     for i, h in enumerate(cfg.handles or []):
-        mask = select(model, [s.to_selector() for s in h.region], units, base_dir)
+        mask = region_mask(cfg, h.region, model, base_dir)
         out.append(handle_metaphor(model.positions, mask, f"handles[{i}].region"))
     if cfg.curve is not None:
         from .curve import curve_metaphor
@@ -93,16 +95,23 @@ def metaphors(cfg: EditConfig, model: PointModel, base_dir: Path) -> list[Metaph
     return out
 
 
+def region_mask(cfg: EditConfig, selector_cfgs: list, model: PointModel,
+                base_dir: Path | None) -> np.ndarray:
+    """Mask (N,) bool of a region's selectors, converted to model units once here."""
+    sels = u.selectors([s.to_selector() for s in selector_cfgs], cfg.regions.units,
+                       Frame.of(model))
+    return select(model, sels, "model", base_dir)
+
+
 def curve_points(cfg: EditConfig, model: PointModel) -> tuple[np.ndarray, np.ndarray, float]:
     """The curve in model units: control points (k, 3), moved_to (k, 3), capture radius."""
-    units = cfg.regions.units
-    given = np.array([to_model_point(model, p, units) for p in cfg.curve.control_points])
-    moved = np.array([to_model_point(model, p, units) for p in cfg.curve.moved_to])
+    units, frame = cfg.regions.units, Frame.of(model)
+    given = np.array([u.point(p, units, frame) for p in cfg.curve.control_points])
+    moved = np.array([u.point(p, units, frame) for p in cfg.curve.moved_to])
     if moved.shape != given.shape:
         raise ConfigError.at("curve.moved_to", f"expected {given.shape[0]} points, got "
                                                f"{moved.shape[0]}")
-    radius = cfg.curve.capture_radius * (model.diagonal() if units == "relative" else 1.0)
-    return given, moved, radius
+    return given, moved, u.length(cfg.curve.capture_radius, units, frame)
 
 
 def make_fit_fn(cfg: EditConfig, model: PointModel) -> Callable:
@@ -148,8 +157,7 @@ def prepare_model(cfg: EditConfig, base_dir: Path, timings: dict[str, float],
 
 def precompute(cfg: EditConfig, model: PointModel, base_dir: Path) -> df.Deformation:
     """Regions, rings, one fit and one basis for every handle and curve of the edit."""
-    fixed = select(model, [s.to_selector() for s in cfg.regions.fixed], cfg.regions.units,
-                   base_dir)
+    fixed = region_mask(cfg, cfg.regions.fixed, model, base_dir)
     return df.prepare_metaphors(model, fixed, metaphors(cfg, model, base_dir),
                                 fit_fn=make_fit_fn(cfg, model), basis_fn=make_basis_fn(cfg),
                                 continuity=cfg.boundary.continuity,

@@ -19,8 +19,13 @@ from .model import PointModel
 
 @dataclass(frozen=True)
 class Box:
+    """Points with min <= (x - origin) / scale <= max per axis (origin 0, scale 1: model
+    coordinates; the config layer sets them for boxes written in relative units)."""
+
     min: tuple[float, float, float]
     max: tuple[float, float, float]
+    origin: tuple[float, float, float] | None = None
+    scale: tuple[float, float, float] | None = None
 
 
 @dataclass(frozen=True)
@@ -31,10 +36,13 @@ class Sphere:
 
 @dataclass(frozen=True)
 class Plane:
-    """Points on the side the normal points to (signed distance >= 0)."""
+    """Points on the side the normal points to (signed distance >= 0), in the coordinates
+    (x - origin) / scale (model coordinates by default)."""
 
     point: tuple[float, float, float]
     normal: tuple[float, float, float]
+    origin: tuple[float, float, float] | None = None
+    scale: tuple[float, float, float] | None = None
 
 
 @dataclass(frozen=True)
@@ -63,20 +71,25 @@ def _box_frame(model: PointModel) -> tuple[np.ndarray, np.ndarray]:
 
 
 def to_model_point(model: PointModel, point, units: str) -> np.ndarray:
-    """A (3,) point given in ``units`` as model coordinates."""
-    p = np.asarray(point, dtype=np.float64)
-    if units == "relative":
-        lo, extent = _box_frame(model)
-        return lo + p * extent
-    return p
+    """A (3,) point given in ``units`` as model coordinates (see :mod:`splatdeform.units`)."""
+    from .units import Frame
+    from .units import point as convert
+
+    return convert(point, units, Frame.of(model))
 
 
 def to_model_vector(model: PointModel, vector, units: str) -> np.ndarray:
-    """A (3,) displacement given in ``units`` as a model-unit displacement."""
-    v = np.asarray(vector, dtype=np.float64)
-    if units == "relative":
-        return v * _box_frame(model)[1]
-    return v
+    """A (3,) displacement given in ``units`` in model units (see :mod:`splatdeform.units`)."""
+    from .units import Frame
+    from .units import vector as convert
+
+    return convert(vector, units, Frame.of(model))
+
+
+def _in_frame(pts: np.ndarray, sel: Box | Plane) -> np.ndarray:
+    if sel.origin is None:
+        return pts
+    return (pts - np.asarray(sel.origin, float)) / np.asarray(sel.scale, float)
 
 
 def _load_indices(sel: Indices, base_dir: Path | None) -> np.ndarray:
@@ -106,21 +119,18 @@ def _load_indices(sel: Indices, base_dir: Path | None) -> np.ndarray:
         raise InputError(f"{path}: cannot read the indices file ({exc.strerror or exc})") from exc
 
 
-def select_one(model: PointModel, sel: Selector, units: str = "model",
-               base_dir: Path | None = None) -> np.ndarray:
-    """Mask (N,) bool of the points one selector picks."""
+def select_one(model: PointModel, sel: Selector, base_dir: Path | None = None) -> np.ndarray:
+    """Mask (N,) bool of the points one model-unit selector picks."""
     pts = model.positions
-    if isinstance(sel, (Box, Plane)) and units == "relative":
-        lo, extent = _box_frame(model)
-        pts = (pts - lo) / extent
+    if isinstance(sel, (Box, Plane)):
+        pts = _in_frame(pts, sel)
     if isinstance(sel, Box):
         lo, hi = np.asarray(sel.min, float), np.asarray(sel.max, float)
         if np.any(lo > hi):
             raise InputError(f"box: min {list(sel.min)} exceeds max {list(sel.max)}")
         return np.all((pts >= lo) & (pts <= hi), axis=1)
     if isinstance(sel, Sphere):
-        center = to_model_point(model, sel.center, units)
-        radius = sel.radius * (model.diagonal() if units == "relative" else 1.0)
+        center, radius = np.asarray(sel.center, float), float(sel.radius)
         return np.sum((pts - center) ** 2, axis=1) <= radius * radius
     if isinstance(sel, Plane):
         normal = np.asarray(sel.normal, float)
@@ -147,12 +157,19 @@ def select_one(model: PointModel, sel: Selector, units: str = "model",
 
 def select(model: PointModel, selectors: list[Selector], units: str = "model",
            base_dir: Path | None = None) -> np.ndarray:
-    """Union of selectors -> mask (N,) bool."""
-    if units not in ("model", "relative"):
-        raise InputError(f"units: expected 'model' or 'relative', got {units!r}")
+    """Union of model-unit selectors -> mask (N,) bool.
+
+    ``units="relative"`` is a convenience for API callers: the selectors are first converted
+    by :mod:`splatdeform.units` (the config layer converts before calling, with "model").
+    """
+    if units != "model":
+        from .units import Frame
+        from .units import selectors as converted
+
+        selectors = converted(selectors, units, Frame.of(model))
     mask = np.zeros(model.n_points, dtype=bool)
     for sel in selectors:
-        mask |= select_one(model, sel, units, base_dir)
+        mask |= select_one(model, sel, base_dir)
     return mask
 
 

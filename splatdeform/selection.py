@@ -13,7 +13,7 @@ import numpy as np
 
 from .config import EditConfig
 from .model import PointModel
-from .regions import check_regions, select
+from .regions import check_regions
 
 # preview colours (uint8 RGB): free grey, fixed blue / its rings light blue, moving orange /
 # its rings yellow
@@ -68,12 +68,11 @@ def select_regions(cfg: EditConfig, model: PointModel, base_dir: str | Path) -> 
     same metaphors, checks and rings as :func:`splatdeform.deform.prepare_metaphors`, without
     the fit). Raises RegionError / InputError / ConfigError like ``deform``."""
     from . import deform as df
-    from .edit import metaphors
+    from .edit import metaphors, region_mask
     from .rings import boundary_rings, region_adjacency
 
     base_dir = Path(base_dir)
-    fixed = select(model, [s.to_selector() for s in cfg.regions.fixed], cfg.regions.units,
-                   base_dir)
+    fixed = region_mask(cfg, cfg.regions.fixed, model, base_dir)
     mphs = metaphors(cfg, model, base_dir)
     n = model.n_points
     for mph in mphs:
