@@ -7,7 +7,8 @@ model was loaded from.
 
 from __future__ import annotations
 
-from dataclasses import replace
+from collections.abc import Callable
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 from ..errors import FormatError, InputError
@@ -16,9 +17,39 @@ from . import las, open3d_io, ply
 from .atomic import atomic_path, atomic_write, check_output_path
 from .regular import require_regular
 
-READERS = {".ply": ply.read_model, **{ext: open3d_io.read_model for ext in open3d_io.EXTENSIONS}}
-READERS.update({ext: las.read_model for ext in las.EXTENSIONS})
-SUPPORTED = tuple(READERS)
+
+@dataclass(frozen=True)
+class Format:
+    """One file format: ``read(path, drop_nonfinite=) -> PointModel`` and
+    ``write(model, path, text)`` (atomic)."""
+
+    read: Callable[..., PointModel]
+    write: Callable[[PointModel, Path, bool | None], None]
+
+
+def _write_ply(model: PointModel, path: Path, text: bool | None) -> None:
+    with atomic_write(path) as stream:
+        ply.write_model(model, stream, text=text)
+
+
+def _write_las(model: PointModel, path: Path, text: bool | None) -> None:
+    with atomic_path(path) as tmp:
+        las.write_model(model, tmp)
+
+
+def _write_open3d(model: PointModel, path: Path, text: bool | None) -> None:
+    with atomic_path(path) as tmp:
+        open3d_io.write_model(model, tmp)
+
+
+#: Readers and writers in one table by extension: a new format is one module plus one line.
+FORMATS: dict[str, Format] = {
+    ".ply": Format(ply.read_model, _write_ply),
+    **{ext: Format(open3d_io.read_model, _write_open3d) for ext in open3d_io.EXTENSIONS},
+    **{ext: Format(las.read_model, _write_las) for ext in las.EXTENSIONS},
+}
+READERS = {ext: fmt.read for ext, fmt in FORMATS.items()}
+SUPPORTED = tuple(FORMATS)
 
 
 def _extension(path: Path, what: str) -> str:
@@ -60,16 +91,9 @@ def save(model: PointModel, path: str | Path, *, text: bool | None = None) -> Pa
     if isinstance(model.source, las.LasSource) and ext not in las.EXTENSIONS:
         model = replace(model, source=las.ply_source_from_las(model.source)
                         if ext == ".ply" else None)
-    if ext == ".ply":
-        with atomic_write(path) as stream:
-            ply.write_model(model, stream, text=text)
-    elif ext in las.EXTENSIONS:
-        with atomic_path(path) as tmp:
-            las.write_model(model, tmp)
-    else:
-        with atomic_path(path) as tmp:
-            open3d_io.write_model(model, tmp)
+    FORMATS[ext].write(model, path, text)
     return path
 
 
-__all__ = ["load", "save", "SUPPORTED", "atomic_path", "atomic_write", "check_output_path"]
+__all__ = ["FORMATS", "Format", "load", "save", "SUPPORTED", "atomic_path", "atomic_write",
+           "check_output_path"]
