@@ -5,8 +5,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..gaussians import dc_to_colors
 from ..model import PointModel
+from ..render.splats import model_colors
 
 FIXED_RGB = np.array([50, 110, 255], dtype=np.float32)
 HANDLE_RGB = np.array([255, 120, 30], dtype=np.float32)
@@ -20,13 +20,9 @@ def up_direction(model: PointModel) -> str:
 
 
 def base_colors(model: PointModel) -> np.ndarray:
-    """(N, 3) uint8 colours as stored: RGB, the SH DC colour of 3DGS, else neutral grey."""
-    if model.colors is not None:
-        return np.asarray(model.colors, dtype=np.uint8)
-    g = model.gaussians
-    if g is not None and g.sh_dc is not None:
-        return dc_to_colors(g.sh_dc)
-    return np.tile(np.array(NEUTRAL_RGB, dtype=np.uint8), (model.n_points, 1))
+    """(N, 3) uint8 colours as stored: RGB, the SH DC colour of 3DGS, else neutral grey (the
+    renderer's rule, :func:`splatdeform.render.splats.model_colors`)."""
+    return model_colors(model, NEUTRAL_RGB)
 
 
 def tinted(colors: np.ndarray, labels: np.ndarray) -> np.ndarray:

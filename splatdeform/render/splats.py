@@ -44,14 +44,15 @@ class SplatGeometry:
     colors: np.ndarray
 
 
-def model_colors(model: PointModel) -> np.ndarray:
-    """(N, 3) uint8 colors: stored colors, 3DGS DC colors, or a light grey."""
+def model_colors(model: PointModel, default: tuple[int, int, int] = DEFAULT_COLOR
+                 ) -> np.ndarray:
+    """(N, 3) uint8 colors: stored colors, 3DGS DC colors, or ``default`` (a light grey)."""
     if model.colors is not None:
         return np.asarray(model.colors, dtype=np.uint8)
     g = model.gaussians
     if g is not None and g.sh_dc is not None:
         return dc_to_colors(g.sh_dc)
-    return np.tile(np.array(DEFAULT_COLOR, dtype=np.uint8), (model.n_points, 1))
+    return np.tile(np.array(default, dtype=np.uint8), (model.n_points, 1))
 
 
 quaternion_matrices = quaternion_to_matrix  # one quaternion helper (splatdeform.gaussians)
