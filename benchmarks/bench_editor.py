@@ -21,11 +21,11 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from data_tools.synth import bumpy_bar  # noqa: E402
+from splatdeform.deform.handle import compose_transform  # noqa: E402
+from splatdeform.edit.selectors import Box  # noqa: E402
 from splatdeform.editor import EditorController  # noqa: E402
 from splatdeform.editor.server import EditorApp  # noqa: E402
-from splatdeform.handle import compose_transform  # noqa: E402
 from splatdeform.model import Gaussians, PointModel  # noqa: E402
-from splatdeform.regions import Box  # noqa: E402
 
 
 def gaussian_bar(n: int, seed: int = 0) -> PointModel:

@@ -26,7 +26,7 @@ from scipy.interpolate import RBFInterpolator
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from splatdeform.basis.reference import compute_basis, evaluate_field  # noqa: E402
-from splatdeform.frame import deform_frame, displace, jacobians, transform_normals  # noqa: E402
+from splatdeform.deform.arrays import deform_frame, displace, jacobians, transform_normals  # noqa: E402
 from splatdeform.rbf import fit_incremental  # noqa: E402
 
 N_TOTAL = 270_000

@@ -27,7 +27,7 @@ if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
 from data_tools.synth import bumpy_bar  # noqa: E402
-from splatdeform.frame import displace, jacobians, transform_axes, transform_normals  # noqa: E402
+from splatdeform.deform.arrays import displace, jacobians, transform_axes, transform_normals  # noqa: E402
 from splatdeform.model import Gaussians, PointModel  # noqa: E402
 from splatdeform.render.camera import frame_points  # noqa: E402
 from splatdeform.render.context import describe  # noqa: E402

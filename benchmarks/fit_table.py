@@ -31,11 +31,11 @@ from data_tools.synth import bumpy_bar, sphere  # noqa: E402
 from splatdeform import deform as df  # noqa: E402
 from splatdeform.basis.reference import evaluate_field  # noqa: E402
 from splatdeform.basis.result import Basis  # noqa: E402
-from splatdeform.handle import compose_transform, delta_for_transform  # noqa: E402
+from splatdeform.deform.handle import compose_transform, delta_for_transform  # noqa: E402
+from splatdeform.edit.selectors import Box, select  # noqa: E402
 from splatdeform.io import load  # noqa: E402
 from splatdeform.model import PointModel  # noqa: E402
 from splatdeform.rbf import Normalization, fit_incremental  # noqa: E402
-from splatdeform.regions import Box, select  # noqa: E402
 
 SHARED = Path(__file__).resolve().parents[2] / "shared" / "data"
 

@@ -34,11 +34,11 @@ from data_tools.synth import bumpy_bar  # noqa: E402
 from splatdeform import deform as df  # noqa: E402
 from splatdeform.basis import compute_basis  # noqa: E402
 from splatdeform.basis.opencl import describe_device  # noqa: E402
-from splatdeform.frame import deform_frame  # noqa: E402
-from splatdeform.handle import apply_affine, compose_transform, delta_for_transform  # noqa: E402
+from splatdeform.deform.arrays import deform_frame  # noqa: E402
+from splatdeform.deform.handle import apply_affine, compose_transform, delta_for_transform  # noqa: E402
+from splatdeform.edit.selectors import Box, select  # noqa: E402
 from splatdeform.rbf import Normalization, fit_incremental  # noqa: E402
 from splatdeform.rbf.fit import DEFAULT_TOLERANCE  # noqa: E402
-from splatdeform.regions import Box, select  # noqa: E402
 
 PAPER = {"dense": 153.0, "qr": 1.99, "centers": 160, "basis": 7.5, "frame_cpu": 0.27}
 

@@ -28,21 +28,32 @@ __version__ = "0.1.0"
 # the fitter or the renderer.
 _LAZY = {
     "Deformation": "deform", "apply": "deform", "full_basis": "deform",
-    "compose_transform": "handle", "delta_for_transform": "handle",
-    "load": "io", "save": "io", "PointModel": "model", "estimate_normals": "normals",
-    "Box": "regions", "Indices": "regions", "Plane": "regions", "Property": "regions",
-    "Sphere": "regions", "select": "regions",
-    "prepare_handle": "api", "prepare_handles": "api", "delta_for": "api",
+    "compose_transform": "deform", "delta_for_transform": "deform",
+    "prepare_handle": "deform", "prepare_handles": "deform", "delta_for": "deform",
+    "prepare_metaphors": "deform", "estimate_normals": "deform",
+    "load": "io", "save": "io", "PointModel": "model",
+    "Box": "edit.selectors", "Indices": "edit.selectors", "Plane": "edit.selectors",
+    "Property": "edit.selectors", "Sphere": "edit.selectors", "select": "edit.selectors",
+    "run_edit": "edit", "load_edit": "edit",
 }
 
 if TYPE_CHECKING:  # pragma: no cover
-    from .api import delta_for, prepare_handle, prepare_handles
-    from .deform import Deformation, apply, full_basis
-    from .handle import compose_transform, delta_for_transform
+    from .deform import (
+        Deformation,
+        apply,
+        compose_transform,
+        delta_for,
+        delta_for_transform,
+        estimate_normals,
+        full_basis,
+        prepare_handle,
+        prepare_handles,
+        prepare_metaphors,
+    )
+    from .edit import load_edit, run_edit
+    from .edit.selectors import Box, Indices, Plane, Property, Sphere, select
     from .io import load, save
     from .model import PointModel
-    from .normals import estimate_normals
-    from .regions import Box, Indices, Plane, Property, Sphere, select
 
 
 def __getattr__(name: str) -> Any:
@@ -58,5 +69,6 @@ __all__ = [
     "Box", "ConfigError", "Deformation", "FormatError", "Indices", "InputError", "Plane",
     "PointModel", "ProcessingError", "Property", "Sphere", "SplatdeformError", "apply",
     "compose_transform", "delta_for", "delta_for_transform", "estimate_normals", "full_basis",
-    "load", "prepare_handle", "prepare_handles", "save", "select",
+    "load", "load_edit", "prepare_handle", "prepare_handles", "prepare_metaphors", "run_edit",
+    "save", "select",
 ]

@@ -43,8 +43,8 @@ def _warn(message: str) -> None:
 def cmd_deform(args: argparse.Namespace) -> int:
     from pathlib import Path
 
-    from .config import load_edit
-    from .edit import format_report, run_edit
+    from splatdeform.edit.config import load_edit
+    from splatdeform.edit.run import format_report, run_edit
 
     cfg = load_edit(args.config)
     if args.backend:
@@ -79,7 +79,7 @@ def cmd_deform(args: argparse.Namespace) -> int:
         raise InputError("--render/render: not available when deform streams (the model is "
                          "never whole in memory); render the output file instead")
     if render_out:
-        from .edit_render import render_result
+        from splatdeform.edit.images import render_result
 
         render_result(result, cfg, render_out, frames=args.frames, view=view)
     print(format_report(result))
@@ -88,8 +88,9 @@ def cmd_deform(args: argparse.Namespace) -> int:
 
 def _check_deform_paths(args: argparse.Namespace, cfg, base, output, reuse, render_out) -> None:
     """Before any work: no output of this run may be an input or another output."""
-    from .config import input_paths
-    from .edit_render import render_frames_count, render_target
+    from splatdeform.edit.config import input_paths
+    from splatdeform.edit.images import render_frames_count, render_target
+
     from .io.atomic import check_io_paths
 
     outputs = [("-o/--output" if output is not None else "output",
@@ -106,11 +107,12 @@ def _check_deform_paths(args: argparse.Namespace, cfg, base, output, reuse, rend
 def cmd_select(args: argparse.Namespace) -> int:
     from pathlib import Path
 
-    from .config import input_paths, load_edit
-    from .edit import prepare_model
-    from .edit_render import with_camera_file
+    from splatdeform.edit.config import input_paths, load_edit
+    from splatdeform.edit.images import with_camera_file
+    from splatdeform.edit.run import prepare_model
+    from splatdeform.edit.selection import format_counts, preview_model, select_regions
+
     from .io.atomic import check_io_paths
-    from .selection import format_counts, preview_model, select_regions
 
     cfg = load_edit(args.config)
     base = Path(args.config).resolve().parent
@@ -155,7 +157,7 @@ def cmd_edit(args: argparse.Namespace) -> int:
 
 
 def _frames(text: str) -> int:
-    from .config import MAX_FRAMES
+    from splatdeform.edit.config import MAX_FRAMES
 
     try:
         n = int(text)
@@ -214,7 +216,7 @@ def cmd_render(args: argparse.Namespace) -> int:
         raise InputError(f"-o/--output: expected a .png file, got {args.output!r}")
     from pathlib import Path
 
-    from .edit_render import with_camera_file
+    from splatdeform.edit.images import with_camera_file
 
     check_io_paths([("model", p) for p in args.models]
                    + ([("--camera", args.camera)] if args.camera else []),

@@ -10,10 +10,10 @@ import pytest
 
 import splatdeform as sd
 from data_tools.synth import bumpy_bar
-from splatdeform.config import parse_edit
-from splatdeform.edit import run_edit
-from splatdeform.frame import deform_frame
-from splatdeform.handle import compose_transform
+from splatdeform.deform.arrays import deform_frame
+from splatdeform.deform.handle import compose_transform
+from splatdeform.edit.config import parse_edit
+from splatdeform.edit.run import run_edit
 from splatdeform.model import PointModel
 
 FIXED = [{"box": {"min": [-1, -1, -1], "max": [1.0, 1, 1]}}]

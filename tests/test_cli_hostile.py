@@ -473,7 +473,7 @@ def test_images_are_0644(scans, tmp_path):
 
 def test_frame_paths_keep_normal_lengths():
     """The whole-array and the cache-blocked per-frame paths both keep each normal's length."""
-    from splatdeform.frame import deform_frame, jacobians, transform_normals
+    from splatdeform.deform.arrays import deform_frame, jacobians, transform_normals
 
     rng = np.random.default_rng(5)
     n, k = 500, 4

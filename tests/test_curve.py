@@ -32,9 +32,9 @@ import splatdeform as sd
 from data_tools.synth import bumpy_bar
 from splatdeform import deform as df
 from splatdeform.basis import compute_basis
-from splatdeform.config import CurveCfg, parse_edit
-from splatdeform.curve import SplineCurve, capture, knot_vector, prepare_curve
-from splatdeform.edit import run_edit
+from splatdeform.deform.curve import SplineCurve, capture, knot_vector, prepare_curve
+from splatdeform.edit.config import CurveCfg, parse_edit
+from splatdeform.edit.run import run_edit
 from splatdeform.rbf import Normalization, fit_incremental
 
 N_BAR = 4000

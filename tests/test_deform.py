@@ -26,7 +26,7 @@ from data_tools.synth import bumpy_bar, sphere
 from splatdeform.basis import compute_basis
 from splatdeform.basis.reference import compute_basis as reference_basis
 from splatdeform.deform import constraint_error
-from splatdeform.frame import jacobians
+from splatdeform.deform.arrays import jacobians
 from splatdeform.rbf import Normalization, fit_incremental
 
 TOL = 1e-4
@@ -518,7 +518,7 @@ def test_python_api_docstring_snippet(tmp_path):
 
 
 def test_example_configs_parse():
-    from splatdeform.config import load_edit
+    from splatdeform.edit.config import load_edit
 
     paths = [p for p in sorted((ROOT / "configs").glob("*.yaml"))
              if "input" in (yaml.safe_load(p.read_text()) or {})]  # edit configs, not batches

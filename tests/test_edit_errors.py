@@ -17,7 +17,7 @@ import yaml
 
 import splatdeform as sd
 from data_tools.synth import bumpy_bar
-from splatdeform.config import load_edit, parse_edit
+from splatdeform.edit.config import load_edit, parse_edit
 from splatdeform.errors import ConfigError, InputError, RegionError
 
 N_BAR = 1500

@@ -20,13 +20,13 @@ from conftest import shared_file
 
 import splatdeform as sd
 from data_tools.synth import bumpy_bar
-from splatdeform.config import load_edit
-from splatdeform.edit import run_edit
+from splatdeform.deform.handle import compose_transform
+from splatdeform.edit.config import load_edit
+from splatdeform.edit.run import run_edit
+from splatdeform.edit.selectors import Box, Sphere, select
 from splatdeform.editor import EditorController, StaleFitError
 from splatdeform.errors import InputError, RegionError
-from splatdeform.handle import compose_transform
 from splatdeform.model import Gaussians
-from splatdeform.regions import Box, Sphere, select
 
 N = 2000
 FIXED = Box((-1.0, -1.0, -1.0), (1.0, 1.0, 1.0))
@@ -266,7 +266,7 @@ def _gaussian_bar(n: int, seed: int) -> sd.PointModel:
 
 
 def test_gaussian_covariances_follow_deform(tmp_path):
-    from splatdeform.gaussians import scale_rotation_to_factor
+    from splatdeform.deform.gaussians import scale_rotation_to_factor
 
     path = tmp_path / "splats.ply"
     sd.save(_gaussian_bar(1500, seed=8), path)

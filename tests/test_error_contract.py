@@ -6,7 +6,7 @@ import pickle
 
 import pytest
 
-from splatdeform.config import parse_edit
+from splatdeform.edit.config import parse_edit
 from splatdeform.errors import ConfigError, RegionError
 
 BASE = {"input": "a.ply", "output": "b.ply",

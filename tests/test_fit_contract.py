@@ -18,12 +18,12 @@ from data_tools.synth import bumpy_bar
 from splatdeform import deform as df
 from splatdeform.basis.reference import evaluate_field
 from splatdeform.basis.result import Basis
-from splatdeform.handle import compose_transform, delta_for_transform
+from splatdeform.deform.handle import compose_transform, delta_for_transform
+from splatdeform.edit.selectors import Box, select
 from splatdeform.io import load, save
 from splatdeform.model import PointModel
 from splatdeform.rbf import Normalization, fit_incremental
 from splatdeform.rbf.exact import fit_exact
-from splatdeform.regions import Box, select
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -130,8 +130,8 @@ def test_converged_fit_prints_no_warning(bar_dir):
 
 
 def test_reuse_key_ignores_on_not_converged(bar_dir):
-    from splatdeform.cache import edit_key
-    from splatdeform.config import load_edit
+    from splatdeform.edit.cache import edit_key
+    from splatdeform.edit.config import load_edit
 
     a = load_edit(write_edit(bar_dir, "k1", on_not_converged="warn"))
     b = load_edit(write_edit(bar_dir, "k2", on_not_converged="error"))

@@ -16,10 +16,7 @@ from conftest import shared_file
 from scipy.spatial.transform import Rotation
 
 import splatdeform as sd
-from splatdeform.config import parse_edit
-from splatdeform.edit import run_edit
-from splatdeform.errors import InputError
-from splatdeform.gaussians import (
+from splatdeform.deform.gaussians import (
     deform_gaussians,
     matrix_to_quaternion,
     polar_rotation,
@@ -27,7 +24,10 @@ from splatdeform.gaussians import (
     quaternion_to_matrix,
     svd3,
 )
-from splatdeform.sh import band_rotations, rotate_sh_rest, sh_degree
+from splatdeform.deform.sh import band_rotations, rotate_sh_rest, sh_degree
+from splatdeform.edit.config import parse_edit
+from splatdeform.edit.run import run_edit
+from splatdeform.errors import InputError
 
 F32 = 2.0 ** -24  # float32 unit roundoff
 

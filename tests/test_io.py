@@ -17,10 +17,10 @@ from conftest import shared_file
 
 import splatdeform.io as sio
 from data_tools.synth import bumpy_bar, sphere
+from splatdeform.deform.normals import estimate_normals
 from splatdeform.errors import InputError
 from splatdeform.io import load, open3d_io, ply, save
 from splatdeform.model import PlySource, PointModel
-from splatdeform.normals import estimate_normals
 
 # file -> kind the loader must recognise (see ../shared/data/README.md)
 REAL_FILES = {

@@ -56,7 +56,7 @@ def test_extra_bytes_and_info(capsys) -> None:
 
 
 def test_property_selector_on_las_dimension() -> None:
-    from splatdeform.regions import Property, select
+    from splatdeform.edit.selectors import Property, select
 
     model = load(shared_file("lidar/simple.laz"))
     mask = select(model, [Property("classification", 2)])
@@ -226,9 +226,9 @@ def test_batch_over_las_members(tmp_path: Path) -> None:
 
 
 def test_truncated_las_streams_to_format_error(tmp_path: Path) -> None:
-    from splatdeform.config import load_edit
+    from splatdeform.edit.config import load_edit
+    from splatdeform.edit.stream import run_stream
     from splatdeform.errors import FormatError
-    from splatdeform.stream import run_stream
 
     raw = shared_file("lidar/vegetation_1_3.las").read_bytes()
     (tmp_path / "t.las").write_bytes(raw[: len(raw) // 2])

@@ -17,10 +17,10 @@ from data_tools.synth import bumpy_bar
 from splatdeform import deform as df
 from splatdeform.basis import compute_basis
 from splatdeform.basis.reference import evaluate_field
-from splatdeform.config import parse_edit
-from splatdeform.edit import control_displacement, precompute, run_edit
+from splatdeform.deform.handle import apply_affine, compose_transform
+from splatdeform.edit.config import parse_edit
+from splatdeform.edit.run import control_displacement, precompute, run_edit
 from splatdeform.errors import ConfigError, RegionError
-from splatdeform.handle import apply_affine, compose_transform
 from splatdeform.io import save
 from splatdeform.rbf import Normalization
 from splatdeform.rbf.exact import fit_exact

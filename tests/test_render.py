@@ -16,8 +16,8 @@ import pytest
 from conftest import shared_file
 from scipy import ndimage
 
+from splatdeform.deform.arrays import displace, jacobians, transform_axes, transform_normals
 from splatdeform.errors import DeviceError
-from splatdeform.frame import displace, jacobians, transform_axes, transform_normals
 from splatdeform.model import PointModel
 from splatdeform.render import frame_points, render_deformation_comparison, render_frames
 from splatdeform.render.compare import LABEL_HEIGHT

@@ -7,11 +7,11 @@ import pytest
 from conftest import shared_file
 
 from data_tools.synth import bumpy_bar
+from splatdeform.deform.rings import adjacency, border_band, boundary_rings, region_adjacency
+from splatdeform.edit.selectors import Box, select
 from splatdeform.errors import RegionError
 from splatdeform.io import load
 from splatdeform.model import PointModel
-from splatdeform.regions import Box, select
-from splatdeform.rings import adjacency, border_band, boundary_rings, region_adjacency
 
 
 def slab_edit(model: PointModel, lo: float = 0.3, hi: float = 0.8):

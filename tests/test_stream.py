@@ -18,11 +18,11 @@ from conftest import ROOT, shared_file
 
 from data_tools.synth import bumpy_bar
 from splatdeform.cli import main
-from splatdeform.config import load_edit
-from splatdeform.edit import run_edit
+from splatdeform.edit.config import load_edit
+from splatdeform.edit.run import run_edit
+from splatdeform.edit.stream import estimate_in_memory_peak, parse_size, run_stream
 from splatdeform.io import save
 from splatdeform.io.ply_format import read_ply
-from splatdeform.stream import estimate_in_memory_peak, parse_size, run_stream
 
 EDIT = {
     "regions": {"units": "relative",
@@ -119,7 +119,7 @@ def test_cli_streams_above_budget_with_progress(bar: Path, tmp_path: Path, capsy
     assert captured.err == "" and "streaming" not in captured.out
     assert vertex(tmp_path / "q.ply").shape == (120_000,)
     # the config key does the same (and is validated like the flag)
-    from splatdeform.stream import should_stream
+    from splatdeform.edit.stream import should_stream
 
     cfg2 = load_edit(write_edit(tmp_path, big, "out2.ply", memory_budget="64MB"))
     assert should_stream(cfg2, big, parse_size(cfg2.memory_budget, "memory_budget"))

@@ -17,9 +17,9 @@ from test_stream import assert_same_result
 
 from data_tools.synth import bumpy_bar
 from splatdeform.cli import main
-from splatdeform.config import load_edit
+from splatdeform.edit.config import load_edit
+from splatdeform.edit.stream import run_stream
 from splatdeform.io import save
-from splatdeform.stream import run_stream
 
 distributed = pytest.importorskip("distributed")
 

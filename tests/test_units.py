@@ -1,12 +1,12 @@
-"""Relative units become model units in one place (splatdeform.units), exactly."""
+"""Relative units become model units in one place (splatdeform.edit.units), exactly."""
 
 from __future__ import annotations
 
 import numpy as np
 
 from data_tools.synth import bumpy_bar
-from splatdeform import units as u
-from splatdeform.regions import Box, Plane, Sphere, select
+from splatdeform.edit import units as u
+from splatdeform.edit.selectors import Box, Plane, Sphere, select
 
 
 def test_relative_selectors_select_exactly_what_box_coordinates_say():

@@ -20,8 +20,9 @@ from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
+from splatdeform.edit.config import EditConfig, input_paths, parse_edit, read_yaml, validation_error
+
 from .. import __version__
-from ..config import EditConfig, input_paths, parse_edit, read_yaml, validation_error
 from ..errors import ConfigError, InputError
 from .sources import Scan, file_kind, find_scans, glob_base, is_glob
 

@@ -57,8 +57,9 @@ def _one_line(exc: BaseException) -> str:
 
 def process_scan(job: Job) -> dict[str, Any]:
     """Deform one scan; returns its report row (never raises for scan problems)."""
-    from ..config import RenderCfg, parse_edit
-    from ..edit import run_edit
+    from splatdeform.edit.config import RenderCfg, parse_edit
+    from splatdeform.edit.run import run_edit
+
     from ..errors import SplatdeformError
     from ..io import atomic_write
     from .probe import check, probe
@@ -84,7 +85,7 @@ def process_scan(job: Job) -> dict[str, Any]:
             result = run_edit(cfg, job.base_dir, output=job.output)
             if job.png and job.render:
                 try:
-                    from ..edit_render import render_result
+                    from splatdeform.edit.images import render_result
 
                     r = job.render
                     cfg.render = RenderCfg(output=job.png, size=[2 * r["size"][0], r["size"][1]],
@@ -142,5 +143,8 @@ def worker_init(parent: int | None = None) -> None:
 
 def warm_up() -> None:
     """Import what a scan needs, so a per-scan timeout measures the scan, not the imports."""
-    from .. import config, edit, io  # noqa: F401
+    from splatdeform import io  # noqa: F401
+    from splatdeform.edit import config  # noqa: F401
+    from splatdeform.edit import run as edit  # noqa: F401
+
     from . import probe, sources  # noqa: F401

@@ -7,7 +7,7 @@ Actions: add / move / resize / remove selectors, :meth:`EditorController.fit`,
 and :meth:`EditorController.save` (deformed model, edit YAML, before/after PNG).
 
 Everything goes through the same pipeline as ``splatdeform deform``: the config models
-(:mod:`splatdeform.config`), :func:`splatdeform.edit.precompute` for rings, fit and basis, and
+(:mod:`splatdeform.edit.config`), :func:`splatdeform.edit.precompute` for rings, fit and basis, and
 :func:`splatdeform.deform.apply` for the saved model, so the saved YAML reproduces the saved model
 byte for byte. One or more handles (``handles:`` in the YAML when there are several): one
 fit, one basis, one 4x4 pose per handle.
@@ -15,7 +15,7 @@ fit, one basis, one 4x4 pose per handle.
 Example::
 
     from splatdeform.editor import EditorController
-    from splatdeform.regions import Box
+    from splatdeform.edit.selectors import Box
     ed = EditorController.open("bar.ply")
     ed.add_selector("fixed", Box((-1, -1, -1), (1, 1, 1)))
     ed.add_selector("handle", Box((3, -1, -1), (5, 1, 1)))
@@ -36,15 +36,17 @@ from typing import Any
 import numpy as np
 import yaml
 
+from splatdeform.deform import arrays as ap
+from splatdeform.deform.handle import delta_for_transform
+from splatdeform.deform.regions import check_regions
+from splatdeform.edit.config import EditConfig, load_edit, parse_edit
+from splatdeform.edit.selectors import Selector, select
+
 from .. import deform as df
-from .. import frame as ap
 from ..basis import resolve_backend
-from ..config import EditConfig, load_edit, parse_edit
 from ..errors import ConfigError, InputError, RegionError
-from ..handle import delta_for_transform
 from ..io import check_output_path, save
 from ..model import PointModel
-from ..regions import Selector, check_regions, select
 from . import selectors as sl
 from .fastpath import covariance_frame, full_from_triu6, triu6
 
@@ -102,7 +104,7 @@ class SaveResult:
 
 def _gaussian_cov6(model: PointModel) -> np.ndarray:
     """(N, 6) float32 upper triangles of the covariances R S^2 R^T of a 3DGS model."""
-    from ..gaussians import scale_rotation_to_factor
+    from splatdeform.deform.gaussians import scale_rotation_to_factor
 
     g = model.gaussians
     f = scale_rotation_to_factor(g.scale_log, g.rotation)
@@ -159,7 +161,7 @@ class EditorController:
         path = Path(path)
         if path.suffix.lower() in (".yaml", ".yml"):
             return cls.from_config(path)
-        from ..edit import prepare_model
+        from splatdeform.edit.run import prepare_model
 
         settings = parse_edit(_bare_settings(path.resolve()), str(path))
         model = prepare_model(settings, path.resolve().parent, {})
@@ -168,7 +170,8 @@ class EditorController:
     @classmethod
     def from_config(cls, path: str | Path) -> EditorController:
         """Load an edit YAML (handle edits) into the editor state."""
-        from ..edit import prepare_model, transform_matrix
+        from splatdeform.edit.plain import transform_matrix
+        from splatdeform.edit.run import prepare_model
 
         path = Path(path)
         cfg = load_edit(path)
@@ -300,8 +303,8 @@ class EditorController:
     def _check_regions(self) -> None:
         """The region checks ``precompute`` makes before the rings, with its messages (empty,
         collinear or overlapping regions, no free region)."""
-        from .. import deform as df
-        from ..edit import metaphors
+        from splatdeform.deform.regions import check_metaphor
+        from splatdeform.edit.plain import metaphors
 
         fixed, handles = self.masks()
         if not fixed.any():
@@ -313,7 +316,7 @@ class EditorController:
                                      "selects no point; widen " +
                                      ("the handle region" if one else "it"))
         for mph in metaphors(self.to_config(), self.model, self.base_dir):
-            df._check_metaphor(fixed, mph, self.model.n_points)
+            check_metaphor(fixed, mph, self.model.n_points)
         check_regions(fixed, np.logical_or.reduce(handles))
 
     def add_handle(self, selectors: list[Selector] | None = None) -> int:
@@ -343,7 +346,7 @@ class EditorController:
         """Rings, fit and basis for the current regions (``splatdeform.edit.precompute``).
         ``progress(stage, fraction)`` is called as stages start. Returns the figures shown
         (counts, centers, residual, seconds per stage). Region errors are the CLI's lines."""
-        from ..edit import precompute
+        from splatdeform.edit.run import precompute
 
         report = progress or (lambda stage, fraction: None)
         report("regions", 0.0)
@@ -420,10 +423,10 @@ class EditorController:
 
     def set_pose(self, matrix: np.ndarray, handle: int = 0, *, full: bool = True) -> Frame:
         """Set handle ``handle``'s pose (4, 4) affine and deform: delta_c applied to the
-        precomputed basis (:func:`splatdeform.frame.deform_frame`); returns the new positions
-        and normals / axes / covariances of all points, or with ``full=False`` of the non-fixed
-        points only (``frame.index``; the viewer's fast path). Raises StaleFitError when the
-        fit is stale."""
+        precomputed basis (:func:`splatdeform.deform.arrays.deform_frame`); returns the new
+        positions and normals / axes / covariances of all points, or with ``full=False`` of the
+        non-fixed points only (``frame.index``; the viewer's fast path). Raises StaleFitError
+        when the fit is stale."""
         m4 = np.asarray(matrix, dtype=np.float64)
         if m4.shape != (4, 4) or not np.allclose(m4[3], [0, 0, 0, 1]) or \
                 not np.isfinite(m4).all():
@@ -532,7 +535,7 @@ class EditorController:
     def deformed_model(self) -> PointModel:
         """The deformed model exactly as ``splatdeform deform`` computes it for
         :meth:`to_config` (float64 :func:`splatdeform.deform.apply`)."""
-        from ..edit import control_displacement
+        from splatdeform.edit.plain import control_displacement
 
         if self.stale:
             raise StaleFitError("fit: the regions changed since the last fit (or there is none);"

@@ -1,5 +1,5 @@
 """Per-frame Gaussian covariances for the editor, cache-blocked like
-:func:`splatdeform.frame.deform_frame`: Sigma' = J Sigma J^T on the 6 upper-triangle entries
+:func:`splatdeform.deform.arrays.deform_frame`: Sigma' = J Sigma J^T on the 6 upper-triangle entries
 (xx, xy, xz, yy, yz, zz), one chunk of points at a time, never a (N, 3, 3) temporary."""
 
 from __future__ import annotations

@@ -15,9 +15,11 @@ from typing import Any
 
 import numpy as np
 
+from splatdeform.edit.selectors import Box, Plane, Selector, Sphere
+from splatdeform.edit.units import Frame
+
 from ..errors import InputError
 from ..model import PointModel
-from ..regions import Box, Indices, Plane, Property, Selector, Sphere, _box_frame
 
 KINDS = ("box", "sphere", "plane")
 
@@ -41,8 +43,8 @@ class Shape:
 def _frame(model: PointModel, units: str) -> tuple[np.ndarray, np.ndarray, float]:
     """(origin (3,), per-axis scale (3,), radius scale) mapping ``units`` to model units."""
     if units == "relative":
-        lo, extent = _box_frame(model)
-        return lo, extent, model.diagonal()
+        frame = Frame.of(model)
+        return frame.origin, frame.extent, frame.diagonal
     return np.zeros(3), np.ones(3), 1.0
 
 
@@ -118,19 +120,7 @@ def default_selector(kind: str, model: PointModel, units: str, *, center=None,
 def to_yaml(sel: Selector, base_dir: Path | None = None) -> dict[str, Any]:
     """The config mapping of one selector (``{box: {min, max}}`` ...); an indices file is made
     absolute against ``base_dir`` so the YAML can be written anywhere."""
-    if isinstance(sel, Box):
-        return {"box": {"min": _floats(sel.min), "max": _floats(sel.max)}}
-    if isinstance(sel, Sphere):
-        return {"sphere": {"center": _floats(sel.center), "radius": float(sel.radius)}}
-    if isinstance(sel, Plane):
-        return {"plane": {"point": _floats(sel.point), "normal": _floats(sel.normal)}}
-    if isinstance(sel, Property):
-        return {"property": {"name": sel.name, "equals": float(sel.equals)}}
-    if isinstance(sel, Indices):
-        if sel.file is None:
-            return {"indices": [int(i) for i in sel.indices]}
-        path = Path(sel.file)
-        if base_dir is not None and not path.is_absolute():
-            path = (base_dir / path).resolve()
-        return {"indices": {"file": str(path)}}
-    raise InputError(f"selector: unknown selector {sel!r}")
+    to_config = getattr(sel, "to_config", None)
+    if to_config is None:
+        raise InputError(f"selector: unknown selector {sel!r}")
+    return to_config(base_dir)

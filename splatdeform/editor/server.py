@@ -16,8 +16,9 @@ from typing import Any
 
 import numpy as np
 
+from splatdeform.deform.gaussians import quaternion_to_matrix
+
 from ..errors import SplatdeformError
-from ..gaussians import quaternion_to_matrix
 from . import view
 from .controller import EditorController, Frame
 

@@ -16,8 +16,9 @@ from pathlib import Path
 
 import numpy as np
 
+from splatdeform.deform.gaussians import SH_C0
+
 from ..errors import FormatError
-from ..gaussians import SH_C0
 from ..model import PlyElementData, PlyProperty, PlySource
 
 PACKED = ("packed_position", "packed_rotation", "packed_scale", "packed_color")

@@ -16,7 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from splatdeform.gaussians import dc_to_colors, dc_to_rgb
+from splatdeform.deform.gaussians import dc_to_colors, dc_to_rgb
 from splatdeform.model import PointModel
 from splatdeform.render.splats import DEFAULT_COLOR, quaternion_matrices
 

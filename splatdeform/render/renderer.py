@@ -633,7 +633,7 @@ def deformed_positions(
     """(N, 3) float64 positions after ``delta_c`` (CPU, for camera framing only)."""
     if values is None or delta_c is None:
         return model.positions
-    from splatdeform.frame import displace
+    from splatdeform.deform.arrays import displace
 
     return displace(model.positions, np.asarray(values, dtype=np.float64), delta_c)
 

@@ -2,7 +2,7 @@
 
 Sources, in order of preference:
 - surfel axes (``model.axes``) as stored;
-- surfel radius with normals: :func:`splatdeform.frame.radius_to_axes`;
+- surfel radius with normals: :func:`splatdeform.deform.arrays.radius_to_axes`;
   stored surfels smaller than the local sample spacing are enlarged (``fill_holes``);
 - 3D Gaussians: the two largest principal axes of each Gaussian, ``GAUSSIAN_EXTENT`` standard
   deviations long, normal along the smallest one (an ellipse per Gaussian for callers that want
@@ -19,8 +19,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from splatdeform.frame import axes_to_radius, normalize_rows, radius_to_axes
-from splatdeform.gaussians import dc_to_colors, quaternion_to_matrix
+from splatdeform.deform.arrays import axes_to_radius, normalize_rows, radius_to_axes
+from splatdeform.deform.gaussians import dc_to_colors, quaternion_to_matrix
 from splatdeform.model import PointModel
 
 DEFAULT_COLOR = (190, 190, 190)
@@ -55,7 +55,7 @@ def model_colors(model: PointModel, default: tuple[int, int, int] = DEFAULT_COLO
     return np.tile(np.array(default, dtype=np.uint8), (model.n_points, 1))
 
 
-quaternion_matrices = quaternion_to_matrix  # one quaternion helper (splatdeform.gaussians)
+quaternion_matrices = quaternion_to_matrix  # one quaternion helper (splatdeform.deform.gaussians)
 
 
 def gaussian_axes(scale_log: np.ndarray, rotation: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

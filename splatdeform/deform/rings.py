@@ -16,8 +16,8 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.spatial import cKDTree
 
-from .errors import RegionError
-from .model import PointModel
+from splatdeform.errors import RegionError
+from splatdeform.model import PointModel
 
 
 def knn_edges(positions: np.ndarray, k: int, subset: np.ndarray | None = None) -> np.ndarray:

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from .errors import InputError
-from .model import PointModel, classify
+from splatdeform.errors import InputError
+from splatdeform.model import PointModel, classify
 
 
 def estimate_normals(model: PointModel, k: int = 16, *, orient: str = "consistent") -> PointModel:

@@ -14,14 +14,14 @@ from pathlib import Path
 
 import numpy as np
 
-from .basis.result import Basis
-from .config import EditConfig
-from .deform import Deformation, Group
-from .errors import InputError
-from .handle import AffineFrame
-from .io.atomic import atomic_path
-from .model import PointModel
-from .rbf.result import Normalization, RbfFit
+from splatdeform.basis.result import Basis
+from splatdeform.deform import Deformation, Group
+from splatdeform.deform.handle import AffineFrame
+from splatdeform.edit.config import EditConfig
+from splatdeform.errors import InputError
+from splatdeform.io.atomic import atomic_path
+from splatdeform.model import PointModel
+from splatdeform.rbf.result import Normalization, RbfFit
 
 FORMAT_VERSION = 3  # 2: fit max/rms error and method; 3: metaphor groups
 

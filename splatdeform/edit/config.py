@@ -10,75 +10,18 @@ from pathlib import Path
 from typing import Annotated, Any, Literal
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import BaseModel, Field, ValidationError, model_validator
 
-from .basis.names import BACKENDS
-from .errors import ConfigError
-from .rbf.defaults import DEFAULT_MAX_CENTERS, DEFAULT_TOLERANCE
-from .regions import Box, Indices, Plane, Property, Selector, Sphere
+from splatdeform.basis.names import BACKENDS
+from splatdeform.edit.schema import Strict, Vec3
+from splatdeform.edit.selectors import SelectorCfg
+from splatdeform.errors import ConfigError
+from splatdeform.rbf.defaults import DEFAULT_MAX_CENTERS, DEFAULT_TOLERANCE
 
-Vec3 = Annotated[list[float], Field(min_length=3, max_length=3)]
-MAX_INDEX = 2**62  # point indices beyond any real model (and inside int64)
 MAX_CONTROL_POINTS = 128  # curve control points (the renderer's storage-buffer limit)
 MIN_IMAGE, MAX_IMAGE = 16, 8192  # image width/height in pixels (as --size)
 MAX_FRAMES = 1000  # render.frames and --frames
-
-
-class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid", strict=False, allow_inf_nan=False)
-
-
-class BoxCfg(_Strict):
-    min: Vec3
-    max: Vec3
-
-
-class SphereCfg(_Strict):
-    center: Vec3
-    radius: float = Field(gt=0)
-
-
-class PlaneCfg(_Strict):
-    point: Vec3
-    normal: Vec3
-
-
-class PropertyCfg(_Strict):
-    name: str
-    equals: float
-
-
-class SelectorCfg(_Strict):
-    """Exactly one of box, sphere, plane, indices (list or {file: path}), property."""
-
-    box: BoxCfg | None = None
-    sphere: SphereCfg | None = None
-    plane: PlaneCfg | None = None
-    indices: list[Annotated[int, Field(ge=0, le=MAX_INDEX)]] | dict[Literal["file"], str] | None \
-        = None
-    property: PropertyCfg | None = None
-
-    @model_validator(mode="after")
-    def _exactly_one(self) -> SelectorCfg:
-        given = [k for k in ("box", "sphere", "plane", "indices", "property")
-                 if getattr(self, k) is not None]
-        if len(given) != 1:
-            raise ValueError("expected exactly one of box, sphere, plane, indices, property; "
-                             f"got {', '.join(given) or 'none'}")
-        return self
-
-    def to_selector(self) -> Selector:
-        if self.box:
-            return Box(tuple(self.box.min), tuple(self.box.max))
-        if self.sphere:
-            return Sphere(tuple(self.sphere.center), self.sphere.radius)
-        if self.plane:
-            return Plane(tuple(self.plane.point), tuple(self.plane.normal))
-        if self.property:
-            return Property(self.property.name, self.property.equals)
-        if isinstance(self.indices, dict):
-            return Indices(file=self.indices["file"])
-        return Indices(indices=tuple(self.indices))
+_Strict = Strict  # the root of the edit config's models (key paths come from their fields)
 
 
 class RegionsCfg(_Strict):
@@ -217,9 +160,14 @@ def input_paths(cfg: EditConfig, base_dir: str | Path) -> list[tuple[str, Path]]
         groups.append((f"handles[{i}].region", getattr(h, "region", None) or []))
     for key, selectors in groups:
         for j, sel in enumerate(selectors):
-            if isinstance(sel.indices, dict):
-                found.append((f"{key}[{j}].indices.file", base_dir / sel.indices["file"]))
+            file = getattr(sel.to_selector(), "file", None)  # selectors that read a file
+            if file is not None:
+                found.append((f"{key}[{j}].{_selector_name(sel)}.file", base_dir / file))
     return found
+
+
+def _selector_name(entry: BaseModel) -> str:
+    return next(iter(type(entry).model_fields))
 
 
 def _config_fields(roots: tuple[type[BaseModel], ...]) -> frozenset[str]:

@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .errors import InputError
+from splatdeform.errors import InputError
 
 C0 = 0.28209479177387814
 C1 = 0.4886025119029199

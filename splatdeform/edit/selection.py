@@ -11,9 +11,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .config import EditConfig
-from .model import PointModel
-from .regions import check_regions
+from splatdeform.edit.config import EditConfig
+from splatdeform.model import PointModel
 
 # preview colours (uint8 RGB): free grey, fixed blue / its rings light blue, moving orange /
 # its rings yellow
@@ -67,25 +66,13 @@ def select_regions(cfg: EditConfig, model: PointModel, base_dir: str | Path) -> 
     """The edit's fixed and moving masks and rings, exactly as ``deform`` computes them (the
     same metaphors, checks and rings as :func:`splatdeform.deform.prepare_metaphors`, without
     the fit). Raises RegionError / InputError / ConfigError like ``deform``."""
-    from . import deform as df
-    from .edit import metaphors, region_mask
-    from .rings import boundary_rings, region_adjacency
+    from splatdeform.deform.regions import layout
+    from splatdeform.edit.plain import fixed_mask, metaphors
 
     base_dir = Path(base_dir)
-    fixed = region_mask(cfg, cfg.regions.fixed, model, base_dir)
-    mphs = metaphors(cfg, model, base_dir)
-    n = model.n_points
-    for mph in mphs:
-        df._check_metaphor(fixed, mph, n)
-    moving_idx = df._moving_columns(n, mphs)[0]
-    moving = np.zeros(n, dtype=bool)
-    moving[moving_idx] = True
-    name = df._short(mphs[0].name) if len(mphs) == 1 else "handle"
-    check_regions(fixed, moving, handle_name=name)
-    depth = cfg.boundary.continuity + 1
-    adj = region_adjacency(model, fixed, moving, cfg.boundary.neighbors, depth + 1)
-    fixed_rings, moving_rings = boundary_rings(adj, fixed, moving, depth, name)
-    return Selection(fixed, moving, list(fixed_rings), list(moving_rings), moving_label(cfg))
+    lay = layout(model, fixed_mask(cfg, model, base_dir), metaphors(cfg, model, base_dir),
+                 continuity=cfg.boundary.continuity, neighbors=cfg.boundary.neighbors)
+    return Selection(lay.fixed, lay.moving, lay.fixed_rings, lay.moving_rings, moving_label(cfg))
 
 
 def counts_of_deformation(deformation, moving_name: str = "handle") -> RegionCounts:

@@ -17,8 +17,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .errors import RegionError
-from .handle import AffineFrame, handle_frame
+from splatdeform.deform.handle import AffineFrame, handle_frame
+from splatdeform.errors import RegionError
 
 
 @dataclass

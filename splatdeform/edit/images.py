@@ -5,17 +5,17 @@ from __future__ import annotations
 import time
 from pathlib import Path
 
-from .config import EditConfig, RenderCfg
-from .deform import full_basis
-from .edit import EditResult
-from .errors import InputError
+from splatdeform.deform import full_basis
+from splatdeform.edit.config import EditConfig, RenderCfg
+from splatdeform.edit.run import EditResult
+from splatdeform.errors import InputError
 
 
 def with_camera_file(image: Path, files: list[Path]) -> list[Path]:
     """``files`` plus the ``OUT.camera.json`` the renderer writes beside ``image`` (when this
     renderer writes one), so the path check covers it too."""
     try:
-        from .render.camera import camera_sidecar
+        from splatdeform.render.camera import camera_sidecar
     except ImportError:
         return files
     return [*files, camera_sidecar(image)]
@@ -26,7 +26,7 @@ def render_target(out: str | Path, frames: int, what: str = "render.output"
     """Where an edit's image goes: (the path written, the files written there). One image: a
     .png; frames >= 2: a .gif (a .png name becomes .gif) or a folder of ``frame_NNNN.png``.
     Raises InputError naming ``what`` (the option or key) for any other suffix."""
-    from .config import check_render_output
+    from splatdeform.edit.config import check_render_output
 
     out = Path(out)
     try:
@@ -56,7 +56,7 @@ def render_result(result: EditResult, cfg: EditConfig, out: str | Path, *,
     before/after image). ``view``: the render functions' up / roll / camera / size keywords
     (:func:`splatdeform.render.camera.camera_options`); default from ``render.up``,
     ``render.roll`` and ``render.camera`` (a camera file wins over the other view keys)."""
-    from .render import render_deformation_comparison, render_frames
+    from splatdeform.render import render_deformation_comparison, render_frames
 
     frames = render_frames_count(cfg, frames)
     opts = cfg.render or RenderCfg(output=str(out), frames=frames)
@@ -64,7 +64,7 @@ def render_result(result: EditResult, cfg: EditConfig, out: str | Path, *,
     values, gradients = full_basis(result.deformation)
     t0 = time.perf_counter()
     if view is None:
-        from .render.camera import camera_options
+        from splatdeform.render.camera import camera_options
 
         view = camera_options(opts.up, opts.roll, opts.camera)
     view = dict(view)

@@ -1,4 +1,4 @@
-"""One edit end to end: load -> regions -> rings -> fit -> basis -> apply -> save (-> render).
+"""One edit end to end: load -> config to plain data -> rings -> fit -> basis -> apply -> save.
 
 This is what ``splatdeform deform EDIT.yaml`` runs, and the Python API behind it.
 """
@@ -13,19 +13,16 @@ from pathlib import Path
 
 import numpy as np
 
-from . import deform as df
-from . import units as u
-from .basis import compute_basis
-from .config import EditConfig, HandleCfg, TransformCfg, input_paths
-from .errors import ConfigError, InputError, ProcessingError
-from .handle import compose_transform, delta_for_transform
-from .io import SUPPORTED, load, save
-from .io.atomic import check_io_paths
-from .metaphor import Metaphor, handle_metaphor
-from .model import PointModel
-from .rbf import Normalization, RbfFit, fit_incremental
-from .regions import select
-from .units import Frame
+from splatdeform import deform as df
+from splatdeform.basis import compute_basis
+from splatdeform.edit import plain
+from splatdeform.edit.config import EditConfig, input_paths
+from splatdeform.edit.plain import control_displacement, metaphors, transform_matrix  # noqa: F401
+from splatdeform.errors import InputError, ProcessingError
+from splatdeform.io import SUPPORTED, load, save
+from splatdeform.io.atomic import check_io_paths
+from splatdeform.model import PointModel
+from splatdeform.rbf import RbfFit
 
 
 @dataclass
@@ -43,90 +40,6 @@ class EditResult:
     timings: dict[str, float] = field(default_factory=dict)
 
 
-def transform_matrix(h: HandleCfg, key: str, units: str, model: PointModel,
-                     handle: np.ndarray) -> np.ndarray:
-    """The 4x4 transform of one handle from its ``transform`` or ``matrix`` (config key
-    ``key``); ``handle`` (N,) bool or (M,) int64 selects its points (for a centroid pivot)."""
-    if h.matrix is not None:
-        m = np.asarray(h.matrix, dtype=np.float64)
-        if not np.allclose(m[3], [0, 0, 0, 1]):
-            raise ConfigError.at(f"{key}.matrix", "the last row must be [0, 0, 0, 1] (affine)")
-        return m
-    t: TransformCfg = h.transform
-    frame = Frame.of(model)
-    if t.pivot == "centroid":
-        pivot = model.positions[handle].mean(axis=0)
-    else:
-        pivot = u.point(t.pivot, units, frame)
-    return compose_transform(pivot=pivot, scale=t.scale, axis=t.rotate.axis,
-                             degrees=t.rotate.degrees,
-                             translate=u.vector(t.translate, units, frame))
-
-
-def handle_matrix(cfg: EditConfig, model: PointModel, handle: np.ndarray) -> np.ndarray:
-    """The 4x4 handle transform of the single ``handle:`` form."""
-    return transform_matrix(cfg.handle, "handle", cfg.regions.units, model, handle)
-
-
-def handle_configs(cfg: EditConfig) -> list[tuple[str, HandleCfg]]:
-    """(config key, handle config) of every handle, in the order of the edit's columns."""
-    if cfg.handle is not None:
-        return [("handle", cfg.handle)]
-    return [(f"handles[{i}]", h) for i, h in enumerate(cfg.handles or [])]
-
-
-def metaphors(cfg: EditConfig, model: PointModel, base_dir: Path) -> list[Metaphor]:
-    """The config turned into model-unit metaphors: every handle (4 columns each), then the
-    curve (one column per control point)."""
-    out = []
-    if cfg.handle is not None:
-        mask = region_mask(cfg, cfg.regions.handle, model, base_dir)
-        out.append(handle_metaphor(model.positions, mask, "regions.handle"))
-    for i, h in enumerate(cfg.handles or []):
-        mask = region_mask(cfg, h.region, model, base_dir)
-        out.append(handle_metaphor(model.positions, mask, f"handles[{i}].region"))
-    if cfg.curve is not None:
-        from .curve import curve_metaphor
-
-        given, _, radius = curve_points(cfg, model)
-        out.append(curve_metaphor(model, given, degree=cfg.curve.degree,
-                                  parametrization=cfg.curve.parametrization,
-                                  capture_radius=radius))
-    return out
-
-
-def region_mask(cfg: EditConfig, selector_cfgs: list, model: PointModel,
-                base_dir: Path | None) -> np.ndarray:
-    """Mask (N,) bool of a region's selectors, converted to model units once here."""
-    sels = u.selectors([s.to_selector() for s in selector_cfgs], cfg.regions.units,
-                       Frame.of(model))
-    return select(model, sels, "model", base_dir)
-
-
-def curve_points(cfg: EditConfig, model: PointModel) -> tuple[np.ndarray, np.ndarray, float]:
-    """The curve in model units: control points (k, 3), moved_to (k, 3), capture radius."""
-    units, frame = cfg.regions.units, Frame.of(model)
-    given = np.array([u.point(p, units, frame) for p in cfg.curve.control_points])
-    moved = np.array([u.point(p, units, frame) for p in cfg.curve.moved_to])
-    if moved.shape != given.shape:
-        raise ConfigError.at("curve.moved_to", f"expected {given.shape[0]} points, got "
-                                               f"{moved.shape[0]}")
-    return given, moved, u.length(cfg.curve.capture_radius, units, frame)
-
-
-def make_fit_fn(cfg: EditConfig, model: PointModel) -> Callable:
-    """The fitter of ``fit.method`` with the config's settings, normalised on the model's bbox
-    (both limit BLAS threads themselves)."""
-    norm = Normalization.of(model.positions)
-    if cfg.fit.method == "exact":
-        from .rbf.exact import fit_exact
-
-        return partial(fit_exact, normalization=norm)
-    return partial(fit_incremental, tolerance=cfg.fit.tolerance,
-                   max_centers=cfg.fit.max_centers, selection=cfg.fit.selection,
-                   normalization=norm)
-
-
 def not_converged_message(fit: RbfFit, cfg: EditConfig) -> str | None:
     """One line when the fit stopped at fit.max_centers above fit.tolerance, else None."""
     if fit.converged:
@@ -137,17 +50,13 @@ def not_converged_message(fit: RbfFit, cfg: EditConfig) -> str | None:
             "or use fit.method: exact")
 
 
-def make_basis_fn(cfg: EditConfig) -> Callable:
-    return partial(compute_basis, gradients=True, backend=cfg.backend, device=cfg.device)
-
-
 def prepare_model(cfg: EditConfig, base_dir: Path, timings: dict[str, float],
                   drop_nonfinite: bool = False) -> PointModel:
     """Load the input (and estimate normals if asked)."""
     t0 = time.perf_counter()
     model = load(base_dir / cfg.input, drop_nonfinite=drop_nonfinite)
     if cfg.normals == "estimate" and model.normals is None:
-        from .normals import estimate_normals
+        from splatdeform.deform.normals import estimate_normals
 
         model = estimate_normals(model, cfg.boundary.neighbors)
         model.path = str(base_dir / cfg.input)
@@ -157,32 +66,11 @@ def prepare_model(cfg: EditConfig, base_dir: Path, timings: dict[str, float],
 
 def precompute(cfg: EditConfig, model: PointModel, base_dir: Path) -> df.Deformation:
     """Regions, rings, one fit and one basis for every handle and curve of the edit."""
-    fixed = region_mask(cfg, cfg.regions.fixed, model, base_dir)
-    return df.prepare_metaphors(model, fixed, metaphors(cfg, model, base_dir),
-                                fit_fn=make_fit_fn(cfg, model), basis_fn=make_basis_fn(cfg),
+    return df.prepare_metaphors(model, plain.fixed_mask(cfg, model, base_dir),
+                                plain.metaphors(cfg, model, base_dir),
+                                fit_fn=plain.fit_fn(cfg, model), basis_fn=plain.basis_fn(cfg),
                                 continuity=cfg.boundary.continuity,
                                 neighbors=cfg.boundary.neighbors)
-
-
-def control_displacement(cfg: EditConfig, model: PointModel, deformation: df.Deformation
-                         ) -> tuple[np.ndarray, np.ndarray | list[np.ndarray] | None]:
-    """delta_c (k, 3) for the configured edit (every handle's T(C) - C, then the curve's
-    moved_to - control_points) and the handle matrices: one 4x4 for the ``handle:`` form, a
-    list (one per handle) for ``handles:``, None for a curve alone."""
-    parts, matrices = [], []
-    groups = deformation.handle_groups()
-    for (key, h), group in zip(handle_configs(cfg), groups, strict=True):
-        points = deformation.moving_idx[group.rows]
-        matrix = transform_matrix(h, key, cfg.regions.units, model, points)
-        parts.append(delta_for_transform(group.frame.control_points, matrix))
-        matrices.append(matrix)
-    if cfg.curve is not None:
-        given, moved, _ = curve_points(cfg, model)
-        parts.append(moved - given)  # delta_c: the user's points as given (not snapped)
-    delta = np.vstack(parts)
-    if cfg.handle is not None:
-        return delta, matrices[0]
-    return delta, matrices or None
 
 
 def check_converged(fit: RbfFit, cfg: EditConfig,
@@ -209,7 +97,8 @@ def run_edit(cfg: EditConfig, base_dir: str | Path = ".", *, output: str | Path 
     receives the one-line warning of a fit that stopped above the tolerance (with
     ``fit.on_not_converged: error`` that is a ProcessingError instead, before any output).
     ``stream``: {budget, scheduler, workers, quiet} for the out-of-core path
-    (:mod:`splatdeform.stream`), taken when the input exceeds the budget or Dask is asked for."""
+    (:mod:`splatdeform.edit.stream`), taken when the input exceeds the budget or Dask is asked
+    for."""
     base_dir = Path(base_dir)
     out_path = Path(output) if output is not None else base_dir / cfg.output
     in_path = base_dir / cfg.input
@@ -219,7 +108,9 @@ def run_edit(cfg: EditConfig, base_dir: str | Path = ".", *, output: str | Path 
                              f"expected one of {', '.join(SUPPORTED)}")
         check_io_paths(input_paths(cfg, base_dir),
                        [("output", out_path), ("reuse cache", reuse)])
-        from .stream import maybe_stream  # out of core / on Dask when asked or too big
+        from splatdeform.edit.stream import (
+            maybe_stream,  # out of core / on Dask when asked or too big
+        )
 
         streamed = maybe_stream(cfg, base_dir, out_path, reuse=reuse, log=log,
                                 drop_nonfinite=drop_nonfinite,
@@ -231,7 +122,7 @@ def run_edit(cfg: EditConfig, base_dir: str | Path = ".", *, output: str | Path 
     model = prepare_model(cfg, base_dir, timings, drop_nonfinite)
     deformation = None
     if reuse is not None:
-        from .cache import edit_key, load_deformation
+        from splatdeform.edit.cache import edit_key, load_deformation
 
         key = edit_key(cfg, in_path)
         deformation = load_deformation(reuse, key, model)
@@ -242,17 +133,17 @@ def run_edit(cfg: EditConfig, base_dir: str | Path = ".", *, output: str | Path 
         timings.update(deformation.timings)
         check_converged(deformation.fit, cfg, warn)
         if reuse is not None:
-            from .cache import save_deformation
+            from splatdeform.edit.cache import save_deformation
 
             save_deformation(reuse, key, deformation)
     else:
         timings.update({"rings": 0.0, "fit": 0.0, "basis": 0.0})
         check_converged(deformation.fit, cfg, warn)
     if log:
-        from .selection import counts_of_deformation, format_counts, moving_label
+        from splatdeform.edit.selection import counts_of_deformation, format_counts, moving_label
 
         log(format_counts(counts_of_deformation(deformation, moving_label(cfg))))
-    delta_c, matrix = control_displacement(cfg, model, deformation)
+    delta_c, matrix = plain.control_displacement(cfg, model, deformation)
     t0 = time.perf_counter()
     deformed = df.apply(deformation, model, delta_c, moving_matrix=matrix)  # checks finiteness
     timings["apply"] = time.perf_counter() - t0

@@ -11,7 +11,7 @@ Deforming a splat by the Jacobian J of the deformation (:func:`deform_gaussians`
   relative accuracy (J R is well conditioned, S only scales its columns) and keeps each axis in
   its column (no sorting). Scales are never clamped in absolute terms.
 - SH bands 1..3 are rotated by R of the polar decomposition J = R U (R proper), see
-  :mod:`splatdeform.sh`.
+  :mod:`splatdeform.deform.sh`.
 """
 
 from __future__ import annotations
@@ -193,7 +193,7 @@ def deform_gaussians(scale_log: np.ndarray, rotation: np.ndarray, sh_rest: np.nd
                      jac: np.ndarray) -> DeformedGaussians:
     """Deform M splats by their Jacobians J (M, 3, 3): Sigma' = J Sigma J^T, SH rotated by the
     polar R of J. Splats with J exactly I come back bit-identical. See the module docstring."""
-    from .sh import rotate_sh_rest
+    from splatdeform.deform.sh import rotate_sh_rest
 
     jac = np.asarray(jac, dtype=np.float64)
     scale_log = np.asarray(scale_log)

@@ -18,11 +18,11 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import FormatError, InputError
-from ..io import las as laslib
-from ..io import ply as plylib
-from ..io import ply_format as plyfmt
-from ..model import PlyElementData, PlySource, PointModel
+from splatdeform.errors import FormatError, InputError
+from splatdeform.io import las as laslib
+from splatdeform.io import ply as plylib
+from splatdeform.io import ply_format as plyfmt
+from splatdeform.model import PlyElementData, PlySource, PointModel
 
 PLY_EXTENSIONS = (".ply",)
 STREAMABLE = PLY_EXTENSIONS + laslib.EXTENSIONS

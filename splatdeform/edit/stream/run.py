@@ -22,14 +22,14 @@ from pathlib import Path
 
 import numpy as np
 
-from .. import deform as df
-from ..basis.result import Basis
-from ..errors import InputError, ProcessingError
-from ..io import las as laslib
-from ..io.atomic import atomic_path
-from .plan import FIXED, FREE, HANDLE, Plan, build_plan, chunk_ranges
-from .progress import Progress
-from .sources import ChunkFile, LasChunks, PlyChunks, open_chunks
+from splatdeform import deform as df
+from splatdeform.basis.result import Basis
+from splatdeform.edit.stream.plan import FIXED, FREE, HANDLE, Plan, build_plan, chunk_ranges
+from splatdeform.edit.stream.progress import Progress
+from splatdeform.edit.stream.sources import ChunkFile, LasChunks, PlyChunks, open_chunks
+from splatdeform.errors import InputError, ProcessingError
+from splatdeform.io import las as laslib
+from splatdeform.io.atomic import atomic_path
 
 
 @dataclass
@@ -47,7 +47,7 @@ class Shared:
 def deform_chunk(src: ChunkFile, start: int, stop: int, labels: np.ndarray,
                  shared: Shared):
     """Deform points [start, stop): returns (rows or records, PLY properties or None)."""
-    from ..basis import compute_basis
+    from splatdeform.basis import compute_basis
 
     model = src.read(start, stop)
     free = np.flatnonzero(labels == FREE)
@@ -209,7 +209,7 @@ def stream_deform(src: ChunkFile, cfg, base_dir: Path, out: Path, *, chunk: int,
                   quiet: bool = False, client=None, max_border: int = 20_000_000,
                   max_handle: int = 2**62, check_fit=None):
     """Plan (passes 1-4, rings, fit) and the second pass. Returns (plan, timings)."""
-    from ..edit import handle_matrix, make_fit_fn
+    from splatdeform.edit.plain import handle_matrix, make_fit_fn
 
     plan = build_plan(src, cfg, base_dir, chunk=chunk, quiet=quiet, max_border=max_border,
                       make_fit_fn=make_fit_fn, handle_matrix=handle_matrix,

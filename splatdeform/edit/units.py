@@ -10,13 +10,12 @@ point). Below the config layer nothing knows about units.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import numpy as np
 
-from .errors import InputError
-from .model import PointModel
-from .regions import Box, Plane, Selector, Sphere, _box_frame
+from splatdeform.errors import InputError
+from splatdeform.model import PointModel
 
 UNITS = ("model", "relative")
 
@@ -32,46 +31,41 @@ class Frame:
 
     @staticmethod
     def of(model: PointModel) -> Frame:
-        lo, extent = _box_frame(model)
-        return Frame(lo, extent, model.diagonal())
+        lo, hi = model.bbox()
+        extent = hi - lo
+        return Frame(lo, np.where(extent > 0, extent, 1.0), model.diagonal())
 
 
-def _check(units: str) -> None:
+def check_units(units: str) -> None:
     if units not in UNITS:
         raise InputError(f"units: expected 'model' or 'relative', got {units!r}")
 
 
 def point(p, units: str, frame: Frame) -> np.ndarray:
     """A (3,) point given in ``units`` as model coordinates."""
-    _check(units)
+    check_units(units)
     v = np.asarray(p, dtype=np.float64)
     return frame.origin + v * frame.extent if units == "relative" else v
 
 
 def vector(v, units: str, frame: Frame) -> np.ndarray:
     """A (3,) displacement given in ``units`` as a model-unit displacement."""
-    _check(units)
+    check_units(units)
     d = np.asarray(v, dtype=np.float64)
     return d * frame.extent if units == "relative" else d
 
 
 def length(r: float, units: str, frame: Frame) -> float:
     """A radius given in ``units`` (a fraction of the diagonal when relative)."""
-    _check(units)
+    check_units(units)
     return float(r) * (frame.diagonal if units == "relative" else 1.0)
 
 
-def selector(sel: Selector, units: str, frame: Frame) -> Selector:
-    """``sel`` as a model-unit selector (indices and properties have no units)."""
-    _check(units)
-    if units == "model":
-        return sel
-    if isinstance(sel, (Box, Plane)):
-        return replace(sel, origin=tuple(frame.origin), scale=tuple(frame.extent))
-    if isinstance(sel, Sphere):
-        return Sphere(tuple(point(sel.center, units, frame)), length(sel.radius, units, frame))
-    return sel
+def selector(sel, units: str, frame: Frame):
+    """``sel`` (any registered selector) as a model-unit selector: each selector module
+    says what its coordinates mean (:mod:`splatdeform.edit.selectors`)."""
+    return sel.in_units(units, frame)
 
 
-def selectors(sels: list[Selector], units: str, frame: Frame) -> list[Selector]:
+def selectors(sels: list, units: str, frame: Frame) -> list:
     return [selector(s, units, frame) for s in sels]

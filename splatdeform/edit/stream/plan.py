@@ -9,7 +9,7 @@ Only what the rings and the fit need is ever held whole:
 The border set is found with a coarse voxel grid of edge R/2 (voxels holding a region point
 within two voxels of voxels holding a free point, and vice versa) and then exact distances
 within those voxels.
-The rings (the existing :func:`splatdeform.deform.prepare`, kNN graph and all) run on S alone.
+The rings (the existing :func:`splatdeform.deform.deformation`, kNN graph and all) run on S alone.
 This equals the in-memory rings when every point whose kNN edges can reach a ring lies well
 inside S: with r = the largest k-th-neighbour distance among the points within R/2 of the
 interface, the rings are at most (rings + 1) r deep, so (rings + 1) r < R/2 makes every kNN
@@ -28,15 +28,16 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial import cKDTree
 
-from .. import deform as df
-from ..basis.result import Basis
-from ..config import EditConfig
-from ..errors import InputError, ProcessingError, RegionError
-from ..handle import AffineFrame, delta_for_transform, handle_frame
-from ..model import PointModel
-from ..regions import Indices, Property, _load_indices, select
-from .progress import Progress
-from .sources import ChunkFile, as_chunk
+from splatdeform import deform as df
+from splatdeform.basis.result import Basis
+from splatdeform.deform.handle import AffineFrame, delta_for_transform, handle_frame
+from splatdeform.edit.config import EditConfig
+from splatdeform.edit.selectors import Indices, Property, select
+from splatdeform.edit.selectors.indices import index_mask
+from splatdeform.edit.stream.progress import Progress
+from splatdeform.edit.stream.sources import ChunkFile, as_chunk
+from splatdeform.errors import ProcessingError, RegionError
+from splatdeform.model import PointModel
 
 FREE, FIXED, HANDLE = 0, 1, 2
 
@@ -113,11 +114,7 @@ def _index_mask(selectors, n: int, base_dir: Path) -> np.ndarray | None:
         return None
     mask = np.zeros(n, dtype=bool)
     for sel in selectors:
-        idx = _load_indices(sel, base_dir)
-        if idx.size and (idx.min() < 0 or idx.max() >= n):
-            raise InputError(f"indices: expected values in 0..{n - 1}, got "
-                             f"{int(idx.min())}..{int(idx.max())}")
-        mask[idx] = True
+        mask |= index_mask(sel.load(base_dir), n)
     return mask
 
 
@@ -185,7 +182,7 @@ class Moments:
 
 
 def frame_from_moments(moments: Moments, extent_of) -> AffineFrame:
-    """The handle frame of :func:`splatdeform.handle.handle_frame` from streamed moments;
+    """The handle frame of :func:`splatdeform.deform.handle.handle_frame` from streamed moments;
     ``extent_of(centroid, vt)`` -> (3,) largest |(p - centroid) . axis| over the handle."""
     centroid, sv, vt = moments.centroid_and_axes()
     if sv[0] <= 0 or sv[1] <= 1e-6 * sv[0]:

@@ -19,10 +19,10 @@ import numpy as np
 from scipy.interpolate import BSpline
 from scipy.spatial import cKDTree
 
-from . import deform as df
-from .errors import ConfigError, RegionError
-from .metaphor import Metaphor
-from .model import PointModel
+from splatdeform import deform as df
+from splatdeform.deform.metaphor import Metaphor
+from splatdeform.errors import ConfigError, RegionError
+from splatdeform.model import PointModel
 
 SAMPLES_PER_SPAN = 64
 

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .errors import InputError
+from splatdeform.errors import InputError
 
 
 def _check_delta(delta_c: np.ndarray, k: int) -> np.ndarray:

@@ -11,7 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .errors import InputError, RegionError
+from splatdeform.errors import InputError, RegionError
 
 
 @dataclass(frozen=True)

@@ -10,7 +10,7 @@ given a Dask scheduler (``--scheduler``) or local worker processes (``--workers`
 3. pass 5: per chunk, basis of the free points + apply (the in-memory code on a chunk) ->
    the output file (same format and properties), renamed into place at the end.
 
-See :mod:`splatdeform.stream.plan` for why the rings equal the in-memory rings.
+See :mod:`splatdeform.edit.stream.plan` for why the rings equal the in-memory rings.
 """
 
 from __future__ import annotations
@@ -21,9 +21,9 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import ConfigError
-from .progress import Progress
-from .sources import STREAMABLE, open_chunks
+from splatdeform.edit.stream.progress import Progress
+from splatdeform.edit.stream.sources import STREAMABLE, open_chunks
+from splatdeform.errors import ConfigError
 
 BASE_RSS = 150 * 2**20  # measured: Python + numpy + scipy + pyopencl (+ PoCL) resident
 _UNITS = {"": 1, "b": 1, "k": 2**10, "kb": 2**10, "kib": 2**10, "m": 2**20, "mb": 2**20,
@@ -107,9 +107,9 @@ def run_stream(cfg, base_dir: str | Path = ".", *, output: str | Path | None = N
     ``max_handle``: most handle points kept whole for the frame (beyond: streamed moments)."""
     import time
 
-    from ..edit import EditResult
-    from ..io import check_output_path
-    from .run import check_streamable, dask_client, stream_deform
+    from splatdeform.edit.run import EditResult
+    from splatdeform.edit.stream.run import check_streamable, dask_client, stream_deform
+    from splatdeform.io import check_output_path
 
     base_dir = Path(base_dir)
     in_path = base_dir / cfg.input
@@ -145,8 +145,8 @@ def run_stream(cfg, base_dir: str | Path = ".", *, output: str | Path | None = N
                              max_handle=max_handle)
     from functools import partial
 
-    from .. import deform as df
-    from ..basis import compute_basis
+    from splatdeform import deform as df
+    from splatdeform.basis import compute_basis
 
     border = plan.border
     basis_fn = partial(compute_basis, gradients=False, backend="numpy")

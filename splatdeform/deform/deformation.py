@@ -1,0 +1,262 @@
+"""Precompute a deformation once (rings -> one fit -> one basis), then apply any delta_c.
+
+Every point is fixed (F), moving (the handle H, or a curve band) or free:
+- F is copied unchanged (bit-exact), whatever delta_c is.
+- A moving point h moves by its control coordinates: h' = h + coords(h) @ delta_c (for a handle
+  that is exactly the affine map T; pass the 4x4 matrix to use T itself).
+- Only free points evaluate the RBF field through the precomputed basis: p' = p + B delta_c.
+Ring points of F and H are the fit's constraints; they get their prescribed values exactly
+because they are F or H points.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from splatdeform.basis.result import Basis
+from splatdeform.deform.handle import AffineFrame
+from splatdeform.deform.metaphor import Metaphor, handle_metaphor
+from splatdeform.deform.regions import Group, check_regions, layout
+from splatdeform.model import PointModel
+from splatdeform.rbf.defaults import DEFAULT_MAX_CENTERS, DEFAULT_TOLERANCE
+from splatdeform.rbf.result import RbfFit
+
+
+@dataclass
+class Deformation:
+    """A precomputed deformation of one model.
+
+    fixed / moving: (N,) bool masks. free_idx: (Nf,) int64. moving_idx: (Nh,) int64.
+    moving_coords: (Nh, k) float64, a moving point's displacement is moving_coords @ delta_c.
+    moving_gradients: (Nh, k, 3) float64, d coords / d x (constant rows for a handle).
+    constraint_idx: (m,) int64 ring points; constraint_points: (m, 3);
+    constraint_rhs: (m, k) float64 (M, 0 rows for F).
+    control_points: (k, 3) float64 (C). frame: the handle's affine frame, or None (curves).
+    fit: the RBF fit; basis: b and grad b for the free points (Nf rows).
+    timings: seconds per stage. rings: ring sizes (fixed, moving).
+    """
+
+    n_points: int
+    fixed: np.ndarray
+    moving: np.ndarray
+    free_idx: np.ndarray
+    moving_idx: np.ndarray
+    moving_coords: np.ndarray
+    moving_gradients: np.ndarray
+    constraint_idx: np.ndarray
+    constraint_points: np.ndarray
+    constraint_rhs: np.ndarray
+    control_points: np.ndarray
+    fit: RbfFit
+    basis: Basis
+    frame: AffineFrame | None = None
+    timings: dict[str, float] = field(default_factory=dict)
+    ring_sizes: tuple[list[int], list[int]] = ((), ())
+    groups: list[Group] = field(default_factory=list)
+
+    def handle_groups(self) -> list[Group]:
+        """The groups whose points get a handle's 4x4 map verbatim (those with a frame)."""
+        if not self.groups:  # one metaphor built without groups (older caches, custom code)
+            rows = np.arange(self.moving_idx.size)
+            return [Group("handle", (0, self.k), rows, self.frame)] if self.frame else []
+        return [g for g in self.groups if g.frame is not None]
+
+    @property
+    def k(self) -> int:
+        return int(self.control_points.shape[0])
+
+
+BasisFn = Callable[[np.ndarray, RbfFit], Basis]
+FitFn = Callable[[np.ndarray, np.ndarray], RbfFit]
+
+def prepare(model: PointModel, fixed: np.ndarray, moving: np.ndarray, *,
+            control_points: np.ndarray,
+            coordinates: Callable[[np.ndarray], np.ndarray],
+            coordinate_gradients: Callable[[np.ndarray], np.ndarray],
+            fit_fn: FitFn, basis_fn: BasisFn, continuity: int = 2, neighbors: int = 10,
+            moving_name: str = "handle", frame: AffineFrame | None = None) -> Deformation:
+    """:func:`prepare_metaphors` for one metaphor given as masks and callables.
+
+    coordinates(points (M, 3)) -> (M, k) control coordinates of moving points (called with the
+    moving points in index order); coordinate_gradients(points (M, 3)) -> (M, k, 3).
+    """
+    if not moving.any():
+        check_regions(fixed, moving, handle_name=moving_name)
+    idx = np.flatnonzero(moving)
+    pts = model.positions[idx]
+    metaphor = Metaphor(moving_name, idx, np.asarray(control_points, dtype=np.float64),
+                        coordinates(pts), coordinate_gradients(pts), frame)
+    return prepare_metaphors(model, fixed, [metaphor], fit_fn=fit_fn, basis_fn=basis_fn,
+                             continuity=continuity, neighbors=neighbors)
+
+
+def _default_fns(model: PointModel, fit_fn: FitFn | None, basis_fn: BasisFn | None
+                 ) -> tuple[FitFn, BasisFn]:
+    """The incremental fitter at the default tolerance (normalised on the model's bbox) and the
+    automatic basis backend, for whichever of the two is not given."""
+    if fit_fn is None:
+        fit_fn = fit_settings(model)
+    if basis_fn is None:
+        basis_fn = basis_settings()
+    return fit_fn, basis_fn
+
+
+def fit_settings(model: PointModel, *, tolerance: float = DEFAULT_TOLERANCE,
+                 max_centers: int = DEFAULT_MAX_CENTERS, selection: str = "greedy",
+                 method: str = "incremental") -> FitFn:
+    """The fitter ``fit_fn(points, rhs)`` for these settings, normalised on the model's bbox
+    (``method``: ``incremental`` QR or the ``exact`` dense solve; both limit BLAS threads)."""
+    from functools import partial
+
+    from splatdeform.rbf import Normalization, fit_incremental
+
+    norm = Normalization.of(model.positions)
+    if method == "exact":
+        from splatdeform.rbf.exact import fit_exact
+
+        return partial(fit_exact, normalization=norm)
+    return partial(fit_incremental, tolerance=tolerance, max_centers=max_centers,
+                   selection=selection, normalization=norm)
+
+
+def basis_settings(backend: str = "auto", device: str | None = None,
+                   gradients: bool = True) -> BasisFn:
+    """The basis evaluator ``basis_fn(points, fit)`` for a backend (numpy | opencl | auto)."""
+    from functools import partial
+
+    from splatdeform.basis import compute_basis
+
+    return partial(compute_basis, gradients=gradients, backend=backend, device=device)
+
+
+def prepare_metaphors(model: PointModel, fixed: np.ndarray, metaphors: list[Metaphor], *,
+                      fit_fn: FitFn | None = None, basis_fn: BasisFn | None = None,
+                      continuity: int = 2, neighbors: int = 10) -> Deformation:
+    """Rings, constraints, one fit and one basis for a fixed mask (N,) bool and any number of
+    metaphors (handles and curves): k = the sum of their columns. ``fit_fn`` / ``basis_fn``
+    default to :func:`fit_settings` / :func:`basis_settings` with their defaults.
+
+    Raises RegionError when a metaphor is empty, overlaps the fixed region or another
+    metaphor, or has no point next to the free region.
+    """
+    fit_fn, basis_fn = _default_fns(model, fit_fn, basis_fn)
+    t0 = time.perf_counter()
+    lay = layout(model, fixed, metaphors, continuity=continuity, neighbors=neighbors)
+    timings: dict[str, float] = {"rings": time.perf_counter() - t0}
+    moving, moving_idx, coords_all = lay.moving, lay.moving_idx, lay.coords
+    grads_all, groups = lay.gradients, lay.groups
+    fixed_rings, moving_rings = lay.fixed_rings, lay.moving_rings
+    n = model.n_points
+
+    fixed_c = np.concatenate(fixed_rings)
+    moving_c = np.concatenate(moving_rings)
+    lookup = np.full(n, -1, dtype=np.int64)
+    lookup[moving_idx] = np.arange(moving_idx.size)
+    constraint_idx = np.concatenate([fixed_c, moving_c])
+    k = coords_all.shape[1]
+    rhs = np.zeros((constraint_idx.size, k))
+    rhs[fixed_c.size:] = coords_all[lookup[moving_c]]
+
+    t0 = time.perf_counter()
+    fit = fit_fn(model.positions[constraint_idx], rhs)
+    timings["fit"] = time.perf_counter() - t0
+
+    free_idx = np.flatnonzero(~(fixed | moving))
+    t0 = time.perf_counter()
+    basis = basis_fn(model.positions[free_idx], fit)
+    timings["basis"] = time.perf_counter() - t0
+    frames = [g.frame for g in groups if g.frame is not None]
+    return Deformation(
+        n_points=n, fixed=fixed, moving=moving, free_idx=free_idx,
+        moving_idx=moving_idx, moving_coords=coords_all, moving_gradients=grads_all,
+        constraint_idx=constraint_idx, constraint_points=model.positions[constraint_idx],
+        constraint_rhs=rhs,
+        control_points=np.vstack([mph.control_points for mph in metaphors]), fit=fit,
+        basis=basis, frame=frames[0] if len(metaphors) == 1 and frames else None,
+        timings=timings,
+        ring_sizes=([r.size for r in fixed_rings], [r.size for r in moving_rings]),
+        groups=groups,
+    )
+
+
+def prepare_handle(model: PointModel, fixed: np.ndarray, handle: np.ndarray, *,
+                   fit_fn: FitFn | None = None, basis_fn: BasisFn | None = None,
+                   continuity: int = 2, neighbors: int = 10, **settings) -> Deformation:
+    """:func:`prepare_metaphors` for one handle mask (N,) bool (k = 4 affine frame
+    coordinates). ``settings``: tolerance, max_centers, backend, device (when no ``fit_fn`` /
+    ``basis_fn`` is given)."""
+    fit_fn, basis_fn = _settings_fns(model, fit_fn, basis_fn, settings)
+    if not handle.any():
+        check_regions(fixed, handle)
+    return prepare_metaphors(model, fixed, [handle_metaphor(model.positions, handle)],
+                             fit_fn=fit_fn, basis_fn=basis_fn, continuity=continuity,
+                             neighbors=neighbors)
+
+
+def prepare_handles(model: PointModel, fixed: np.ndarray, handles: list[np.ndarray], *,
+                    fit_fn: FitFn | None = None, basis_fn: BasisFn | None = None,
+                    continuity: int = 2, neighbors: int = 10, **settings) -> Deformation:
+    """Several handle masks (N,) bool in one edit: k = 4 per handle, one fit, one basis, one
+    apply. ``settings`` as for :func:`prepare_handle`."""
+    fit_fn, basis_fn = _settings_fns(model, fit_fn, basis_fn, settings)
+    metaphors = [handle_metaphor(model.positions, h, f"handles[{i}].region")
+                 for i, h in enumerate(handles)]
+    return prepare_metaphors(model, fixed, metaphors, fit_fn=fit_fn, basis_fn=basis_fn,
+                             continuity=continuity, neighbors=neighbors)
+
+
+_SETTINGS = ("tolerance", "max_centers", "backend", "device")
+
+
+def _settings_fns(model: PointModel, fit_fn: FitFn | None, basis_fn: BasisFn | None,
+                  settings: dict) -> tuple[FitFn | None, BasisFn | None]:
+    unknown = sorted(set(settings) - set(_SETTINGS))
+    if unknown:
+        raise TypeError(f"unexpected keyword argument {unknown[0]!r} (expected one of "
+                        f"fit_fn, basis_fn, continuity, neighbors, {', '.join(_SETTINGS)})")
+    fit_keys = {k: settings[k] for k in ("tolerance", "max_centers") if k in settings}
+    basis_keys = {k: settings[k] for k in ("backend", "device") if k in settings}
+    if fit_fn is None and fit_keys:
+        fit_fn = fit_settings(model, **fit_keys)
+    if basis_fn is None and basis_keys:
+        basis_fn = basis_settings(**basis_keys)
+    return fit_fn, basis_fn
+
+
+def delta_for(deformation: Deformation, matrices) -> np.ndarray:
+    """delta_c (k, 3) that moves each handle frame by its 4x4 affine map: one matrix for a
+    single handle (or the same for every handle), or a list with one per handle in the
+    deformation's handle order."""
+    from splatdeform.deform.handle import delta_for_transform
+
+    groups = deformation.handle_groups()
+    if isinstance(matrices, np.ndarray) and matrices.shape == (4, 4):
+        if len(groups) <= 1:
+            return delta_for_transform(deformation.control_points, matrices)
+        matrices = [matrices] * len(groups)
+    parts = [delta_for_transform(g.frame.control_points, m)
+             for g, m in zip(groups, matrices, strict=True)]
+    return np.vstack(parts)
+
+
+def constraint_errors(deformation: Deformation, delta_c: np.ndarray,
+                      basis_fn: BasisFn) -> tuple[float, float]:
+    """Largest and RMS |d(c) - prescribed(c)| over the constraint points for this delta_c (model
+    units): how well the fitted field meets the constraints it was fitted to."""
+    if deformation.constraint_idx.size == 0:
+        return 0.0, 0.0
+    basis = basis_fn(deformation.constraint_points, deformation.fit)
+    delta = np.asarray(delta_c, dtype=np.float64)
+    error = (basis.values.astype(np.float64) - deformation.constraint_rhs) @ delta
+    dist = np.linalg.norm(error, axis=1)
+    return float(dist.max()), float(np.sqrt(np.mean(dist * dist)))
+
+
+def constraint_error(deformation: Deformation, delta_c: np.ndarray,
+                     basis_fn: BasisFn) -> float:
+    """Largest |d(c) - prescribed(c)| over the constraint points (see constraint_errors)."""
+    return constraint_errors(deformation, delta_c, basis_fn)[0]

@@ -1,0 +1,174 @@
+"""Apply delta_c to a whole :class:`PointModel` with a precomputed deformation: positions,
+normals (cof(J) n), tangent axes (J u), radius-only surfels and 3DGS covariances and SH.
+
+Fixed points are copied (bit-exact), moving points move by their control coordinates (or a
+handle's 4x4 verbatim), free points through the basis. The per-point arithmetic is
+:mod:`splatdeform.deform.arrays`, the same the shader and the editor use.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from splatdeform.deform import arrays as ap
+from splatdeform.deform.deformation import Deformation
+from splatdeform.deform.handle import apply_affine
+from splatdeform.deform.regions import Group
+from splatdeform.errors import InputError
+from splatdeform.model import PointModel
+
+
+def _deform_gaussians(model: PointModel, out: PointModel, idx: np.ndarray,
+                      jac: np.ndarray) -> None:
+    """Sigma' = J Sigma J^T for 3DGS splats ``idx`` (similarities composed directly, else J R S
+    re-factored by a relatively accurate SVD) and SH bands 1..3 rotated by the polar R of J.
+    Splats whose J is exactly I are left bit-identical (see :mod:`splatdeform.deform.gaussians`)."""
+    from splatdeform.deform.gaussians import deform_gaussians
+
+    g = model.gaussians
+    sh_rest = None if g.sh_rest is None else g.sh_rest[idx]
+    new = deform_gaussians(g.scale_log[idx], g.rotation[idx], sh_rest, jac)
+    out.gaussians.scale_log[idx] = new.scale_log
+    out.gaussians.rotation[idx] = new.rotation
+    if new.sh_rest is not None:
+        out.gaussians.sh_rest[idx] = new.sh_rest
+
+
+def _transform_attributes(model: PointModel, out: PointModel, idx: np.ndarray,
+                          jac: np.ndarray) -> None:
+    if model.normals is not None:
+        out.normals[idx] = ap.transform_normals(jac, model.normals[idx])
+    if model.axes is not None:
+        out.axes[idx] = ap.transform_axes(jac, model.axes[idx])
+    elif model.radius is not None and model.normals is not None:
+        axes = ap.transform_axes(jac, ap.radius_to_axes(model.normals[idx], model.radius[idx]))
+        out.radius[idx] = ap.axes_to_radius(axes)
+    if model.gaussians is not None:
+        _deform_gaussians(model, out, idx, jac)
+
+
+def handle_matrices(deformation: Deformation, moving_matrix
+                    ) -> list[tuple[Group, np.ndarray]]:
+    """Pair the handle groups with their 4x4 maps: ``moving_matrix`` is None (every moving
+    point by its coordinates), one (4, 4) matrix (exactly one handle), or a sequence with one
+    matrix (or None) per handle, in the deformation's handle order."""
+    if moving_matrix is None:
+        return []
+    groups = deformation.handle_groups()
+    if isinstance(moving_matrix, np.ndarray) and moving_matrix.shape == (4, 4):
+        if len(groups) != 1:
+            raise InputError(f"moving_matrix: one 4x4 matrix given for {len(groups)} handles; "
+                             "pass one matrix (or None) per handle")
+        return [(groups[0], moving_matrix)]
+    matrices = list(moving_matrix)
+    if len(matrices) != len(groups):
+        raise InputError(f"moving_matrix: expected {len(groups)} matrices (one per handle), "
+                         f"got {len(matrices)}")
+    return [(g, np.asarray(m, dtype=np.float64)) for g, m in zip(groups, matrices, strict=True)
+            if m is not None]
+
+
+def apply(deformation: Deformation, model: PointModel, delta_c: np.ndarray, *,
+          moving_matrix=None) -> PointModel:
+    """The deformed copy of ``model`` for control displacements delta_c (k, 3).
+
+    Positions, normals (cof(J) n), tangent axes (J u), radius-only surfels (area-preserving
+    radius) and 3DGS covariances follow. moving_matrix: the handles' 4x4 affine maps (one
+    matrix for a single handle, or one per handle), used verbatim for handle points (else they
+    move by their coordinates, m . delta_c).
+    """
+    if model.n_points != deformation.n_points:
+        raise InputError(f"model: expected {deformation.n_points} points, got "
+                         f"{model.n_points}")
+    delta = np.asarray(delta_c, dtype=np.float64)
+    with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
+        out = _apply(deformation, model, delta, moving_matrix)
+    check_finite(model, out)
+    return out
+
+
+def _apply(deformation: Deformation, model: PointModel, delta: np.ndarray,
+           moving_matrix: np.ndarray | None) -> PointModel:
+    out = model.copy()
+    free = deformation.free_idx
+    values = deformation.basis.values.astype(np.float64, copy=False)
+    out.positions[free] = ap.displace(model.positions[free], values, delta)
+    mov = deformation.moving_idx
+    out.positions[mov] = model.positions[mov] + deformation.moving_coords @ delta
+    for group, matrix in handle_matrices(deformation, moving_matrix):
+        rows = mov[group.rows]
+        out.positions[rows] = apply_affine(matrix, model.positions[rows])
+    needs_jac = any(a is not None for a in (model.normals, model.axes, model.gaussians))
+    if needs_jac:
+        if deformation.basis.gradients is None:
+            raise InputError("deformation: basis has no gradients; normals/axes need them")
+        grads = deformation.basis.gradients.astype(np.float64, copy=False)
+        _transform_attributes(model, out, free, ap.jacobians(grads, delta))
+        _transform_attributes(model, out, mov,
+                              ap.jacobians(np.ascontiguousarray(deformation.moving_gradients),
+                                           delta))
+    return out
+
+
+_F32_MAX = float(np.finfo(np.float32).max)
+
+
+def _stored_limit(model: PointModel, fields: tuple[str, ...], default: float) -> float:
+    """The largest magnitude the output can hold for ``fields``: a PLY source keeps each
+    field's type (float32 unless it was double); new models write positions as double."""
+    vertex = None if model.source is None else model.source.element("vertex")
+    names = () if vertex is None else (vertex.data.dtype.names or ())
+    dtypes = [vertex.data.dtype[f] for f in fields if f in names]
+    if not dtypes:
+        return default
+    return min(float(np.finfo(d).max) if d.kind == "f" else _F32_MAX for d in dtypes)
+
+
+def check_finite(model: PointModel, out: PointModel) -> None:
+    """Guard after a deformation: every float it writes (positions, normals,
+    axes, radii, 3DGS scales and rotations) is finite and fits the output's number type, for
+    every point whose input value was finite. Raises InputError naming the attribute."""
+    from splatdeform.errors import InputError
+
+    xyz = ("x", "y", "z")
+    checks = [("positions", model.positions, out.positions, xyz, np.inf if model.source is None
+               else _F32_MAX)]
+    if out.normals is not None and model.normals is not None:
+        checks.append(("normals", model.normals, out.normals, ("nx", "ny", "nz"), _F32_MAX))
+    if out.axes is not None and model.axes is not None:
+        checks.append(("surfel axes", model.axes, out.axes,
+                       ("ux", "uy", "uz", "vx", "vy", "vz"), _F32_MAX))
+    if out.radius is not None and model.radius is not None:
+        checks.append(("radii", model.radius, out.radius, ("radius", "surfel_radius"),
+                       _F32_MAX))
+    g, g_in = out.gaussians, model.gaussians
+    if g is not None and g_in is not None:
+        checks.append(("gaussian scales", g_in.scale_log, g.scale_log,
+                       ("scale_0", "scale_1", "scale_2"), _F32_MAX))
+        checks.append(("gaussian rotations", g_in.rotation, g.rotation,
+                       ("rot_0", "rot_1", "rot_2", "rot_3"), _F32_MAX))
+    for what, before, after, fields, default in checks:
+        limit = _stored_limit(model, fields, default)
+        rows_in = np.isfinite(before).reshape(before.shape[0], -1).all(axis=1)
+        with np.errstate(invalid="ignore"):
+            ok = np.isfinite(after) & (np.abs(after) <= limit)
+        ok = ok.reshape(after.shape[0], -1).all(axis=1)
+        bad = int(np.count_nonzero(rows_in & ~ok))
+        if bad:
+            raise InputError(f"the deformation produced non-finite or out-of-range {what} for "
+                             f"{bad:,} points; check the regions and the transform (a move "
+                             "that large cannot be stored)")
+
+
+def full_basis(deformation: Deformation) -> tuple[np.ndarray, np.ndarray]:
+    """Basis for every point, for one-draw-call rendering: values (N, k) float32 and
+    gradients (N, k, 3) float32; 0 for fixed points, control coordinates for moving points."""
+    n, k = deformation.n_points, deformation.k
+    values = np.zeros((n, k), dtype=np.float32)
+    grads = np.zeros((n, k, 3), dtype=np.float32)
+    values[deformation.free_idx] = deformation.basis.values
+    if deformation.basis.gradients is not None:
+        grads[deformation.free_idx] = deformation.basis.gradients
+    values[deformation.moving_idx] = deformation.moving_coords
+    grads[deformation.moving_idx] = deformation.moving_gradients
+    return values, grads

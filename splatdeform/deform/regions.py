@@ -1,0 +1,154 @@
+"""Region bookkeeping in model units, before any fit: checks, the metaphors' stacked columns and
+the boundary rings (what ``splatdeform select`` shows and what the fit is built from).
+
+Masks are (N,) bool over the model's points; a metaphor (:mod:`splatdeform.deform.metaphor`)
+brings its own moving points. Errors are :class:`RegionError` naming the config key the caller
+gave the region (``regions.handle``, ``handles[1].region``, ``curve``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from splatdeform.deform.handle import AffineFrame
+from splatdeform.deform.metaphor import Metaphor
+from splatdeform.deform.rings import boundary_rings, region_adjacency
+from splatdeform.errors import RegionError
+from splatdeform.model import PointModel
+
+
+@dataclass(frozen=True)
+class Group:
+    """One metaphor inside a deformation.
+
+    name: its config key (``regions.handle``, ``handles[1]``, ``curve``).
+    columns: (start, stop): its columns of delta_c (k rows of delta_c in all).
+    rows: (Nm,) int64 positions of its points in ``Deformation.moving_idx``.
+    frame: a handle's affine frame (its points then get the handle's 4x4 map verbatim).
+    """
+
+    name: str
+    columns: tuple[int, int]
+    rows: np.ndarray
+    frame: AffineFrame | None = None
+
+
+
+@dataclass(frozen=True)
+class Layout:
+    """Where an edit's metaphors sit and the rings they give (no fit yet).
+
+    fixed / moving: (N,) bool. moving_idx: (Nh,) int64. coords: (Nh, k) float64 control
+    coordinates, gradients: (Nh, k, 3) float64 (a point's row is zero outside its own
+    metaphor's columns). groups: one per metaphor. fixed_rings / moving_rings: ring point
+    indices (int64 arrays), ring 1 first. name: what the moving region is called in errors.
+    """
+
+    fixed: np.ndarray
+    moving: np.ndarray
+    moving_idx: np.ndarray
+    coords: np.ndarray
+    gradients: np.ndarray
+    groups: list[Group]
+    fixed_rings: list[np.ndarray]
+    moving_rings: list[np.ndarray]
+    name: str
+
+
+def check_regions(fixed: np.ndarray, handle: np.ndarray, *, handle_name: str = "handle") -> None:
+    """Raise RegionError for empty, overlapping or all-covering regions."""
+    if not fixed.any():
+        raise RegionError.at("regions.fixed", "selects no point; widen the fixed region")
+    if not handle.any():
+        raise RegionError.at(f"regions.{handle_name}",
+                             f"selects no point; widen the {handle_name} region")
+    both = fixed & handle
+    if both.any():
+        raise RegionError.at("regions", f"fixed and {handle_name} regions overlap in "
+                          f"{int(both.sum())} points; they must be disjoint")
+    if (fixed | handle).all():
+        raise RegionError.at("regions", f"fixed and {handle_name} regions cover every point; "
+                          "leave a free region between them")
+
+
+def check_metaphor(fixed: np.ndarray, mph: Metaphor, n: int) -> None:
+    """Empty or overlapping the fixed region: one line naming the metaphor's key."""
+    mask = np.zeros(n, dtype=bool)
+    mask[mph.idx] = True
+    if mph.name.startswith("regions.") or " " in mph.name:
+        check_regions(fixed, mask, handle_name=short_name(mph.name))
+        return
+    if not mask.any():
+        raise RegionError.at(f"{mph.name}", "selects no point; widen it")
+    both = fixed & mask
+    if both.any():
+        raise RegionError.at(f"{mph.name}", f"overlaps regions.fixed in {int(both.sum())} points; "
+                          "they must be disjoint")
+
+
+def short_name(name: str) -> str:
+    """``regions.handle`` -> ``handle`` (check_regions prefixes ``regions.``)."""
+    return name[len("regions."):] if name.startswith("regions.") else name
+
+
+def moving_columns(n_points: int, metaphors: list[Metaphor]
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[Group]]:
+    """Stack the metaphors' columns: moving_idx (Nh,), coords (Nh, k), gradients (Nh, k, 3)
+    and the groups. A point's row is zero outside its own metaphor's columns."""
+    owner = np.full(n_points, -1, dtype=np.int64)
+    for j, mph in enumerate(metaphors):
+        taken = owner[mph.idx] >= 0
+        if taken.any():
+            other = metaphors[int(owner[mph.idx[taken][0]])].name
+            raise RegionError.at(f"{mph.name}", f"overlaps {other} in {int(taken.sum())} points; "
+                              "moving regions must be disjoint")
+        owner[mph.idx] = j
+    moving_idx = np.flatnonzero(owner >= 0)
+    lookup = np.full(n_points, -1, dtype=np.int64)
+    lookup[moving_idx] = np.arange(moving_idx.size)
+    k = sum(mph.k for mph in metaphors)
+    coords = np.zeros((moving_idx.size, k))
+    grads = np.zeros((moving_idx.size, k, 3))
+    groups, start = [], 0
+    for mph in metaphors:
+        rows = lookup[mph.idx]
+        coords[rows, start:start + mph.k] = mph.coords
+        grads[rows, start:start + mph.k] = mph.gradients
+        groups.append(Group(mph.name, (start, start + mph.k), rows, mph.frame))
+        start += mph.k
+    return moving_idx, coords, grads, groups
+
+
+def layout(model: PointModel, fixed: np.ndarray, metaphors: list[Metaphor], *,
+           continuity: int = 2, neighbors: int = 10) -> Layout:
+    """Check the regions, stack the metaphors' columns and find the boundary rings: every
+    step of :func:`splatdeform.deform.prepare_metaphors` before the fit.
+
+    Raises RegionError when a metaphor is empty, overlaps the fixed region or another
+    metaphor, or has no point next to the free region.
+    """
+    if continuity not in (0, 1, 2):
+        raise RegionError.at("boundary.continuity", f"expected 0, 1 or 2, got {continuity}")
+    if not metaphors:
+        raise RegionError.at("regions", "an edit needs at least one handle or curve")
+    n = model.n_points
+    for mph in metaphors:
+        check_metaphor(fixed, mph, n)
+    moving_idx, coords, grads, groups = moving_columns(n, metaphors)
+    moving = np.zeros(n, dtype=bool)
+    moving[moving_idx] = True
+    name = short_name(metaphors[0].name) if len(metaphors) == 1 else "handle"
+    check_regions(fixed, moving, handle_name=name)
+    adj = region_adjacency(model, fixed, moving, neighbors, continuity + 2)
+    fixed_rings, moving_rings = boundary_rings(adj, fixed, moving, continuity + 1, name)
+    if len(metaphors) > 1:
+        first_ring = moving_rings[0]
+        for mph in metaphors:
+            if not np.isin(mph.idx, first_ring, assume_unique=True).any():
+                raise RegionError.at(mph.name, "no point of it is adjacent to the free "
+                                     "region (is it enclosed by another region or a "
+                                     "separate component? raise boundary.neighbors)")
+    return Layout(fixed, moving, moving_idx, coords, grads, groups, list(fixed_rings),
+                  list(moving_rings), name)

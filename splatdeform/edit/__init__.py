@@ -1,0 +1,37 @@
+"""The config layer: the only package that knows the edit config.
+
+    YAML --config--> EditConfig --plain (selectors, units, metaphors)--> masks, metaphors,
+    transforms, delta_c --> splatdeform.deform --> run (save) / images / cache / stream
+
+- :mod:`.config` / :mod:`.schema`: the pydantic models, YAML reading, key-path errors.
+- :mod:`.selectors`: the selector registry (config entry -> model-unit selector -> mask).
+- :mod:`.units`: relative units -> model units, in one place.
+- :mod:`.metaphors`: the metaphor registry (handle, curve): config -> Metaphor, pose -> delta_c.
+- :mod:`.plain`: the one conversion the rest calls. :mod:`.run`: ``run_edit``.
+- :mod:`.cache` (``--reuse``), :mod:`.selection` (``select``), :mod:`.images` (``--render``),
+  :mod:`.stream` (out-of-core and Dask single-scan deform).
+
+Public names are loaded on first use (the CLI parser imports no scipy).
+"""
+
+from __future__ import annotations
+
+import importlib
+from typing import Any
+
+_LAZY = {
+    "run_edit": "run", "EditResult": "run", "format_report": "run", "precompute": "run",
+    "EditConfig": "config", "load_edit": "config", "parse_edit": "config",
+}
+
+
+def __getattr__(name: str) -> Any:
+    module = _LAZY.get(name)
+    if module is None:
+        raise AttributeError(f"module 'splatdeform.edit' has no attribute {name!r}")
+    value = getattr(importlib.import_module(f".{module}", __name__), name)
+    globals()[name] = value
+    return value
+
+
+__all__ = sorted(_LAZY)

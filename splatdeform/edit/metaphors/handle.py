@@ -1,0 +1,56 @@
+"""Handles: ``handle:`` with ``regions.handle`` (one), or ``handles:`` (each with its own
+``region``). k = 4 columns each (affine frame coordinates); a pose is a 4x4 transform."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from splatdeform.deform.handle import compose_transform, delta_for_transform
+from splatdeform.deform.metaphor import Metaphor, handle_metaphor
+from splatdeform.edit import units as u
+from splatdeform.edit.config import EditConfig, HandleCfg, TransformCfg
+from splatdeform.errors import ConfigError
+from splatdeform.model import PointModel
+
+
+def entries(cfg: EditConfig) -> list[tuple[str, tuple[HandleCfg, list, str]]]:
+    """(key, (handle config, region selector entries, region key)) of every handle."""
+    if cfg.handle is not None:
+        return [("handle", (cfg.handle, cfg.regions.handle or [], "regions.handle"))]
+    return [(f"handles[{i}]", (h, h.region, f"handles[{i}].region"))
+            for i, h in enumerate(cfg.handles or [])]
+
+
+def metaphor(key: str, entry: tuple[HandleCfg, list, str], ctx: Any) -> Metaphor:
+    _, region, region_key = entry
+    return handle_metaphor(ctx.model.positions, ctx.mask(region), region_key)
+
+
+def delta(key: str, entry: tuple[HandleCfg, list, str], group: Any, deformation: Any,
+          ctx: Any) -> tuple[np.ndarray, np.ndarray]:
+    """T(C) - C of this handle's frame for its configured transform, and T."""
+    points = deformation.moving_idx[group.rows]
+    matrix = transform_matrix(entry[0], key, ctx.units, ctx.model, points)
+    return delta_for_transform(group.frame.control_points, matrix), matrix
+
+
+def transform_matrix(h: HandleCfg, key: str, units: str, model: PointModel,
+                     handle: np.ndarray) -> np.ndarray:
+    """The 4x4 transform of one handle from its ``transform`` or ``matrix`` (config key
+    ``key``); ``handle`` (N,) bool or (M,) int64 selects its points (for a centroid pivot)."""
+    if h.matrix is not None:
+        m = np.asarray(h.matrix, dtype=np.float64)
+        if not np.allclose(m[3], [0, 0, 0, 1]):
+            raise ConfigError.at(f"{key}.matrix", "the last row must be [0, 0, 0, 1] (affine)")
+        return m
+    t: TransformCfg = h.transform
+    frame = u.Frame.of(model)
+    if t.pivot == "centroid":
+        pivot = model.positions[handle].mean(axis=0)
+    else:
+        pivot = u.point(t.pivot, units, frame)
+    return compose_transform(pivot=pivot, scale=t.scale, axis=t.rotate.axis,
+                             degrees=t.rotate.degrees,
+                             translate=u.vector(t.translate, units, frame))

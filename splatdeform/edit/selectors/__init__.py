@@ -1,0 +1,70 @@
+"""Region selectors: a registry of config entries that build model-unit selectors, and their
+union as a mask.
+
+A region is a list of selectors; the config spells each one as a single-key mapping
+(``{box: {min, max}}``). Each selector is one module here holding its config entry (pydantic),
+its plain selector (a frozen dataclass with ``mask(model, base_dir)``, ``in_units(units,
+frame)`` and ``to_config()``) and its ``NAME``; :data:`REGISTRY` lists the modules, and
+:data:`SelectorCfg` is the tagged union the edit config validates against. A new selector is
+one module plus one line in :data:`REGISTRY`.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated, Any, Union
+
+import numpy as np
+from pydantic import Discriminator, Tag
+
+from splatdeform.edit.selectors import box, indices, plane, prop, sphere
+from splatdeform.edit.selectors.box import Box
+from splatdeform.edit.selectors.indices import Indices
+from splatdeform.edit.selectors.plane import Plane
+from splatdeform.edit.selectors.prop import Property
+from splatdeform.edit.selectors.sphere import Sphere
+from splatdeform.model import PointModel
+
+REGISTRY = {m.NAME: m for m in (box, sphere, plane, indices, prop)}  # one line per selector
+
+Selector = Box | Sphere | Plane | Indices | Property
+_TAG = " selector"  # tags are not config keys, so error paths leave them out
+
+
+def _which(value: Any) -> str | None:
+    """The registry name of a ``{name: {...}}`` mapping (None: not exactly one known key)."""
+    if isinstance(value, dict):
+        known = [k for k in value if k in REGISTRY]  # other keys: unknown keys of that entry
+        return known[0] + _TAG if len(known) == 1 else None
+    name = getattr(value, "NAME", None) or next(
+        (n for n, m in REGISTRY.items() if isinstance(value, m.Entry)), None)
+    return None if name is None else name + _TAG
+
+
+SelectorCfg = Annotated[
+    Union[tuple(Annotated[m.Entry, Tag(n + _TAG)] for n, m in REGISTRY.items())],  # noqa: UP007
+    Discriminator(_which, custom_error_type="selector",
+                  custom_error_message="expected exactly one of " + ", ".join(REGISTRY)),
+]
+
+
+def select(model: PointModel, selectors: list, units: str = "model",
+           base_dir: Path | None = None) -> np.ndarray:
+    """Union of selectors -> mask (N,) bool.
+
+    ``units="relative"`` is a convenience for API callers: each selector is first put in model
+    units (:meth:`in_units`; the config layer converts before calling, with "model").
+    """
+    if units != "model":
+        from splatdeform.edit.units import Frame
+
+        frame = Frame.of(model)
+        selectors = [s.in_units(units, frame) for s in selectors]
+    mask = np.zeros(model.n_points, dtype=bool)
+    for sel in selectors:
+        mask |= sel.mask(model, base_dir)
+    return mask
+
+
+__all__ = ["REGISTRY", "Box", "Indices", "Plane", "Property", "Selector", "SelectorCfg",
+           "Sphere", "select"]

@@ -1,0 +1,63 @@
+"""``{box: {min, max}}``: the points inside an axis-aligned box (in relative units the box is in
+bounding-box coordinates and stays exact: the selector carries its frame)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import numpy as np
+
+from splatdeform.edit.schema import Strict, Vec3
+from splatdeform.edit.units import Frame, check_units
+from splatdeform.errors import InputError
+from splatdeform.model import PointModel
+
+NAME = "box"
+
+
+@dataclass(frozen=True)
+class Box:
+    """Points with min <= (x - origin) / scale <= max per axis (origin 0, scale 1: model
+    coordinates; :meth:`in_units` sets them for a box written in relative units)."""
+
+    min: tuple[float, float, float]
+    max: tuple[float, float, float]
+    origin: tuple[float, float, float] | None = None
+    scale: tuple[float, float, float] | None = None
+
+    def mask(self, model: PointModel, base_dir: Path | None = None) -> np.ndarray:
+        """(N,) bool."""
+        lo, hi = np.asarray(self.min, float), np.asarray(self.max, float)
+        if np.any(lo > hi):
+            raise InputError(f"box: min {list(self.min)} exceeds max {list(self.max)}")
+        pts = in_frame(model.positions, self.origin, self.scale)
+        return np.all((pts >= lo) & (pts <= hi), axis=1)
+
+    def in_units(self, units: str, frame: Frame) -> Box:
+        check_units(units)
+        if units == "model":
+            return self
+        return replace(self, origin=tuple(frame.origin), scale=tuple(frame.extent))
+
+    def to_config(self, base_dir: Path | None = None) -> dict:
+        return {NAME: {"min": [float(v) for v in self.min], "max": [float(v) for v in self.max]}}
+
+
+def in_frame(points: np.ndarray, origin, scale) -> np.ndarray:
+    """(N, 3) points in the coordinates (x - origin) / scale (unchanged without a frame)."""
+    if origin is None:
+        return points
+    return (points - np.asarray(origin, float)) / np.asarray(scale, float)
+
+
+class BoxCfg(Strict):
+    min: Vec3
+    max: Vec3
+
+
+class Entry(Strict):
+    box: BoxCfg
+
+    def to_selector(self) -> Box:
+        return Box(tuple(self.box.min), tuple(self.box.max))

@@ -1,0 +1,93 @@
+"""``{indices: [i, ...]}`` or ``{indices: {file: path}}``: explicit point indices (a text file of
+whitespace-separated integers, or a .npy integer array; relative to the config's folder)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Annotated, Literal
+
+import numpy as np
+from pydantic import Field
+
+from splatdeform.edit.schema import MAX_INDEX, Strict
+from splatdeform.edit.units import Frame, check_units
+from splatdeform.errors import InputError
+from splatdeform.model import PointModel
+
+NAME = "indices"
+
+
+@dataclass(frozen=True)
+class Indices:
+    """Explicit point indices, or a file of them (whitespace separated text, or .npy)."""
+
+    indices: tuple[int, ...] = ()
+    file: str | None = None
+
+    def load(self, base_dir: Path | None = None) -> np.ndarray:
+        """(M,) int64 indices as given (not yet range-checked)."""
+        return load_indices(self, base_dir)
+
+    def mask(self, model: PointModel, base_dir: Path | None = None) -> np.ndarray:
+        """(N,) bool."""
+        return index_mask(self.load(base_dir), model.n_points)
+
+    def in_units(self, units: str, frame: Frame) -> Indices:
+        check_units(units)
+        return self
+
+    def to_config(self, base_dir: Path | None = None) -> dict:
+        """An indices file becomes absolute against ``base_dir`` (the YAML may move)."""
+        if self.file is None:
+            return {NAME: [int(i) for i in self.indices]}
+        path = Path(self.file)
+        if base_dir is not None and not path.is_absolute():
+            path = (base_dir / path).resolve()
+        return {NAME: {"file": str(path)}}
+
+
+def index_mask(idx: np.ndarray, n: int) -> np.ndarray:
+    """(n,) bool with ``idx`` set; InputError for indices outside 0..n-1."""
+    if idx.size and (idx.min() < 0 or idx.max() >= n):
+        raise InputError(f"indices: expected values in 0..{n - 1}, got "
+                         f"{int(idx.min())}..{int(idx.max())}")
+    mask = np.zeros(n, dtype=bool)
+    mask[idx] = True
+    return mask
+
+
+def load_indices(sel: Indices, base_dir: Path | None) -> np.ndarray:
+    if sel.file is None:
+        try:
+            return np.asarray(sel.indices, dtype=np.int64)
+        except OverflowError:
+            raise InputError("indices: expected point indices below 2**63") from None
+    path = Path(sel.file)
+    if base_dir is not None and not path.is_absolute():
+        path = base_dir / path
+    if not path.is_file():
+        what = "is not a regular file" if path.exists() else "indices file not found"
+        raise InputError(f"{path}: {what}")
+    try:
+        if path.suffix == ".npy":
+            raw = np.load(path, allow_pickle=False)
+            if raw.dtype.kind not in "iu":
+                raise ValueError(f"expected an integer array, got dtype {raw.dtype}")
+            if raw.size and raw.dtype.kind == "u" and raw.max() > np.iinfo(np.int64).max:
+                raise OverflowError("index too large")
+            return raw.astype(np.int64).ravel()
+        return np.loadtxt(path, dtype=np.int64, ndmin=1).ravel()
+    except (ValueError, OverflowError) as exc:
+        raise InputError(f"{path}: expected integer point indices: {exc}") from exc
+    except OSError as exc:
+        raise InputError(f"{path}: cannot read the indices file ({exc.strerror or exc})") from exc
+
+
+class Entry(Strict):
+    indices: list[Annotated[int, Field(ge=0, le=MAX_INDEX)]] | dict[Literal["file"], str]
+
+    def to_selector(self) -> Indices:
+        if isinstance(self.indices, dict):
+            return Indices(file=self.indices["file"])
+        return Indices(indices=tuple(self.indices))

@@ -1,0 +1,58 @@
+"""``{plane: {point, normal}}``: the points on the side the normal points to (signed distance
+>= 0); in relative units evaluated in bounding-box coordinates, exactly."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import numpy as np
+
+from splatdeform.edit.schema import Strict, Vec3
+from splatdeform.edit.selectors.box import in_frame
+from splatdeform.edit.units import Frame, check_units
+from splatdeform.errors import InputError
+from splatdeform.model import PointModel
+
+NAME = "plane"
+
+
+@dataclass(frozen=True)
+class Plane:
+    """Points with (x' - point) . normal >= 0 where x' = (x - origin) / scale (model
+    coordinates by default)."""
+
+    point: tuple[float, float, float]
+    normal: tuple[float, float, float]
+    origin: tuple[float, float, float] | None = None
+    scale: tuple[float, float, float] | None = None
+
+    def mask(self, model: PointModel, base_dir: Path | None = None) -> np.ndarray:
+        """(N,) bool."""
+        normal = np.asarray(self.normal, float)
+        if not np.linalg.norm(normal) > 0:
+            raise InputError("plane: normal must be a non-zero vector")
+        pts = in_frame(model.positions, self.origin, self.scale)
+        return (pts - np.asarray(self.point, float)) @ normal >= 0
+
+    def in_units(self, units: str, frame: Frame) -> Plane:
+        check_units(units)
+        if units == "model":
+            return self
+        return replace(self, origin=tuple(frame.origin), scale=tuple(frame.extent))
+
+    def to_config(self, base_dir: Path | None = None) -> dict:
+        return {NAME: {"point": [float(v) for v in self.point],
+                       "normal": [float(v) for v in self.normal]}}
+
+
+class PlaneCfg(Strict):
+    point: Vec3
+    normal: Vec3
+
+
+class Entry(Strict):
+    plane: PlaneCfg
+
+    def to_selector(self) -> Plane:
+        return Plane(tuple(self.plane.point), tuple(self.plane.normal))
