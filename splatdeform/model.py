@@ -17,6 +17,23 @@ from .errors import InputError
 KINDS = ("mesh", "oriented_cloud", "cloud", "surfel_radius", "surfel_axes", "gaussians")
 
 
+# 3DGS colour: the data's own convention, so loaders, renderer and editor share one conversion
+SH_C0 = 0.28209479177387814  # the degree-0 real SH constant: colour = 0.5 + SH_C0 * f_dc
+
+
+def dc_to_rgb(sh_dc: np.ndarray) -> np.ndarray:
+    """(N, 3) 3DGS DC coefficients -> (N, 3) float64 linear colour 0.5 + SH_C0 * f_dc
+    (unclipped: the renderer clips after adding the view-dependent bands)."""
+    return 0.5 + SH_C0 * np.asarray(sh_dc, dtype=np.float64)
+
+
+def dc_to_colors(sh_dc: np.ndarray) -> np.ndarray:
+    """(N, 3) 3DGS DC coefficients -> (N, 3) uint8 colours (clipped, rounded to nearest): the
+    one conversion the loader, the renderer and the editor share."""
+    return np.clip(np.round(dc_to_rgb(sh_dc) * 255.0), 0, 255).astype(np.uint8)
+
+
+
 @dataclass
 class Gaussians:
     """3D Gaussian splat fields in the usual 3DGS file conventions.

@@ -20,23 +20,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from splatdeform.model import SH_C0, dc_to_colors, dc_to_rgb  # noqa: F401  (defined with the data)
+
 SIMILARITY_TOL = 1e-9  # max |J^T J / s^2 - I| for J = s R to count as a similarity
 _JACOBI_SWEEPS = 12  # one-sided Jacobi on 3x3 converges quadratically; ~4-6 sweeps in practice
-
-
-SH_C0 = 0.28209479177387814  # the degree-0 real SH constant: colour = 0.5 + SH_C0 * f_dc
-
-
-def dc_to_rgb(sh_dc: np.ndarray) -> np.ndarray:
-    """(N, 3) 3DGS DC coefficients -> (N, 3) float64 linear colour 0.5 + SH_C0 * f_dc
-    (unclipped: the renderer clips after adding the view-dependent bands)."""
-    return 0.5 + SH_C0 * np.asarray(sh_dc, dtype=np.float64)
-
-
-def dc_to_colors(sh_dc: np.ndarray) -> np.ndarray:
-    """(N, 3) 3DGS DC coefficients -> (N, 3) uint8 colours (clipped, rounded to nearest): the
-    one conversion the loader, the renderer and the editor share."""
-    return np.clip(np.round(dc_to_rgb(sh_dc) * 255.0), 0, 255).astype(np.uint8)
 
 
 def quaternion_to_matrix(q: np.ndarray) -> np.ndarray:

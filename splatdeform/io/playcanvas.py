@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from splatdeform.deform.gaussians import SH_C0
+from splatdeform.model import SH_C0
 
 from ..errors import FormatError
 from ..model import PlyElementData, PlyProperty, PlySource

@@ -132,7 +132,7 @@ def model_from_source(source: PlySource, path: str | Path, *,
             sh_rest=_columns(data, rest).astype(np.float32) if rest else None,
         )
         if colors is None and gaussians.sh_dc is not None:
-            from splatdeform.deform.gaussians import dc_to_colors
+            from splatdeform.model import dc_to_colors
 
             colors = dc_to_colors(gaussians.sh_dc)
     kind = classify(has_faces=faces is not None, has_normals=normals is not None,
