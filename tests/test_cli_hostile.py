@@ -459,16 +459,34 @@ def test_normals_keep_their_input_length(scans, tmp_path):
     assert (cos[moved] < 0.999).sum() > N_BAR // 10
 
 
-def test_images_are_0644(scans, tmp_path):
-    old = os.umask(0o077)  # even under a strict umask the outputs are 0644, like models
+def test_outputs_get_a_normal_writes_mode(scans, tmp_path):
+    """Images and models alike: the mode open(path, "w") would leave (0666 less the umask for
+    a new file; an existing file keeps its own)."""
+    old = os.umask(0o077)
     try:
         res = run("render", scans / "bar.ply", "-o", tmp_path / "r.png", "--size", "64x64",
                   cwd=tmp_path)
+        model = sd.save(sd.load(scans / "bar.ply"), tmp_path / "m.ply")
     finally:
         os.umask(old)
     assert res.returncode == 0, res.stderr
-    assert stat.S_IMODE((tmp_path / "r.png").stat().st_mode) == 0o644
+    assert stat.S_IMODE((tmp_path / "r.png").stat().st_mode) == 0o600
+    assert stat.S_IMODE(model.stat().st_mode) == 0o600
+    os.chmod(tmp_path / "r.png", 0o640)
+    res = run("render", scans / "bar.ply", "-o", tmp_path / "r.png", "--size", "64x64",
+              cwd=tmp_path)
+    assert res.returncode == 0, res.stderr
+    assert stat.S_IMODE((tmp_path / "r.png").stat().st_mode) == 0o640
+    res = run("render", scans / "bar.ply", "-o", tmp_path / "new.png", "--size", "64x64",
+              cwd=tmp_path)
+    assert stat.S_IMODE((tmp_path / "new.png").stat().st_mode) == 0o666 & ~_umask()
     assert not [p.name for p in tmp_path.iterdir() if ".tmp" in p.name]
+
+
+def _umask() -> int:
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
 
 
 def test_frame_paths_keep_normal_lengths():

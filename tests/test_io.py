@@ -369,7 +369,9 @@ def test_failed_save_leaves_nothing(ext: str, tmp_path: Path, monkeypatch) -> No
 def test_save_into_new_folder_and_permissions(tmp_path: Path) -> None:
     out = save(sphere(100, seed=0), tmp_path / "a" / "b" / "s.ply")
     assert out.is_file()
-    assert oct(out.stat().st_mode & 0o777) == oct(0o644)
+    mask = os.umask(0o022)
+    os.umask(mask)
+    assert oct(out.stat().st_mode & 0o777) == oct(0o666 & ~mask)  # as open(out, 'w')
     assert sorted(p.name for p in out.parent.iterdir()) == ["s.ply"]
 
 

@@ -4,8 +4,10 @@
   or another output (same file by ``os.path.samefile`` when both exist, by resolved path
   otherwise) and that no output is an existing non-regular file (folder, FIFO, device node).
 - :func:`atomic_path` / :func:`atomic_write`: write a temporary file in the target folder
-  (``.NAME.<pid>-<random>.tmp.EXT``), then rename it over the target, mode 0644. Temporary files
-  of this tool for the same target whose writer is gone (killed) are removed first.
+  (``.NAME.<pid>-<random>.tmp.EXT``), then rename it over the target with the mode a normal
+  write would leave (an existing file keeps its mode, a new one gets 0666 less the umask), for
+  models, images, GIFs, reports, caches and camera files alike. Temporary files of this tool
+  for the same target whose writer is gone (killed) are removed first.
 """
 
 from __future__ import annotations
@@ -156,9 +158,31 @@ def remove_stale_temps(out: PathLike) -> list[Path]:
     return removed
 
 
+def current_umask() -> int:
+    """The process umask, read without changing it where Linux tells it (/proc)."""
+    with contextlib.suppress(OSError, ValueError):
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith("Umask:"):
+                return int(line.split()[1], 8)
+    mask = os.umask(0o022)  # elsewhere: read it by setting it (not thread-safe, rare)
+    os.umask(mask)
+    return mask
+
+
+def normal_mode(out: Path) -> int:
+    """The permission bits ``open(out, "w")`` would leave: an existing regular file keeps its
+    own, a new file gets 0666 less the umask."""
+    with contextlib.suppress(OSError):
+        st = out.stat()
+        if stat.S_ISREG(st.st_mode):
+            return stat.S_IMODE(st.st_mode)
+    return 0o666 & ~current_umask()
+
+
 @contextlib.contextmanager
 def atomic_path(out: PathLike) -> Iterator[Path]:
-    """Yield a temporary path beside ``out``; on success chmod 0644 and rename it to ``out``,
+    """Yield a temporary path beside ``out``; on success give it a normal write's mode
+    (:func:`normal_mode`) and rename it to ``out``,
     else delete it. The temporary name keeps ``out``'s suffix (some writers pick the format by
     extension). Stale temporaries of ``out`` from killed runs are removed first."""
     out = Path(out)
@@ -171,7 +195,7 @@ def atomic_path(out: PathLike) -> Iterator[Path]:
     tmp_path = Path(tmp)
     try:
         yield tmp_path
-        os.chmod(tmp_path, 0o644)
+        os.chmod(tmp_path, normal_mode(out))
         os.replace(tmp_path, out)
     except OSError as exc:  # name the output, not the temporary file that is gone now
         with contextlib.suppress(OSError):
