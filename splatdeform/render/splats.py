@@ -8,7 +8,8 @@ Sources, in order of preference:
   deviations long, normal along the smallest one (an ellipse per Gaussian for callers that want
   surfels; the renderer draws Gaussians with EWA splatting, see ``gaussian_data.py``);
 - anything else: round splats sized from the k-nearest-neighbour spacing (scipy cKDTree) so a
-  dense scan renders without holes; missing normals are estimated by local PCA.
+  dense scan renders without holes; missing normals are estimated by local PCA
+  (:func:`splatdeform.deform.normals.pca_normals`).
 Meshes need no splat axes (they render as triangles); missing mesh normals are area-weighted
 face normals.
 """
@@ -21,6 +22,7 @@ import numpy as np
 
 from splatdeform.deform.arrays import axes_to_radius, normalize_rows, radius_to_axes
 from splatdeform.deform.gaussians import dc_to_colors, quaternion_to_matrix
+from splatdeform.deform.normals import pca_normals  # the one estimator; also importable here
 from splatdeform.model import PointModel
 
 DEFAULT_COLOR = (190, 190, 190)
@@ -28,7 +30,7 @@ GAUSSIAN_EXTENT = 1.5  # ellipse semi-axes in standard deviations
 SPACING_NEIGHBORS = 8  # kNN used to estimate the sampling spacing
 SPACING_FACTOR = 1.0  # splat radius = factor * mean distance to the SPACING_NEIGHBORS nearest
 SPACING_CAP = 4.0  # outliers: spacing capped at this multiple of the median spacing
-PCA_NEIGHBORS = 12
+PCA_NEIGHBORS = 12  # kNN for missing normals (pca_normals)
 
 
 @dataclass
@@ -86,26 +88,6 @@ def knn_spacing(positions: np.ndarray, k: int = SPACING_NEIGHBORS) -> np.ndarray
     return np.minimum(spacing, SPACING_CAP * np.median(spacing))
 
 
-def pca_normals(positions: np.ndarray, k: int = PCA_NEIGHBORS) -> np.ndarray:
-    """(N, 3) unit normals by local PCA (smallest-eigenvalue direction of the kNN covariance).
-    Orientation is arbitrary (the shading is two-sided)."""
-    from scipy.spatial import cKDTree
-
-    pts = np.asarray(positions, dtype=np.float64)
-    kk = min(k, pts.shape[0])
-    if kk < 3:
-        return np.tile([0.0, 0.0, 1.0], (pts.shape[0], 1))
-    _, nbr = cKDTree(pts).query(pts, k=kk, workers=-1)
-    normals = np.empty_like(pts)
-    for start in range(0, pts.shape[0], 200_000):  # bounded memory for large scans
-        nb = pts[nbr[start : start + 200_000]]
-        centered = nb - nb.mean(axis=1, keepdims=True)
-        cov = np.einsum("nki,nkj->nij", centered, centered)
-        _, vecs = np.linalg.eigh(cov)
-        normals[start : start + 200_000] = vecs[:, :, 0]
-    return normalize_rows(normals)
-
-
 def mesh_normals(positions: np.ndarray, faces: np.ndarray) -> np.ndarray:
     """(N, 3) unit vertex normals: area-weighted sums of the (F, 3) faces' normals."""
     p = np.asarray(positions, dtype=np.float64)
@@ -135,7 +117,7 @@ def splat_geometry(model: PointModel, *, fill_holes: bool = True) -> SplatGeomet
         return SplatGeometry(_f32(normals), _f32(axes), colors)
     normals = model.normals
     if normals is None or not np.any(normals):
-        normals = pca_normals(model.positions)
+        normals = pca_normals(model.positions, PCA_NEIGHBORS)
     normals = normalize_rows(np.asarray(normals, dtype=np.float64))
     cover = SPACING_FACTOR * knn_spacing(model.positions) if fill_holes else None
     if model.axes is not None:
