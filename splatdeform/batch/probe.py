@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError
-from ..io.ply_format import MAX_HEADER_BYTES, _parse_header
+from ..io.ply_format import MAX_HEADER_BYTES, parse_header
 
 HEAD_BYTES = MAX_HEADER_BYTES + 4096   # enough to hold any header the PLY reader accepts
 BYTES_PER_POINT = 2048          # model copies, kNN graph, basis rows, render buffers
@@ -49,7 +49,7 @@ def probe(name: str, head: bytes, size: int, *, suffix: str | None = None) -> Pr
         return Probe(_las_points(head), size, False, None)
     if suffix != ".ply":
         return Probe(size // 12, size, True, None)
-    header = _parse_header(Path(name), head)
+    header = parse_header(Path(name), head)
     points = sum(count for el, count, _ in header.elements if el == "vertex")
     if header.text:
         return Probe(points, size, True, None)

@@ -34,7 +34,10 @@ MAX_HEADER_BYTES = 1 << 20
 MAX_COUNT_DIGITS = 15  # 1e15 rows: far beyond any file that fits on a disk
 
 
-class _Header:
+class PlyHeader:
+    """A parsed PLY header: format, comments, elements (name, count, properties) and the
+    header's size in bytes and lines."""
+
     def __init__(self) -> None:
         self.text = False
         self.byte_order = "<"
@@ -67,11 +70,14 @@ def _header_lines(path: Path, raw: bytes) -> tuple[list[bytes], int]:
                       + (f" in the first {MAX_HEADER_BYTES} bytes" if len(raw) > limit else ""))
 
 
-def _parse_header(path: Path, raw: bytes) -> _Header:
+def parse_header(path: Path, raw: bytes) -> PlyHeader:
+    """The header at the start of ``raw`` (the file's first bytes, up to
+    :data:`MAX_HEADER_BYTES` of header). ``path`` names the file in errors. Raises FormatError
+    for a malformed header."""
     if not raw.startswith(b"ply"):
         raise FormatError(f"{path}: not a PLY file (it does not start with 'ply')")
     raw_lines, size = _header_lines(path, raw)
-    header = _Header()
+    header = PlyHeader()
     header.size = size
     header.lines = len(raw_lines) + 1
     seen_format = False
@@ -135,7 +141,11 @@ def _parse_header(path: Path, raw: bytes) -> _Header:
     return header
 
 
-def _check_previous_element(path: Path, header: _Header, number: int) -> None:
+_Header = PlyHeader  # former private names, kept for existing callers
+_parse_header = parse_header
+
+
+def _check_previous_element(path: Path, header: PlyHeader, number: int) -> None:
     """An element with rows but no properties has nothing to read (and no size to bound)."""
     if header.elements and header.elements[-1][1] > 0 and not header.elements[-1][2]:
         name, count, _ = header.elements[-1]
@@ -151,7 +161,7 @@ def _min_row_bytes(props: list[PlyProperty], text: bool) -> int:
     return sum(np.dtype(p.len_dtype if p.is_list else p.dtype).itemsize for p in props)
 
 
-def _check_declared_size(path: Path, header: _Header, body_bytes: int) -> None:
+def _check_declared_size(path: Path, header: PlyHeader, body_bytes: int) -> None:
     """Refuse a header whose element counts cannot fit in the file, before allocating anything."""
     needed = 0
     for name, count, props in header.elements:
@@ -424,7 +434,7 @@ def read_ply(path: str | Path) -> PlySource:
     raw = _read_file(path)
     if not raw:
         raise FormatError(f"{path}: empty file")
-    header = _parse_header(path, raw)
+    header = parse_header(path, raw)
     _check_declared_size(path, header, len(raw) - header.size)
     elements: list[PlyElementData] = []
     if header.text:

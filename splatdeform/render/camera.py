@@ -98,7 +98,7 @@ class Camera:
 def up_frame(up: str) -> np.ndarray:
     """(3, 3) rotation taking the y-up orbit frame to the ``up`` axis (``+x`` ... ``-z``)."""
     if up not in _FRAMES:
-        raise ValueError(f"up: expected one of {' '.join(UP_AXES)}, got {up!r}")
+        raise InputError(f"up: expected one of {' '.join(UP_AXES)}, got {up!r}")
     return np.array(_FRAMES[up], dtype=np.float64).T
 
 
@@ -140,11 +140,11 @@ def union_bbox(point_sets: Iterable[np.ndarray]) -> tuple[np.ndarray, np.ndarray
     for pts in point_sets:
         a = np.asarray(pts, dtype=np.float64)
         if a.ndim != 2 or a.shape[1] != 3 or a.shape[0] == 0:
-            raise ValueError(f"point set: expected a non-empty (M, 3) array, got shape {a.shape}")
+            raise InputError(f"point set: expected a non-empty (M, 3) array, got shape {a.shape}")
         los.append(a.min(axis=0))
         his.append(a.max(axis=0))
     if not los:
-        raise ValueError("point_sets: expected at least one point array, got none")
+        raise InputError("point_sets: expected at least one point array, got none")
     return np.min(los, axis=0), np.max(his, axis=0)
 
 
@@ -164,7 +164,7 @@ def frame_bbox(
     narrower of the two fields of view, times ``margin``."""
     lo, hi = np.asarray(lo, dtype=np.float64), np.asarray(hi, dtype=np.float64)
     if not (fov > 0 and fov < 180):
-        raise ValueError(f"fov: expected degrees in (0, 180), got {fov}")
+        raise InputError(f"fov: expected degrees in (0, 180), got {fov}")
     center = (lo + hi) / 2.0
     radius = max(float(np.linalg.norm(hi - lo)) / 2.0, 1e-9)
     half_v = math.radians(fov) / 2.0

@@ -8,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
+from splatdeform.errors import InputError
 from splatdeform.model import PointModel
 from splatdeform.render.camera import Camera, default_up, frame_points, write_camera
 from splatdeform.render.renderer import Renderer, deformation_session, save_png
@@ -22,9 +23,9 @@ def side_by_side(images: Sequence[np.ndarray], labels: Sequence[str] | None = No
     from PIL import Image, ImageDraw
 
     if not images:
-        raise ValueError("images: expected at least one image, got none")
+        raise InputError("images: expected at least one image, got none")
     if labels is not None and len(labels) != len(images):
-        raise ValueError(f"labels: expected {len(images)} labels, got {len(labels)}")
+        raise InputError(f"labels: expected {len(images)} labels, got {len(labels)}")
     height = max(im.shape[0] for im in images)
     strip = LABEL_HEIGHT if labels is not None else 0
     width = sum(im.shape[1] for im in images)

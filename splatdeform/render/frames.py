@@ -12,6 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
+from splatdeform.errors import InputError
 from splatdeform.model import PointModel
 from splatdeform.render.camera import Camera, write_camera
 from splatdeform.render.renderer import deformation_session, save_pil, save_png
@@ -40,10 +41,10 @@ def render_frames(
     (``up``, ``roll``, ``camera`` as in :func:`~splatdeform.render.compare.render_comparison`).
     Returns the written image paths."""
     if int(n_frames) < 2:
-        raise ValueError(f"n_frames: expected an integer >= 2, got {n_frames}")
+        raise InputError(f"n_frames: expected an integer >= 2, got {n_frames}")
     out = Path(out_path)
     if out.suffix and out.suffix.lower() != ".gif":
-        raise ValueError(f"out_path: expected a .gif file or a folder, got {out}")
+        raise InputError(f"out_path: expected a .gif file or a folder, got {out}")
     d = np.asarray(delta_c, dtype=np.float64)
     with deformation_session(model, values, gradients, delta_c, size=size, azimuth=azimuth,
                              elevation=elevation, fov=fov, camera=camera, up=up,

@@ -17,6 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from splatdeform.deform.gaussians import dc_to_colors, dc_to_rgb
+from splatdeform.errors import InputError
 from splatdeform.model import PointModel
 from splatdeform.render.splats import DEFAULT_COLOR, quaternion_matrices
 
@@ -74,7 +75,7 @@ def gaussian_data(model: PointModel) -> GaussianData:
     """The upload arrays of a model with ``model.gaussians`` (see the module doc)."""
     g = model.gaussians
     if g is None:
-        raise ValueError("model: expected 3D Gaussian splat fields (model.gaussians), got none")
+        raise InputError("model: expected 3D Gaussian splat fields (model.gaussians), got none")
     n = model.n_points
     sigma = covariances(g.scale_log, g.rotation)
     cov = np.stack([sigma[:, 0, 0], sigma[:, 0, 1], sigma[:, 0, 2],

@@ -42,7 +42,7 @@ from typing import Any
 
 import numpy as np
 
-from splatdeform.errors import DeviceError
+from splatdeform.errors import DeviceError, InputError
 from splatdeform.model import PointModel
 from splatdeform.render.camera import Camera, default_up, frame_points, gl_bytes
 from splatdeform.render.context import get_context
@@ -140,7 +140,7 @@ def program(name: str, k: int = 0, sh: tuple[int, int] = (0, 0)) -> Any:
         elif kind == "feedback":
             prog = ctx.program(vertex_shader=vert, varyings=list(FEEDBACK_VARYINGS))
         else:  # pragma: no cover - internal names only
-            raise ValueError(f"program: unknown name {name!r}")
+            raise InputError(f"program: unknown name {name!r}")
         _programs[key] = prog
     return _programs[key]
 
@@ -150,15 +150,15 @@ def pack_basis(values: np.ndarray, gradients: np.ndarray, n_points: int) -> np.n
     vals = np.asarray(values)
     grads = np.asarray(gradients)
     if vals.ndim != 2 or vals.shape[0] != n_points:
-        raise ValueError(f"values: expected shape ({n_points}, k), got {vals.shape}")
+        raise InputError(f"values: expected shape ({n_points}, k), got {vals.shape}")
     k = vals.shape[1]
     if not 1 <= k <= MAX_K:
-        raise ValueError(
+        raise InputError(
             f"values: the attribute path renders k <= {MAX_K} control DOFs, got k = {k} "
             "(larger k needs the storage-buffer path, see shaders/deform.glsl)"
         )
     if grads.shape != (n_points, k, 3):
-        raise ValueError(f"gradients: expected shape ({n_points}, {k}, 3), got {grads.shape}")
+        raise InputError(f"gradients: expected shape ({n_points}, {k}, 3), got {grads.shape}")
     packed = np.zeros((n_points, 16), dtype=np.float32)
     packed[:, :k] = vals
     packed[:, 4 : 4 + 3 * k] = grads.reshape(n_points, 3 * k)
@@ -171,12 +171,12 @@ def pack_basis_storage(values: np.ndarray, gradients: np.ndarray, n_points: int)
     vals = np.asarray(values)
     grads = np.asarray(gradients)
     if vals.ndim != 2 or vals.shape[0] != n_points:
-        raise ValueError(f"values: expected shape ({n_points}, k), got {vals.shape}")
+        raise InputError(f"values: expected shape ({n_points}, k), got {vals.shape}")
     k = vals.shape[1]
     if not 1 <= k <= MAX_STORAGE_K:
-        raise ValueError(f"values: expected 1 <= k <= {MAX_STORAGE_K} control DOFs, got k = {k}")
+        raise InputError(f"values: expected 1 <= k <= {MAX_STORAGE_K} control DOFs, got k = {k}")
     if grads.shape != (n_points, k, 3):
-        raise ValueError(f"gradients: expected shape ({n_points}, {k}, 3), got {grads.shape}")
+        raise InputError(f"gradients: expected shape ({n_points}, {k}, 3), got {grads.shape}")
     packed = np.empty((n_points, 4 * k), dtype=np.float32)
     packed[:, :k] = vals
     packed[:, k:] = grads.reshape(n_points, 3 * k)
@@ -191,7 +191,7 @@ def pad_delta(delta_c: np.ndarray | None, k: int) -> np.ndarray:
         return out
     d = np.asarray(delta_c, dtype=np.float64)
     if d.shape != (k, 3):
-        raise ValueError(f"delta_c: expected shape ({k}, 3) for a {k}-column basis, got {d.shape}")
+        raise InputError(f"delta_c: expected shape ({k}, 3) for a {k}-column basis, got {d.shape}")
     out[:k] = d
     return out
 
@@ -270,7 +270,7 @@ class Renderer:
     ) -> None:
         width, height = (int(s) for s in size)
         if width < 1 or height < 1:
-            raise ValueError(f"size: expected (width, height) >= 1, got {size}")
+            raise InputError(f"size: expected (width, height) >= 1, got {size}")
         self.ctx = get_context()
         self.size = (width, height)
         self.background = tuple(c / 255.0 for c in background)
@@ -320,11 +320,11 @@ class Renderer:
         Models with 3D Gaussian splat fields render as Gaussians.
         """
         if (values is None) != (gradients is None):
-            raise ValueError("values, gradients: expected both or neither")
+            raise InputError("values, gradients: expected both or neither")
         ctx = self.ctx
         n = model.n_points
         if n == 0:
-            raise ValueError("model: expected at least one point, got an empty model")
+            raise InputError("model: expected at least one point, got an empty model")
         lo, hi = model.bbox()
         origin = (lo + hi) / 2.0
         positions = np.ascontiguousarray(model.positions - origin, dtype=np.float32)
@@ -420,7 +420,7 @@ class Renderer:
         if camera is None:
             camera = frame_points([np.stack([gpu.lo, gpu.hi])], aspect=self.size[0] / self.size[1])
         if not gpu.k and not plain and delta_c is not None and np.any(delta_c):
-            raise ValueError("delta_c: this model was uploaded without a basis (values/gradients)")
+            raise InputError("delta_c: this model was uploaded without a basis (values/gradients)")
         mode = "deform" if (gpu.k and not plain) else "plain"
         view = camera.view(gpu.origin)
         proj = camera.projection(self.size[0] / self.size[1])
@@ -564,7 +564,7 @@ class Renderer:
         """Gaussians only: the (H, W, 4) float32 premultiplied composite (rgb over the
         background, alpha = 1 - transmittance), top row first, before 8-bit rounding."""
         if gpu.kind != "gaussian":
-            raise ValueError(f"gpu: expected a Gaussian splat model, got kind {gpu.kind!r}")
+            raise InputError(f"gpu: expected a Gaussian splat model, got kind {gpu.kind!r}")
         mode = "deform" if (gpu.k and not plain) else "plain"
         self._draw_gaussians(gpu, camera, camera.view(gpu.origin),
                              camera.projection(self.size[0] / self.size[1]), mode, delta_c)
@@ -612,13 +612,14 @@ def save_png(image: np.ndarray, path: str | os.PathLike[str]) -> Path:
 
     arr = np.asarray(image)
     if arr.dtype != np.uint8 or arr.ndim != 3 or arr.shape[2] not in (3, 4):
-        raise ValueError(f"image: expected (H, W, 3|4) uint8, got {arr.shape} {arr.dtype}")
+        raise InputError(f"image: expected (H, W, 3|4) uint8, got {arr.shape} {arr.dtype}")
     return save_pil(Image.fromarray(arr), path, format="PNG")
 
 
 def save_pil(image: Any, path: str | os.PathLike[str], **save_kwargs: Any) -> Path:
-    """Save a Pillow image atomically, mode 0644 like models (the tool's one atomic writer,
-    :func:`splatdeform.io.atomic.atomic_write`: temp file in the target folder, then rename)."""
+    """Save a Pillow image atomically, with the file mode models get (the tool's one atomic
+    writer, :func:`splatdeform.io.atomic.atomic_write`: temp file in the target folder, then
+    rename)."""
     from splatdeform.io.atomic import atomic_write
 
     out = Path(path)
