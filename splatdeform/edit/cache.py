@@ -18,12 +18,13 @@ from splatdeform.basis.result import Basis
 from splatdeform.deform import Deformation, Group
 from splatdeform.deform.handle import AffineFrame
 from splatdeform.edit.config import EditConfig
+from splatdeform.edit.metaphors import basis_keys
 from splatdeform.errors import InputError
 from splatdeform.io.atomic import atomic_path
 from splatdeform.model import PointModel
 from splatdeform.rbf.result import Normalization, RbfFit
 
-FORMAT_VERSION = 3  # 2: fit max/rms error and method; 3: metaphor groups
+FORMAT_VERSION = 4  # 2: fit max/rms error and method; 3: metaphor groups; 4: registry key
 
 
 def _file_digest(path: Path) -> str:
@@ -39,12 +40,7 @@ def edit_key(cfg: EditConfig, input_path: str | Path) -> str:
     parts = cfg.model_dump(include={"regions", "boundary", "fit", "normals", "backend",
                                     "device"})
     parts["fit"].pop("on_not_converged", None)  # what to do about a miss, not what is fitted
-    if cfg.curve is not None:
-        parts["curve"] = cfg.curve.model_dump(exclude={"moved_to"})
-    # the handles' regions determine the basis, their transforms do not
-    parts["handles"] = [h.model_dump(include={"region"}) for h in cfg.handles or []]
-    parts["metaphor"] = ("handle" if cfg.handle is not None else "handles" if cfg.handles
-                         else "curve")
+    parts["metaphors"] = basis_keys(cfg)  # e.g. a handle's region, not its transform
     parts["input"] = _file_digest(Path(input_path))
     parts["version"] = FORMAT_VERSION
     return hashlib.sha256(json.dumps(parts, sort_keys=True).encode()).hexdigest()

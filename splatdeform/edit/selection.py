@@ -54,12 +54,10 @@ class Selection:
 
 
 def moving_label(cfg: EditConfig) -> str:
-    """What the moving region is called in the counts line: ``handle``, ``handles``,
-    ``curve band`` or ``handles + curve band``."""
-    n_handles = (1 if cfg.handle is not None else 0) + len(getattr(cfg, "handles", None) or [])
-    handles = "handle" if n_handles == 1 else "handles" if n_handles else ""
-    band = "curve band" if cfg.curve is not None else ""
-    return " + ".join(p for p in (handles, band) if p) or "handle"
+    """What the moving region is called in the counts line (from the metaphor registry)."""
+    from splatdeform.edit.metaphors import moving_label as label
+
+    return label(cfg)
 
 
 def select_regions(cfg: EditConfig, model: PointModel, base_dir: str | Path) -> Selection:

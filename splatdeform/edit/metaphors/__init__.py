@@ -2,8 +2,10 @@
 config entries into model-unit :class:`~splatdeform.deform.metaphor.Metaphor` data (points,
 control points, coordinates) and, for a pose, into its rows of delta_c.
 
-A kind module has ``entries(cfg) -> [(key, entry)]``, ``metaphor(key, entry, ctx)`` and
-``delta(key, entry, group, deformation, ctx) -> (delta_c rows (k, 3), 4x4 matrix | None)``.
+A kind module has ``entries(cfg) -> [(key, entry)]``, ``metaphor(key, entry, ctx)``,
+``delta(key, entry, group, deformation, ctx) -> (delta_c rows (k, 3), 4x4 matrix | None)``,
+``basis_key(entry)`` (what of it determines the basis, for ``--reuse``) and ``label(n)`` (what
+``n`` of them are called in the counts line).
 :data:`KINDS` fixes the column order (every handle, then the curve). A new metaphor is one
 module plus one line in :data:`KINDS` (and its key in the edit config).
 """
@@ -44,6 +46,18 @@ class Context:
 
         sels = [s.to_selector().in_units(self.units, self.frame) for s in selector_cfgs]
         return select(self.model, sels, "model", self.base_dir)
+
+
+def basis_keys(cfg: EditConfig) -> list:
+    """(config key, what determines the basis) of every metaphor, in column order."""
+    return [(key, kind.basis_key(entry)) for kind, key, entry in entries(cfg)]
+
+
+def moving_label(cfg: EditConfig) -> str:
+    """What the moving region is called: ``handle``, ``handles``, ``curve band``,
+    ``handles + curve band``."""
+    counts = [(kind, sum(1 for k, _, _ in entries(cfg) if k is kind)) for kind in KINDS]
+    return " + ".join(kind.label(n) for kind, n in counts if n) or "handle"
 
 
 def entries(cfg: EditConfig) -> list[tuple[Any, str, Any]]:

@@ -18,6 +18,15 @@ def entries(cfg: EditConfig) -> list[tuple[str, CurveCfg]]:
     return [("curve", cfg.curve)] if cfg.curve is not None else []
 
 
+def basis_key(entry: CurveCfg) -> dict:
+    """What of a curve determines the basis (``--reuse``): all but ``moved_to``."""
+    return entry.model_dump(exclude={"moved_to"})
+
+
+def label(n: int) -> str:
+    return "curve band" if n == 1 else "curve bands"
+
+
 def metaphor(key: str, entry: CurveCfg, ctx: Any) -> Metaphor:
     from splatdeform.deform.curve import curve_metaphor
 

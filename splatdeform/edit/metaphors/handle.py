@@ -23,6 +23,16 @@ def entries(cfg: EditConfig) -> list[tuple[str, tuple[HandleCfg, list, str]]]:
             for i, h in enumerate(cfg.handles or [])]
 
 
+def basis_key(entry: tuple[HandleCfg, list, str]) -> dict:
+    """What of a handle determines the basis (``--reuse``): its region, not its transform."""
+    return {"region": [s.model_dump() for s in entry[1]]}
+
+
+def label(n: int) -> str:
+    """What ``n`` handles are called in the counts line."""
+    return "handle" if n == 1 else "handles"
+
+
 def metaphor(key: str, entry: tuple[HandleCfg, list, str], ctx: Any) -> Metaphor:
     _, region, region_key = entry
     return handle_metaphor(ctx.model.positions, ctx.mask(region), region_key)
