@@ -272,3 +272,27 @@ def test_edit_config_layer_gives_plain_data(bar_dir):
     d = precompute(cfg, model, bar_dir)
     delta, mats = control_displacement(cfg, model, d)
     assert delta.shape == (8, 3) and all(m.shape == (4, 4) for m in mats)
+
+
+def test_frames_interpolate_every_handle(two_handles, tmp_path):
+    """--frames: frame t shows delta_c * t for all handles at once (both ends move in every
+    frame; the last frame is the full edit), rendered by the real shaders."""
+    from PIL import Image
+
+    from splatdeform.edit.images import render_result
+
+    cfg, res = two_handles
+    out = render_result(res, cfg, tmp_path / "multi.gif", frames=3, view={"size": (96, 64)})
+    with Image.open(out) as gif:
+        frames = []
+        for i in range(gif.n_frames):
+            gif.seek(i)
+            frames.append(np.asarray(gif.convert("RGB"), dtype=np.int16))
+    assert len(frames) == 3
+    background = frames[0][0, 0]
+    cols = np.flatnonzero(np.any(np.stack(frames) != background, axis=(0, 1, 3)))
+    third = (cols[-1] - cols[0]) // 3  # the bar's ends: the outer thirds of its columns
+    left, right = slice(cols[0], cols[0] + third), slice(cols[-1] - third, cols[-1] + 1)
+    for a, b in zip(frames[:-1], frames[1:], strict=True):
+        assert np.abs(a[:, left] - b[:, left]).max() > 0  # one end moves in every step
+        assert np.abs(a[:, right] - b[:, right]).max() > 0  # and so does the other
