@@ -27,12 +27,11 @@ import numpy as np
 
 from ..errors import FormatError, ProcessingError
 from ..model import PlyElementData, PlyProperty, PlySource, PointModel, classify
+from .ply_format import TYPE_NAMES
 
 EXTENSIONS = (".las", ".laz")
 INT32_MIN, INT32_MAX = -(2**31), 2**31 - 1
 NORMAL_NAMES = ("nx", "ny", "nz")
-_PLY_TYPE_NAMES = {"i1": "char", "u1": "uchar", "i2": "short", "u2": "ushort", "i4": "int",
-                   "u4": "uint", "f4": "float", "f8": "double"}
 
 
 def _laspy():
@@ -117,7 +116,7 @@ def decoded_element(header, points: np.ndarray) -> PlyElementData:
     for n, v in columns:
         data[n] = v
         code = v.dtype.str[1:]
-        props.append(PlyProperty(n, code, _PLY_TYPE_NAMES[code]))
+        props.append(PlyProperty(n, code, TYPE_NAMES[code]))
     return PlyElementData("vertex", props, data)
 
 

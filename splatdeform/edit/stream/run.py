@@ -29,7 +29,7 @@ from splatdeform.edit.stream.progress import Progress
 from splatdeform.edit.stream.sources import ChunkFile, LasChunks, PlyChunks, open_chunks
 from splatdeform.errors import InputError, ProcessingError
 from splatdeform.io import las as laslib
-from splatdeform.io.atomic import atomic_path
+from splatdeform.io.atomic import atomic_path, atomic_write
 
 
 @dataclass
@@ -93,10 +93,8 @@ def dask_part(path: str, start: int, stop: int, labels: np.ndarray, shared: Shar
     src = open_chunks(path)
     rows, _ = deform_chunk(src, start, stop, labels, shared)
     final = _part_name(Path(parts), start)
-    fd, tmp = tempfile.mkstemp(dir=parts, prefix=".part.", suffix=".npy")
-    with os.fdopen(fd, "wb") as f:
+    with atomic_write(final) as f:  # the tool's one atomic writer
         np.save(f, rows, allow_pickle=False)
-    os.replace(tmp, final)
     return str(final)
 
 
