@@ -202,9 +202,8 @@ def _message(err: dict[str, Any]) -> str:
         return "unknown key"
     if kind == "missing":
         return "required key is missing"
-    msg = err["msg"]
-    if msg.startswith("Value error, "):
-        msg = msg[len("Value error, "):]
+    raised = (err.get("ctx") or {}).get("error")  # a validator's own exception, as raised
+    msg = str(raised) if kind == "value_error" and raised is not None else err["msg"]
     got = err.get("input")
     if kind not in ("value_error",) and not isinstance(got, (dict, list)):
         msg += f" (got {got!r})"
