@@ -141,8 +141,6 @@ def parse_header(path: Path, raw: bytes) -> PlyHeader:
     return header
 
 
-_Header = PlyHeader  # former private names, kept for existing callers
-_parse_header = parse_header
 
 
 def _check_previous_element(path: Path, header: PlyHeader, number: int) -> None:

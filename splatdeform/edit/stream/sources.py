@@ -69,7 +69,7 @@ class PlyChunks(ChunkFile):
         self.path = Path(path)
         with open(self.path, "rb") as f:
             head = f.read(plyfmt.MAX_HEADER_BYTES)
-        header = plyfmt._parse_header(self.path, head)
+        header = plyfmt.parse_header(self.path, head)
         if header.text:
             raise InputError(f"{self.path}: streaming needs a binary PLY (this one is ascii); "
                              "raise --memory-budget or convert it to binary")
