@@ -62,3 +62,23 @@ def test_renderer_values_shape() -> None:
             Renderer((0, 8))
     finally:
         renderer.release()
+
+
+def test_a_failed_upload_frees_the_gpu_buffers_it_made() -> None:
+    renderer = Renderer((8, 8))
+    made, make = [], renderer.ctx.buffer
+
+    def spy(*args, **kwargs):
+        made.append(make(*args, **kwargs))
+        return made[-1]
+
+    renderer.ctx.buffer = spy
+    try:
+        model = _points()
+        n = model.n_points
+        with pytest.raises(InputError, match=r"^gradients: expected shape"):
+            renderer.upload(model, np.ones((n, 2), np.float32), np.zeros((n, 3, 3), np.float32))
+        assert made and all(type(b.mglo).__name__ == "InvalidObject" for b in made)
+    finally:
+        renderer.ctx.buffer = make
+        renderer.release()

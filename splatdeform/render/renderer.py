@@ -330,77 +330,84 @@ class Renderer:
         positions = np.ascontiguousarray(model.positions - origin, dtype=np.float32)
         buffers: list[Any] = []
         extra: dict[str, Any] = {}
-        if model.gaussians is not None:
-            kind = "gaussian"
-            gd = gaussian_data(model)
-            attrs = np.concatenate([positions, gd.cov, gd.color], axis=1)
-            buffers.append(ctx.buffer(np.ascontiguousarray(attrs, dtype=np.float32).tobytes()))
-            content = [(buffers[0], "3f 3f 3f 4f", "in_position", "in_cov_a", "in_cov_b",
-                        "in_color")]
-            order = ctx.buffer(reserve=n * 4)
-            buffers.append(order)
-            extra.update(order=order, positions=positions, sh=(gd.degree, gd.rest))
-            if gd.sh_rest is not None:
-                extra["sh_buffer"] = ctx.buffer(gd.sh_rest.tobytes())
-                buffers.append(extra["sh_buffer"])
-            prefixes = ("gauss", "feedback")
-        else:
-            geom = splat_geometry(model, fill_holes=fill_holes)
-            kind = "splat" if geom.axes is not None else "mesh"
-            attrs = np.zeros((n, 12), dtype=np.float32)
-            attrs[:, 0:3] = positions
-            attrs[:, 3:6] = geom.normals
-            if geom.axes is not None:
-                attrs[:, 6:12] = geom.axes.reshape(n, 6)
-            colors = np.zeros((n, 4), dtype=np.uint8)
-            colors[:, :3] = geom.colors
-            buffers += [ctx.buffer(attrs.tobytes()), ctx.buffer(colors.tobytes())]
-            content = [
-                (buffers[0], "3f 3f 3f 3f", "in_position", "in_normal", "in_axis_u", "in_axis_v"),
-                (buffers[1], "3f1 1x", "in_color"),
-            ]
-            prefixes = (("splat", "surfeldepth", "surfelaccum", "feedback") if kind == "splat"
-                        else ("mesh", "feedback"))
-        k = 0
-        basis: tuple[Any, ...] | None = None
-        storage = None
-        if values is not None:
-            k = int(np.asarray(values).shape[1]) if np.ndim(values) == 2 else 0
-            if k > MAX_K:
-                packed = pack_basis_storage(values, gradients, n)
-                program("feedback_deform", k)  # compile early: DeviceError below GL 4.3
-                storage = ctx.buffer(packed.tobytes())
-                buffers.append(storage)
-            else:
-                packed = pack_basis(values, gradients, n)
-                k = int(np.asarray(values).shape[1])
-                buffers.append(ctx.buffer(packed.tobytes()))
-                basis = (buffers[-1], "4f 3f 3f 3f 3f", "in_basis", "in_grad0", "in_grad1",
-                         "in_grad2", "in_grad3")
-            if kind == "gaussian":
-                extra["values"] = np.ascontiguousarray(values, dtype=np.float32)
-        index = None
-        n_faces = 0
-        if kind == "mesh":
-            faces = np.ascontiguousarray(model.faces, dtype=np.int32)
-            n_faces = int(faces.shape[0])
-            index = ctx.buffer(faces.tobytes())
-            buffers.append(index)
-        elif kind == "gaussian":
-            index = extra["order"]
         vaos: dict[str, Any] = {}
-        modes = ["plain"] + (["deform"] if k else [])
-        sh = extra.get("sh", (0, 0))
-        for mode in modes:
-            full = content + ([basis] if mode == "deform" and basis is not None else [])
-            for prefix in prefixes:
-                vaos[f"{prefix}_{mode}"] = ctx.vertex_array(
-                    program(f"{prefix}_{mode}", k, sh),
-                    full,
-                    index_buffer=index if prefix in ("mesh", "gauss") else None,
-                    index_element_size=4,
-                    skip_errors=True,
-                )
+        try:
+            if model.gaussians is not None:
+                kind = "gaussian"
+                gd = gaussian_data(model)
+                attrs = np.concatenate([positions, gd.cov, gd.color], axis=1)
+                attrs = np.ascontiguousarray(attrs, dtype=np.float32)
+                buffers.append(ctx.buffer(attrs.tobytes()))
+                content = [(buffers[0], "3f 3f 3f 4f", "in_position", "in_cov_a", "in_cov_b",
+                            "in_color")]
+                order = ctx.buffer(reserve=n * 4)
+                buffers.append(order)
+                extra.update(order=order, positions=positions, sh=(gd.degree, gd.rest))
+                if gd.sh_rest is not None:
+                    extra["sh_buffer"] = ctx.buffer(gd.sh_rest.tobytes())
+                    buffers.append(extra["sh_buffer"])
+                prefixes = ("gauss", "feedback")
+            else:
+                geom = splat_geometry(model, fill_holes=fill_holes)
+                kind = "splat" if geom.axes is not None else "mesh"
+                attrs = np.zeros((n, 12), dtype=np.float32)
+                attrs[:, 0:3] = positions
+                attrs[:, 3:6] = geom.normals
+                if geom.axes is not None:
+                    attrs[:, 6:12] = geom.axes.reshape(n, 6)
+                colors = np.zeros((n, 4), dtype=np.uint8)
+                colors[:, :3] = geom.colors
+                buffers += [ctx.buffer(attrs.tobytes()), ctx.buffer(colors.tobytes())]
+                content = [
+                    (buffers[0], "3f 3f 3f 3f", "in_position", "in_normal", "in_axis_u",
+                     "in_axis_v"),
+                    (buffers[1], "3f1 1x", "in_color"),
+                ]
+                prefixes = (("splat", "surfeldepth", "surfelaccum", "feedback") if kind == "splat"
+                            else ("mesh", "feedback"))
+            k = 0
+            basis: tuple[Any, ...] | None = None
+            storage = None
+            if values is not None:
+                k = int(np.asarray(values).shape[1]) if np.ndim(values) == 2 else 0
+                if k > MAX_K:
+                    packed = pack_basis_storage(values, gradients, n)
+                    program("feedback_deform", k)  # compile early: DeviceError below GL 4.3
+                    storage = ctx.buffer(packed.tobytes())
+                    buffers.append(storage)
+                else:
+                    packed = pack_basis(values, gradients, n)
+                    k = int(np.asarray(values).shape[1])
+                    buffers.append(ctx.buffer(packed.tobytes()))
+                    basis = (buffers[-1], "4f 3f 3f 3f 3f", "in_basis", "in_grad0", "in_grad1",
+                             "in_grad2", "in_grad3")
+                if kind == "gaussian":
+                    extra["values"] = np.ascontiguousarray(values, dtype=np.float32)
+            index = None
+            n_faces = 0
+            if kind == "mesh":
+                faces = np.ascontiguousarray(model.faces, dtype=np.int32)
+                n_faces = int(faces.shape[0])
+                index = ctx.buffer(faces.tobytes())
+                buffers.append(index)
+            elif kind == "gaussian":
+                index = extra["order"]
+            modes = ["plain"] + (["deform"] if k else [])
+            sh = extra.get("sh", (0, 0))
+            for mode in modes:
+                full = content + ([basis] if mode == "deform" and basis is not None else [])
+                for prefix in prefixes:
+                    vaos[f"{prefix}_{mode}"] = ctx.vertex_array(
+                        program(f"{prefix}_{mode}", k, sh),
+                        full,
+                        index_buffer=index if prefix in ("mesh", "gauss") else None,
+                        index_element_size=4,
+                        skip_errors=True,
+                    )
+        except BaseException:  # a bad argument or a GL error: free what was made so far
+            for obj in [*vaos.values(), *buffers]:
+                obj.release()
+            raise
         return GpuModel(origin, k, lo, hi, n, n_faces, kind, buffers, vaos, storage, **extra)
 
     # -- draw ---------------------------------------------------------------------------------
