@@ -35,7 +35,8 @@ class Deformation:
     moving_gradients: (Nh, k, 3) float64, d coords / d x (constant rows for a handle).
     constraint_idx: (m,) int64 ring points; constraint_points: (m, 3);
     constraint_rhs: (m, k) float64 (M, 0 rows for F).
-    control_points: (k, 3) float64 (C). frame: the handle's affine frame, or None (curves).
+    control_points: (k, 3) float64 (C). groups: one per metaphor, in column order (each
+    handle's affine frame with it).
     fit: the RBF fit; basis: b and grad b for the free points (Nf rows).
     timings: seconds per stage. rings: ring sizes (fixed, moving).
     """
@@ -53,17 +54,19 @@ class Deformation:
     control_points: np.ndarray
     fit: RbfFit
     basis: Basis
-    frame: AffineFrame | None = None
     timings: dict[str, float] = field(default_factory=dict)
     ring_sizes: tuple[list[int], list[int]] = ((), ())
     groups: list[Group] = field(default_factory=list)
 
     def handle_groups(self) -> list[Group]:
         """The groups whose points get a handle's 4x4 map verbatim (those with a frame)."""
-        if not self.groups:  # one metaphor built without groups (older caches, custom code)
-            rows = np.arange(self.moving_idx.size)
-            return [Group("handle", (0, self.k), rows, self.frame)] if self.frame else []
         return [g for g in self.groups if g.frame is not None]
+
+    @property
+    def frame(self) -> AffineFrame | None:
+        """The affine frame when the edit is exactly one handle, else None (derived from
+        ``groups``: several handles each have their own)."""
+        return self.groups[0].frame if len(self.groups) == 1 else None
 
     @property
     def k(self) -> int:
@@ -169,14 +172,13 @@ def prepare_metaphors(model: PointModel, fixed: np.ndarray, metaphors: list[Meta
     t0 = time.perf_counter()
     basis = basis_fn(model.positions[free_idx], fit)
     timings["basis"] = time.perf_counter() - t0
-    frames = [g.frame for g in groups if g.frame is not None]
     return Deformation(
         n_points=n, fixed=fixed, moving=moving, free_idx=free_idx,
         moving_idx=moving_idx, moving_coords=coords_all, moving_gradients=grads_all,
         constraint_idx=constraint_idx, constraint_points=model.positions[constraint_idx],
         constraint_rhs=rhs,
         control_points=np.vstack([mph.control_points for mph in metaphors]), fit=fit,
-        basis=basis, frame=frames[0] if len(metaphors) == 1 and frames else None,
+        basis=basis,
         timings=timings,
         ring_sizes=([r.size for r in fixed_rings], [r.size for r in moving_rings]),
         groups=groups,

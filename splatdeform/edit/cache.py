@@ -24,7 +24,7 @@ from splatdeform.io.atomic import atomic_path
 from splatdeform.model import PointModel
 from splatdeform.rbf.result import Normalization, RbfFit
 
-FORMAT_VERSION = 4  # 2: fit max/rms error and method; 3: metaphor groups; 4: registry key
+FORMAT_VERSION = 5  # 3: metaphor groups; 4: registry key; 5: frames only in groups
 
 
 def _file_digest(path: Path) -> str:
@@ -92,7 +92,6 @@ def save_deformation(path: str | Path, key: str, d: Deformation) -> Path:
         "norm_scale": np.array(d.fit.normalization.scale),
         "values": d.basis.values,
         "gradients": d.basis.gradients if d.basis.gradients is not None else np.zeros(0),
-        "frame_inverse": d.frame.inverse if d.frame is not None else np.zeros(0),
         **_groups_arrays(d),
     }
     path = Path(path)
@@ -119,16 +118,13 @@ def load_deformation(path: str | Path, key: str, model: PointModel) -> Deformati
                      tolerance=float(z["tolerance"]), max_error=float(z["max_error"]),
                      rms_error=float(z["rms_error"]), method=str(z["method"]))
         grads = z["gradients"]
-        frame = None
-        if z["frame_inverse"].size:
-            frame = AffineFrame(control_points=z["control_points"], inverse=z["frame_inverse"])
         return Deformation(
             n_points=int(z["n_points"]), fixed=z["fixed"], moving=z["moving"],
             free_idx=z["free_idx"], moving_idx=z["moving_idx"], moving_coords=z["moving_coords"],
             moving_gradients=z["moving_gradients"], constraint_idx=z["constraint_idx"],
             constraint_points=z["constraint_points"], constraint_rhs=z["constraint_rhs"],
             control_points=z["control_points"], fit=fit,
-            basis=Basis(z["values"], grads if grads.size else None), frame=frame,
+            basis=Basis(z["values"], grads if grads.size else None),
             groups=_groups_from(z))
     except (OSError, KeyError, ValueError, EOFError) as exc:
         reason = "missing " + str(exc) if isinstance(exc, KeyError) else \

@@ -69,7 +69,8 @@ def deform_chunk(src: ChunkFile, start: int, stop: int, labels: np.ndarray,
         moving_gradients=np.broadcast_to(grads, (mov.size, 4, 3)),
         constraint_idx=empty, constraint_points=np.empty((0, 3)),
         constraint_rhs=np.empty((0, 4)), control_points=frame.control_points,
-        fit=shared.fit, basis=basis, frame=frame)
+        fit=shared.fit, basis=basis,
+        groups=[df.Group("regions.handle", (0, 4), np.arange(mov.size), frame)])
     out = df.apply(deformation, model, shared.delta_c, moving_matrix=shared.matrix)
     if not np.isfinite(out.positions).all():
         raise ProcessingError("the deformation produced non-finite positions; check the "
