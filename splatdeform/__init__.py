@@ -17,10 +17,10 @@ Python API in a few lines::
 
 from __future__ import annotations
 
-import importlib
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 from .errors import ConfigError, FormatError, InputError, ProcessingError, SplatdeformError
+from .lazy import lazy_exports
 
 __version__ = "0.1.0"
 
@@ -56,13 +56,7 @@ if TYPE_CHECKING:  # pragma: no cover
     from .model import PointModel
 
 
-def __getattr__(name: str) -> Any:
-    module = _LAZY.get(name)
-    if module is None:
-        raise AttributeError(f"module 'splatdeform' has no attribute {name!r}")
-    value = getattr(importlib.import_module(f".{module}", __name__), name)
-    globals()[name] = value
-    return value
+__getattr__ = lazy_exports(__name__, _LAZY)
 
 
 __all__ = [

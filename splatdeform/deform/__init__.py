@@ -11,8 +11,7 @@ Public names are loaded on first use so that importing a submodule stays cheap.
 
 from __future__ import annotations
 
-import importlib
-from typing import Any
+from splatdeform.lazy import lazy_exports
 
 _MODULES = {
     "deformation": ("Deformation", "prepare", "prepare_metaphors", "prepare_handle",
@@ -29,13 +28,7 @@ _MODULES = {
 _LAZY = {name: module for module, names in _MODULES.items() for name in names}
 
 
-def __getattr__(name: str) -> Any:
-    module = _LAZY.get(name)
-    if module is None:
-        raise AttributeError(f"module 'splatdeform.deform' has no attribute {name!r}")
-    value = getattr(importlib.import_module(f".{module}", __name__), name)
-    globals()[name] = value
-    return value
+__getattr__ = lazy_exports(__name__, _LAZY)
 
 
 __all__ = sorted(_LAZY)

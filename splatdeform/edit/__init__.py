@@ -16,8 +16,7 @@ Public names are loaded on first use (the CLI parser imports no scipy).
 
 from __future__ import annotations
 
-import importlib
-from typing import Any
+from splatdeform.lazy import lazy_exports
 
 _LAZY = {
     "run_edit": "run", "EditResult": "run", "format_report": "run", "precompute": "run",
@@ -25,13 +24,7 @@ _LAZY = {
 }
 
 
-def __getattr__(name: str) -> Any:
-    module = _LAZY.get(name)
-    if module is None:
-        raise AttributeError(f"module 'splatdeform.edit' has no attribute {name!r}")
-    value = getattr(importlib.import_module(f".{module}", __name__), name)
-    globals()[name] = value
-    return value
+__getattr__ = lazy_exports(__name__, _LAZY)
 
 
 __all__ = sorted(_LAZY)

@@ -8,8 +8,9 @@ without it.
 
 from __future__ import annotations
 
-import importlib
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
+
+from splatdeform.lazy import lazy_exports
 
 _LAZY = {
     "fit_incremental": "fit", "fit_exact": "exact",
@@ -27,13 +28,7 @@ if TYPE_CHECKING:  # pragma: no cover
     from .result import Normalization, RbfFit
 
 
-def __getattr__(name: str) -> Any:
-    module = _LAZY.get(name)
-    if module is None:
-        raise AttributeError(f"module 'splatdeform.rbf' has no attribute {name!r}")
-    value = getattr(importlib.import_module(f".{module}", __name__), name)
-    globals()[name] = value
-    return value
+__getattr__ = lazy_exports(__name__, _LAZY)
 
 
 __all__ = [

@@ -1,0 +1,23 @@
+"""Packages export their public names lazily (imported on first use), so that importing one
+submodule, or running ``splatdeform info``, does not load scipy, the fitter or the renderer."""
+
+from __future__ import annotations
+
+import importlib
+from collections.abc import Callable
+from typing import Any
+
+
+def lazy_exports(package: str, names: dict[str, str]) -> Callable[[str], Any]:
+    """A module ``__getattr__`` for ``package`` that imports ``names[name]`` (a submodule,
+    relative to the package) on first access and caches the value in the package."""
+
+    def __getattr__(name: str) -> Any:
+        module = names.get(name)
+        if module is None:
+            raise AttributeError(f"module {package!r} has no attribute {name!r}")
+        value = getattr(importlib.import_module(f".{module}", package), name)
+        setattr(importlib.import_module(package), name, value)
+        return value
+
+    return __getattr__
