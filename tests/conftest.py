@@ -33,3 +33,16 @@ def shared_file(relative: str) -> Path:
     if not path.is_file():
         pytest.skip(f"real data file {path} is absent (fresh clone without ../shared)")
     return path
+
+
+def egl_renderer(size: tuple[int, int]):
+    """A real Renderer on the EGL context; a missing EGL device fails the test loudly."""
+    from splatdeform.errors import DeviceError
+    from splatdeform.render.context import get_context
+    from splatdeform.render.renderer import Renderer
+
+    try:
+        get_context()
+    except DeviceError as exc:
+        pytest.fail(f"OpenGL via EGL is required for rendering tests: {exc}")
+    return Renderer(size)

@@ -13,15 +13,13 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from conftest import shared_file
+from conftest import egl_renderer, shared_file
 from scipy import ndimage
 
 from splatdeform.deform.arrays import displace, jacobians, transform_axes, transform_normals
-from splatdeform.errors import DeviceError
 from splatdeform.model import PointModel
 from splatdeform.render import frame_points, render_deformation_comparison, render_frames
 from splatdeform.render.compare import LABEL_HEIGHT
-from splatdeform.render.context import get_context
 from splatdeform.render.renderer import Renderer
 from splatdeform.render.splats import splat_geometry
 
@@ -33,11 +31,7 @@ MAX_MEAN_DIFF = 0.5
 
 @pytest.fixture(scope="module")
 def renderer() -> Renderer:
-    try:
-        get_context()
-    except DeviceError as exc:
-        pytest.fail(f"OpenGL via EGL is required for rendering tests: {exc}")
-    r = Renderer(SIZE)
+    r = egl_renderer(SIZE)
     yield r
     r.release()
 

@@ -5,12 +5,12 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from conftest import egl_renderer
 
-from splatdeform.errors import DeviceError, InputError
+from splatdeform.errors import InputError
 from splatdeform.model import PointModel
 from splatdeform.render.camera import frame_bbox, up_frame
 from splatdeform.render.compare import side_by_side
-from splatdeform.render.context import get_context
 from splatdeform.render.frames import render_frames
 from splatdeform.render.renderer import Renderer
 
@@ -45,11 +45,7 @@ def test_compare_labels() -> None:
 
 
 def test_renderer_values_shape() -> None:
-    try:
-        get_context()
-    except DeviceError as exc:
-        pytest.fail(f"OpenGL via EGL is required for rendering tests: {exc}")
-    renderer = Renderer((8, 8))
+    renderer = egl_renderer((8, 8))
     try:
         model = _points()
         n = model.n_points
@@ -65,7 +61,7 @@ def test_renderer_values_shape() -> None:
 
 
 def test_a_failed_upload_frees_the_gpu_buffers_it_made() -> None:
-    renderer = Renderer((8, 8))
+    renderer = egl_renderer((8, 8))
     made, make = [], renderer.ctx.buffer
 
     def spy(*args, **kwargs):

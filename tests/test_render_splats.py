@@ -15,12 +15,11 @@ import json
 
 import numpy as np
 import pytest
-from conftest import shared_file
+from conftest import egl_renderer, shared_file
 from scipy import ndimage
 from splat_reference import psnr, reference_render
 
 from splatdeform.cli import main
-from splatdeform.errors import DeviceError
 from splatdeform.model import Gaussians, PointModel
 from splatdeform.render import render_image
 from splatdeform.render.camera import (
@@ -30,7 +29,6 @@ from splatdeform.render.camera import (
     orbit,
     write_camera,
 )
-from splatdeform.render.context import get_context
 from splatdeform.render.renderer import Renderer, deformed_positions
 
 SIZE = (128, 128)
@@ -39,11 +37,7 @@ N_CUT = 2500
 
 @pytest.fixture(scope="module")
 def renderer() -> Renderer:
-    try:
-        get_context()
-    except DeviceError as exc:
-        pytest.fail(f"OpenGL via EGL is required for rendering tests: {exc}")
-    r = Renderer(SIZE)
+    r = egl_renderer(SIZE)
     yield r
     r.release()
 
