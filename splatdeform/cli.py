@@ -40,6 +40,10 @@ def _warn(message: str) -> None:
     print(f"splatdeform: warning: {message}", file=sys.stderr, flush=True)
 
 
+def _show_warning(message, category, filename, lineno, file=None, line=None) -> None:
+    _warn(str(message))
+
+
 def cmd_deform(args: argparse.Namespace) -> int:
     from pathlib import Path
 
@@ -347,6 +351,7 @@ def main(argv: list[str] | None = None) -> int:
         with warnings.catch_warnings():
             if not debug:  # numpy RuntimeWarnings must not turn one error line into several
                 warnings.simplefilter("ignore", RuntimeWarning)
+            warnings.showwarning = _show_warning  # ours are one line each
             return _run(argv, debug)
     finally:  # callers in the same process (tests, the API) get their handler back
         if previous is not None:
