@@ -34,6 +34,7 @@ from splatdeform.errors import InputError
 from splatdeform.model import SH_C0, dc_to_colors, dc_to_rgb  # noqa: F401  (defined with the data)
 
 COVARIANCE_MODES = ("jacobian", "rotation", "limited")
+DEFAULT_COVARIANCE = "limited"  # no needles under strong edits: benchmarks/bench_needles.py
 ANISOTROPY_GROWTH = 2.0  # ``limited``: largest/smallest axis ratio may grow by this factor
 SIMILARITY_TOL = 1e-9  # max |J^T J / s^2 - I| for J = s R to count as a similarity
 _JACOBI_SWEEPS = 12  # one-sided Jacobi on 3x3 converges quadratically; ~4-6 sweeps in practice

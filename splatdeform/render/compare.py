@@ -103,6 +103,7 @@ def render_deformation_comparison(
     up: str | None = None,
     roll: float = 0.0,
     camera: Camera | None = None,
+    covariance: str = "jacobian",
 ) -> np.ndarray:
     """Before (delta C = 0) and after (``delta_c`` (k, 3)) from ONE upload of the basis
     ``values`` (N, k) / ``gradients`` (N, k, 3): the shader deforms, the CPU only frames
@@ -110,7 +111,7 @@ def render_deformation_comparison(
     ``out_path`` and its ``OUT.camera.json`` when given; returns the composed image."""
     with deformation_session(model, values, gradients, delta_c, size=size, azimuth=azimuth,
                              elevation=elevation, fov=fov, camera=camera, up=up,
-                             roll=roll) as (renderer, gpu, camera):
+                             roll=roll, covariance=covariance) as (renderer, gpu, camera):
         images = [renderer.draw(gpu, camera, None), renderer.draw(gpu, camera, delta_c)]
         panel = renderer.size
     image = side_by_side(images, list(labels))
