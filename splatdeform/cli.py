@@ -118,7 +118,12 @@ def cmd_select(args: argparse.Namespace) -> int:
     from splatdeform.edit.config import input_paths, load_edit
     from splatdeform.edit.images import with_camera_file
     from splatdeform.edit.run import prepare_model
-    from splatdeform.edit.selection import format_counts, preview_model, select_regions
+    from splatdeform.edit.selection import (
+        curve_overlays,
+        format_counts,
+        preview_model,
+        select_regions,
+    )
 
     from .io.atomic import check_io_paths
 
@@ -149,9 +154,10 @@ def cmd_select(args: argparse.Namespace) -> int:
             args.camera = args.camera or (str(base / opts.camera) if opts.camera else None)
         view.update(_camera_args(args))
         size = view.pop("size", size)
+        overlays, legend = curve_overlays(cfg, model, base)
         render_comparison(preview_model(model, sel), None, args.output, size=size,
                           labels=(f"fixed (blue) / {sel.moving_name} (orange) / free (grey); "
-                                  "rings lighter",), **view)
+                                  f"rings lighter{legend}",), overlays=overlays, **view)
         print(f"wrote {args.output}")
     return 0
 

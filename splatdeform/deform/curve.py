@@ -175,14 +175,9 @@ def _listed(indices: np.ndarray, limit: int = 8) -> str:
     return shown + (f", ... ({indices.size} in all)" if indices.size > limit else "")
 
 
-def curve_band(model: PointModel, control_points: np.ndarray, *, degree: int = 3,
-               parametrization: str = "chord", capture_radius: float
-               ) -> tuple[SplineCurve, np.ndarray, np.ndarray]:
-    """The snapped curve, the band's point indices (M,) and their curve parameters t (M,).
-
-    control_points: (k, 3) model units (snapped to the nearest model points);
-    capture_radius: model units.
-    """
+def snapped_curve(model: PointModel, control_points: np.ndarray, *, degree: int = 3,
+                  parametrization: str = "chord") -> SplineCurve:
+    """The curve through ``control_points`` (k, 3) snapped to the nearest model points."""
     raw = np.asarray(control_points, dtype=np.float64)
     if not np.isfinite(raw).all():
         raise ConfigError.at("curve.control_points", "expected finite coordinates")
@@ -192,8 +187,18 @@ def curve_band(model: PointModel, control_points: np.ndarray, *, degree: int = 3
         raise ConfigError.at("curve.control_points", f"consecutive control points snap to the same "
                           f"model point after point(s) {_listed(repeated)}; space them further "
                           "apart than the point spacing")
-    control = model.positions[snap]
-    curve = SplineCurve(control, degree, parametrization)
+    return SplineCurve(model.positions[snap], degree, parametrization)
+
+
+def curve_band(model: PointModel, control_points: np.ndarray, *, degree: int = 3,
+               parametrization: str = "chord", capture_radius: float
+               ) -> tuple[SplineCurve, np.ndarray, np.ndarray]:
+    """The snapped curve, the band's point indices (M,) and their curve parameters t (M,).
+
+    control_points: (k, 3) model units (snapped to the nearest model points);
+    capture_radius: model units.
+    """
+    curve = snapped_curve(model, control_points, degree=degree, parametrization=parametrization)
     reach = min_curvature_radius(curve)
     if float(capture_radius) > reach:
         warnings.warn(f"curve.capture_radius {float(capture_radius):.4g} exceeds the curve's "
