@@ -7,7 +7,11 @@
 //            2 limited:  J Sigma J^T with the spread of its log-scales (log largest/smallest axis)
 //                        at most that of Sigma + log(ANISOTROPY_GROWTH), pulled towards their
 //                        mean (volume kept)
-// The host defines COVARIANCE (default 0) and pastes this file after deform.glsl.
+// The host defines COVARIANCE (default 0) and pastes this file after deform.glsl. ``shape`` =
+// (spread, mean) of the input splat's log-scales, from float64 on the host: a float32 eigen-solve
+// of a thin splat's Sigma (or Sigma') loses its smallest axis, so ``limited`` takes only the two
+// largest axes of J Sigma J^T from its eigen-solve and the smallest from the volume,
+// sum of log-scales' = 3 mean + log|det J|.
 
 #ifndef COVARIANCE
 #define COVARIANCE 0
@@ -53,14 +57,9 @@ vec3 eigen_sym3(mat3 A, out mat3 V) {
     }
     return vec3(A[0][0], A[1][1], A[2][2]);
 }
-
-vec3 log_scales(mat3 A, out mat3 V) {
-    vec3 lambda = eigen_sym3(A, V);
-    return 0.5 * log(max(lambda, vec3(1e-37)));
-}
 #endif
 
-mat3 deform_covariance(mat3 J, mat3 sigma) {
+mat3 deform_covariance(mat3 J, mat3 sigma, vec2 shape) {
 #if COVARIANCE == 1
     float det = determinant(J);
     if (!(det > 0.0)) {
@@ -71,11 +70,14 @@ mat3 deform_covariance(mat3 J, mat3 sigma) {
 #else
     mat3 out_sigma = J * sigma * transpose(J);
 #if COVARIANCE == 2
-    mat3 V0;
     mat3 V;
-    vec3 s0 = log_scales(sigma, V0);
-    vec3 s = log_scales(out_sigma, V);
-    float spread_in = max(max(s0.x, s0.y), s0.z) - min(min(s0.x, s0.y), s0.z);
+    vec3 lambda = eigen_sym3(out_sigma, V);
+    vec3 s = 0.5 * log(max(lambda, vec3(1e-37)));
+    int imin = lambda.x <= lambda.y ? (lambda.x <= lambda.z ? 0 : 2)
+                                    : (lambda.y <= lambda.z ? 1 : 2);
+    float volume = 3.0 * shape.y + log(max(abs(determinant(J)), 1e-37));
+    s[imin] = volume - (s.x + s.y + s.z - s[imin]);
+    float spread_in = shape.x;
     float spread = max(max(s.x, s.y), s.z) - min(min(s.x, s.y), s.z);
     float allowed = spread_in + log(ANISOTROPY_GROWTH);
     if (spread > allowed) {

@@ -20,6 +20,7 @@ in vec3 in_position;
 in vec3 in_cov_a;
 in vec3 in_cov_b;
 in vec4 in_color;
+in vec2 in_shape;  // spread and mean of the input splat's log-scales (covariance.glsl)
 
 #if SH_DEGREE > 0
 layout(std430, binding = 1) readonly buffer ShRest { float sh_rest[]; };
@@ -77,7 +78,7 @@ void main() {
                       in_cov_a.z, in_cov_b.y, in_cov_b.z);
 #if DEFORM
     mat3 J = deform_point(p);
-    sigma = deform_covariance(J, sigma);
+    sigma = deform_covariance(J, sigma, in_shape);
 #endif
     v_color = vec4(0.0);
     v_conic = vec3(0.0);

@@ -23,19 +23,20 @@ from splatdeform.deform.gaussians import (
     COVARIANCE_MODES,
     deform_gaussians,
 )
-from splatdeform.render.gaussian_data import covariances
+from splatdeform.render.gaussian_data import covariances, log_scale_shape
 from splatdeform.resources import resource_path
 
 DEFAULT_MODE = "limited"  # README "Gaussian splats: covariance modes"; benchmarks/bench_needles.py
 
 HARNESS = """
 in vec3 in_j0; in vec3 in_j1; in vec3 in_j2; in vec3 in_cov_a; in vec3 in_cov_b;
+in vec2 in_shape;
 out vec3 o_cov_a; out vec3 o_cov_b;
 void main() {
     mat3 J = mat3(in_j0, in_j1, in_j2);
     mat3 S = mat3(in_cov_a.x, in_cov_a.y, in_cov_a.z, in_cov_a.y, in_cov_b.x, in_cov_b.y,
                   in_cov_a.z, in_cov_b.y, in_cov_b.z);
-    mat3 D = deform_covariance(J, S);
+    mat3 D = deform_covariance(J, S, in_shape);
     o_cov_a = vec3(D[0][0], D[0][1], D[0][2]);
     o_cov_b = vec3(D[1][1], D[1][2], D[2][2]);
     gl_Position = vec4(0.0, 0.0, 0.0, 1.0);
@@ -63,8 +64,10 @@ def random_jacobians(n: int, seed: int = 23) -> np.ndarray:
     return jac
 
 
-def shader_covariances(mode: str, sigma: np.ndarray, jac: np.ndarray) -> np.ndarray:
-    """Sigma' (M, 3, 3) from covariance.glsl (float32, transform feedback)."""
+def shader_covariances(mode: str, sigma: np.ndarray, jac: np.ndarray, shape: np.ndarray
+                       ) -> np.ndarray:
+    """Sigma' (M, 3, 3) from covariance.glsl (float32, transform feedback); shape (M, 2): the
+    input log-scales' spread and mean, as the renderer uploads them."""
     renderer = egl_renderer((8, 8))
     ctx = renderer.ctx
     src = ("#version 330 core\n"
@@ -75,11 +78,11 @@ def shader_covariances(mode: str, sigma: np.ndarray, jac: np.ndarray) -> np.ndar
     cols = jac.transpose(0, 2, 1).reshape(m, 9)  # columns of J
     tri = np.stack([sigma[:, 0, 0], sigma[:, 0, 1], sigma[:, 0, 2],
                     sigma[:, 1, 1], sigma[:, 1, 2], sigma[:, 2, 2]], axis=1)
-    data = np.ascontiguousarray(np.concatenate([cols, tri], axis=1), dtype=np.float32)
+    data = np.ascontiguousarray(np.concatenate([cols, tri, shape], axis=1), dtype=np.float32)
     vbo = ctx.buffer(data.tobytes())
     out = ctx.buffer(reserve=m * 6 * 4)
-    vao = ctx.vertex_array(prog, [(vbo, "3f 3f 3f 3f 3f", "in_j0", "in_j1", "in_j2",
-                                   "in_cov_a", "in_cov_b")])
+    vao = ctx.vertex_array(prog, [(vbo, "3f 3f 3f 3f 3f 2f", "in_j0", "in_j1", "in_j2",
+                                   "in_cov_a", "in_cov_b", "in_shape")], skip_errors=True)
     try:
         renderer._ms.use()
         vao.transform(out, mode=ctx.POINTS, vertices=m)
@@ -99,7 +102,7 @@ def test_shader_matches_numpy(mode):
     jac = random_jacobians(400)
     new = deform_gaussians(scale_log, quat, None, jac, covariance=mode)
     want = covariances(new.scale_log, new.rotation)
-    got = shader_covariances(mode, covariances(scale_log, quat), jac)
+    got = shader_covariances(mode, covariances(scale_log, quat), jac, log_scale_shape(scale_log))
     norm = np.linalg.norm(want, axis=(1, 2))
     err = np.linalg.norm(got - want, axis=(1, 2)) / norm
     # float32: 1e-4 relative where J Sigma J^T is well conditioned; the float32 eigen-solve of
@@ -167,3 +170,45 @@ def test_default_mode_makes_no_needles_under_a_strong_stretch():
         needles[mode] = int((axis_ratio(new.scale_log) / ratio_in > 4).sum())
     assert needles["jacobian"] > 100
     assert needles[DEFAULT_MODE] == 0
+
+
+@pytest.mark.parametrize("mode", COVARIANCE_MODES)
+def test_vertex_stage_renders_each_mode_like_the_cpu(mode):
+    """The Gaussian vertex stage with ``covariance=mode`` against the numpy reference
+    rasteriser of the same splats deformed on the CPU by that mode (PSNR >= 35 dB); a strong
+    random smooth field, so ``limited`` and ``rotation`` differ from ``jacobian`` there."""
+    from conftest import shared_file
+    from splat_reference import psnr, reference_render
+    from test_render_splats import SIZE, cut, smooth_basis, to_uint8
+
+    from splatdeform.deform.arrays import displace, jacobians
+    from splatdeform.io import load
+    from splatdeform.model import Gaussians, PointModel
+    from splatdeform.render.camera import frame_points
+
+    scene = cut(load(shared_file("splats/guitar_3dgs_sh0.ply")), 2500)
+    values, gradients = smooth_basis(scene.positions, seed=5)
+    delta_c = np.random.default_rng(6).normal(size=(4, 3)) * 0.3 * scene.diagonal()
+    g = scene.gaussians
+    jac = jacobians(gradients.astype(np.float64), delta_c)
+    new = deform_gaussians(g.scale_log.astype(np.float64), g.rotation.astype(np.float64), None,
+                           jac, covariance=mode)
+    moved = PointModel(positions=displace(scene.positions, values.astype(np.float64), delta_c),
+                       kind="gaussians",
+                       gaussians=Gaussians(new.scale_log, new.rotation, g.opacity, g.sh_dc, None))
+    camera = frame_points([scene.positions, moved.positions], azimuth=20, elevation=15, up="-y")
+    renderer = egl_renderer(SIZE)
+    try:
+        gpu = renderer.upload(scene, values, gradients, covariance=mode)
+        try:
+            after = renderer.draw(gpu, camera, delta_c)
+        finally:
+            gpu.release()
+    finally:
+        renderer.release()
+    want = to_uint8(reference_render(moved, camera, SIZE))
+    assert psnr(after, want) >= 35.0
+    if mode != "jacobian":
+        plain = deform_gaussians(g.scale_log.astype(np.float64), g.rotation.astype(np.float64),
+                                 None, jac)
+        assert np.abs(plain.scale_log - new.scale_log).max() > 0.5  # the mode mattered here

@@ -351,11 +351,11 @@ class Renderer:
             if model.gaussians is not None:
                 kind = "gaussian"
                 gd = gaussian_data(model)
-                attrs = np.concatenate([positions, gd.cov, gd.color], axis=1)
+                attrs = np.concatenate([positions, gd.cov, gd.color, gd.shape], axis=1)
                 attrs = np.ascontiguousarray(attrs, dtype=np.float32)
                 buffers.append(ctx.buffer(attrs.tobytes()))
-                content = [(buffers[0], "3f 3f 3f 4f", "in_position", "in_cov_a", "in_cov_b",
-                            "in_color")]
+                content = [(buffers[0], "3f 3f 3f 4f 2f", "in_position", "in_cov_a",
+                            "in_cov_b", "in_color", "in_shape")]
                 order = ctx.buffer(reserve=n * 4)
                 buffers.append(order)
                 extra.update(order=order, positions=positions, sh=(gd.degree, gd.rest))
