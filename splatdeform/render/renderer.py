@@ -720,6 +720,7 @@ def render_image(
     fov: float = 35.0,
     up: str | None = None,
     roll: float = 0.0,
+    covariance: str = "jacobian",
 ) -> np.ndarray:
     """Render ``model`` (deformed on the GPU by ``delta_c`` (k, 3) when the basis ``values``
     (N, k) / ``gradients`` (N, k, 3) are given) to an (H, W, 3) uint8 image.
@@ -727,8 +728,9 @@ def render_image(
     camera: None frames the union of the bounding boxes before and after the deformation
     from ``azimuth`` / ``elevation`` / ``fov`` (degrees) about the ``up`` axis (None: the
     model's convention, -y for 3DGS scenes, else +y), rolled by ``roll`` degrees.
+    covariance: how Gaussians' covariances deform (``gaussians.covariance``).
     """
     with deformation_session(model, values, gradients, delta_c, size=size, azimuth=azimuth,
                              elevation=elevation, fov=fov, camera=camera, up=up,
-                             roll=roll) as (renderer, gpu, cam):
+                             roll=roll, covariance=covariance) as (renderer, gpu, cam):
         return renderer.draw(gpu, cam, delta_c)
