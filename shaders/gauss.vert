@@ -5,19 +5,22 @@
 // (f_rest, channel-major, SH_REST coefficients per channel) from storage buffer 1 at
 // gl_VertexID * 3 * SH_REST. The basis comes from deform.glsl (pasted before this file).
 //
-//   p' = p + B delta C,   Sigma' = J Sigma J^T
+//   p' = p + B delta C,   Sigma' = deform_covariance(J, Sigma) (covariance.glsl: the
+//        ``gaussians.covariance`` mode, J Sigma J^T by default)
 //   EWA: t = view p';  Jp = d(window pixels)/dt at t (x/z clamped to 1.3 tan(fov/2), as 3DGS);
 //        cov2 = Jp W Sigma' W^T Jp^T + 0.3 I  (W = view rotation, 0.3 px^2 low-pass)
 //   colour: SH up to degree 3 at d = normalize(p' - eye); a deformed splat's SH turn with the
 //        rotation R of the polar decomposition J = R U, so it is evaluated at R^T d.
 //
 // The host prepends "#version 330|430 core", "#define DEFORM 0|1", "#define K k",
-// "#define SH_DEGREE d", "#define SH_REST ((d+1)^2 - 1)", then deform.glsl.
+// "#define SH_DEGREE d", "#define SH_REST ((d+1)^2 - 1)", "#define COVARIANCE m", then
+// deform.glsl and covariance.glsl.
 
 in vec3 in_position;
 in vec3 in_cov_a;
 in vec3 in_cov_b;
 in vec4 in_color;
+in vec2 in_shape;  // spread and mean of the input splat's log-scales (covariance.glsl)
 
 #if SH_DEGREE > 0
 layout(std430, binding = 1) readonly buffer ShRest { float sh_rest[]; };
@@ -75,7 +78,7 @@ void main() {
                       in_cov_a.z, in_cov_b.y, in_cov_b.z);
 #if DEFORM
     mat3 J = deform_point(p);
-    sigma = J * sigma * transpose(J);
+    sigma = deform_covariance(J, sigma, in_shape);
 #endif
     v_color = vec4(0.0);
     v_conic = vec3(0.0);
@@ -115,12 +118,7 @@ void main() {
 #if SH_DEGREE > 0
     vec3 d = normalize(p - u_eye);
 #if DEFORM
-    // rotation of the polar decomposition J = R U by Newton's iteration R <- (R + R^-T) / 2
-    mat3 R = J;
-    for (int i = 0; i < 12; ++i) {
-        R = 0.5 * (R + transpose(inverse(R)));
-    }
-    d = transpose(R) * d;
+    d = transpose(polar_rotation(J)) * d;  // SH turn with the polar rotation in every mode
 #endif
     rgb += sh_view(d);
 #endif

@@ -40,6 +40,10 @@ def _warn(message: str) -> None:
     print(f"splatdeform: warning: {message}", file=sys.stderr, flush=True)
 
 
+def _show_warning(message, category, filename, lineno, file=None, line=None) -> None:
+    _warn(str(message))
+
+
 def cmd_deform(args: argparse.Namespace) -> int:
     from pathlib import Path
 
@@ -56,7 +60,8 @@ def cmd_deform(args: argparse.Namespace) -> int:
     reuse = args.reuse_file
     if args.reuse and reuse is None:
         reuse = str(output or base / cfg.output) + ".deform.npz"
-    render_out = args.render or (str(base / cfg.render.output) if cfg.render else None)
+    render_out = args.render or (str(base / cfg.render.output)
+                                 if cfg.render and cfg.render.output else None)
     if cfg.render:   # the options win over the config's render.up / roll / camera
         args.up = args.up or cfg.render.up
         args.roll = cfg.render.roll if args.roll is None else args.roll
@@ -66,10 +71,10 @@ def cmd_deform(args: argparse.Namespace) -> int:
     _check_deform_paths(args, cfg, base, output, reuse, render_out)
     try:
         result = run_edit(cfg, base, output=output, drop_nonfinite=args.drop_nonfinite,
-                          reuse=reuse, log=print, warn=_warn,
+                          reuse=reuse, log=None if args.quiet else print, warn=_warn,
                           stream={"budget": args.memory_budget, "scheduler": args.scheduler,
                                   "workers": args.workers, "quiet": args.quiet,
-                                  "render": bool(args.render or cfg.render)})
+                                  "render": bool(render_out)})
     except InputError as exc:
         # an error about a config key is said of the config file it came from
         if exc.key is not None:
@@ -81,8 +86,11 @@ def cmd_deform(args: argparse.Namespace) -> int:
     if render_out:
         from splatdeform.edit.images import render_result
 
-        render_result(result, cfg, render_out, frames=args.frames, view=view)
-    print(format_report(result))
+        image = render_result(result, cfg, render_out, frames=args.frames, view=view)
+    if not args.quiet:   # --quiet: no progress lines, no summary (warnings still on stderr)
+        print(format_report(result))
+        if render_out:
+            print(f"rendered {image}")
     return 0
 
 
@@ -110,7 +118,12 @@ def cmd_select(args: argparse.Namespace) -> int:
     from splatdeform.edit.config import input_paths, load_edit
     from splatdeform.edit.images import with_camera_file
     from splatdeform.edit.run import prepare_model
-    from splatdeform.edit.selection import format_counts, preview_model, select_regions
+    from splatdeform.edit.selection import (
+        curve_overlays,
+        format_counts,
+        preview_model,
+        select_regions,
+    )
 
     from .io.atomic import check_io_paths
 
@@ -141,9 +154,10 @@ def cmd_select(args: argparse.Namespace) -> int:
             args.camera = args.camera or (str(base / opts.camera) if opts.camera else None)
         view.update(_camera_args(args))
         size = view.pop("size", size)
+        overlays, legend = curve_overlays(cfg, model, base)
         render_comparison(preview_model(model, sel), None, args.output, size=size,
                           labels=(f"fixed (blue) / {sel.moving_name} (orange) / free (grey); "
-                                  "rings lighter",), **view)
+                                  f"rings lighter{legend}",), overlays=overlays, **view)
         print(f"wrote {args.output}")
     return 0
 
@@ -269,7 +283,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="split the scan over this Dask scheduler (tcp://HOST:PORT)")
     p.add_argument("--workers", type=int, metavar="N",
                    help="split the scan over N local Dask worker processes")
-    p.add_argument("--quiet", action="store_true", help="no progress lines")
+    p.add_argument("--quiet", action="store_true",
+                   help="no progress lines and no summary on stdout (warnings and errors "
+                        "still go to stderr)")
     _add_camera_args(p)
     p.set_defaults(func=cmd_deform)
 
@@ -347,6 +363,7 @@ def main(argv: list[str] | None = None) -> int:
         with warnings.catch_warnings():
             if not debug:  # numpy RuntimeWarnings must not turn one error line into several
                 warnings.simplefilter("ignore", RuntimeWarning)
+            warnings.showwarning = _show_warning  # ours are one line each
             return _run(argv, debug)
     finally:  # callers in the same process (tests, the API) get their handler back
         if previous is not None:

@@ -403,12 +403,8 @@ def _halves(png: Path):
     return img[:, :w], img[:, w:2 * w]
 
 
-@pytest.fixture(scope="module")
-def bunny_run(tmp_path_factory):
-    """A bend along the bunny's back through the CLI with --render (one run, two tests)."""
-    scan = shared_file("scans/bunny.ply")
-    tmp_path = tmp_path_factory.mktemp("bunny")
-    model = sd.load(scan)
+def bunny_back_curve(model: sd.PointModel) -> tuple[np.ndarray, np.ndarray]:
+    """Control points (5, 3) along the bunny's back and their bend (moved_to)."""
     P = model.positions.astype(np.float64)
     diag = model.diagonal()
     zc = 0.5 * (P[:, 2].min() + P[:, 2].max())
@@ -428,6 +424,17 @@ def bunny_run(tmp_path_factory):
         normal = np.linalg.eigh(q.T @ q)[1][:, 0]
         normal *= np.sign(normal[1])  # outward on the back = upward
         mv[i] = cp[i] + 0.05 * diag * normal
+    return cp, mv
+
+
+@pytest.fixture(scope="module")
+def bunny_run(tmp_path_factory):
+    """A bend along the bunny's back through the CLI with --render (one run, two tests)."""
+    scan = shared_file("scans/bunny.ply")
+    tmp_path = tmp_path_factory.mktemp("bunny")
+    model = sd.load(scan)
+    P = model.positions.astype(np.float64)
+    cp, mv = bunny_back_curve(model)
     ylo = float(P[:, 1].min())
     edit = {
         "input": str(scan), "output": "bunny_back.ply",

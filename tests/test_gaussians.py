@@ -266,7 +266,8 @@ def test_similarity_composes_directly_and_identity_is_bit_exact():
 
 def _edit(tmp_path, src, degrees: float):
     """A handle edit through the public pipeline: the low-y 45 % fixed, the high-y 45 % rotated
-    about (0, 1, 1) and lifted; the middle band is free."""
+    about (0, 1, 1) and lifted; the middle band is free. ``gaussians.covariance: jacobian``
+    (J Sigma J^T, what these tests check; the modes: test_covariance_modes.py)."""
     cfg = parse_edit({
         "input": str(src), "output": str(tmp_path / f"bent_{src.name}"),
         "regions": {"units": "relative",
@@ -278,6 +279,7 @@ def _edit(tmp_path, src, degrees: float):
         "boundary": {"continuity": 1, "neighbors": 10},
         "fit": {"tolerance": 1e-3, "max_centers": 2000},
         "backend": "auto",
+        "gaussians": {"covariance": "jacobian"},
     }, "test edit")
     return run_edit(cfg, tmp_path)
 

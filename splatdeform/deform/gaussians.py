@@ -12,6 +12,16 @@ Deforming a splat by the Jacobian J of the deformation (:func:`deform_gaussians`
   its column (no sorting). Scales are never clamped in absolute terms.
 - SH bands 1..3 are rotated by R of the polar decomposition J = R U (R proper), see
   :mod:`splatdeform.deform.sh`.
+
+Covariance modes (``gaussians.covariance``; the same three in ``shaders/covariance.glsl``):
+- ``jacobian``: Sigma' = J Sigma J^T as above (exact to first order, but where the field
+  stretches strongly one axis outgrows the others: a needle);
+- ``rotation``: Sigma' = det(J)^(2/3) R Sigma R^T (R the polar rotation of J): the splat turns
+  and scales by det(J)^(1/3) per axis, its shape is kept; a splat with det J <= 0 (folded) is
+  refused, keeping its covariance, and counted (``DeformedGaussians.refused``);
+- ``limited``: J Sigma J^T, but where the ratio of its largest to smallest axis grew by more
+  than :data:`ANISOTROPY_GROWTH` the log-scales are pulled towards their mean (volume kept) until
+  the growth is exactly that.
 """
 
 from __future__ import annotations
@@ -20,8 +30,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from splatdeform.errors import InputError
 from splatdeform.model import SH_C0, dc_to_colors, dc_to_rgb  # noqa: F401  (defined with the data)
 
+COVARIANCE_MODES = ("jacobian", "rotation", "limited")
+DEFAULT_COVARIANCE = "limited"  # no needles under strong edits: benchmarks/bench_needles.py
+ANISOTROPY_GROWTH = 2.0  # ``limited``: largest/smallest axis ratio may grow by this factor
 SIMILARITY_TOL = 1e-9  # max |J^T J / s^2 - I| for J = s R to count as a similarity
 _JACOBI_SWEEPS = 12  # one-sided Jacobi on 3x3 converges quadratically; ~4-6 sweeps in practice
 
@@ -167,20 +181,41 @@ def similarity_mask(jac: np.ndarray, tol: float = SIMILARITY_TOL) -> np.ndarray:
 class DeformedGaussians:
     """New 3DGS fields for M deformed splats: scale_log (M, 3), rotation (M, 4) and sh_rest
     (M, n) or None, in the input dtypes; rotation_matrix: (M, 3, 3) float64 polar R per splat;
-    similarity: (M,) bool, splats whose J was a similarity (composed directly)."""
+    similarity: (M,) bool, splats whose J was a similarity (composed directly);
+    refused: number of splats whose covariance was kept (``rotation`` mode, det J <= 0)."""
 
     scale_log: np.ndarray
     rotation: np.ndarray
     sh_rest: np.ndarray | None
     rotation_matrix: np.ndarray
     similarity: np.ndarray
+    refused: int = 0
+
+
+def limit_anisotropy(scale_in: np.ndarray, scale_out: np.ndarray,
+                     growth: float = ANISOTROPY_GROWTH) -> np.ndarray:
+    """(M, 3) log-scales ``scale_out`` whose spread (log of largest / smallest axis) exceeds
+    that of ``scale_in`` (M, 3) plus log(growth), pulled towards their mean (the volume is kept)
+    so that the spread grew by exactly log(growth); the others unchanged."""
+    spread_in = np.ptp(scale_in, axis=1)
+    spread_out = np.ptp(scale_out, axis=1)
+    allowed = spread_in + np.log(growth)
+    shrink = np.where(spread_out > allowed, allowed / np.where(spread_out > 0, spread_out, 1.0),
+                      1.0)
+    mean = scale_out.mean(axis=1, keepdims=True)
+    return mean + (scale_out - mean) * shrink[:, None]
 
 
 def deform_gaussians(scale_log: np.ndarray, rotation: np.ndarray, sh_rest: np.ndarray | None,
-                     jac: np.ndarray) -> DeformedGaussians:
-    """Deform M splats by their Jacobians J (M, 3, 3): Sigma' = J Sigma J^T, SH rotated by the
-    polar R of J. Splats with J exactly I come back bit-identical. See the module docstring."""
+                     jac: np.ndarray, covariance: str = "jacobian") -> DeformedGaussians:
+    """Deform M splats by their Jacobians J (M, 3, 3): the covariance by ``covariance`` (one of
+    :data:`COVARIANCE_MODES`), SH rotated by the polar R of J. Splats with J exactly I come back
+    bit-identical. See the module docstring."""
     from splatdeform.deform.sh import rotate_sh_rest
+
+    if covariance not in COVARIANCE_MODES:
+        raise InputError(f"covariance: expected one of {', '.join(COVARIANCE_MODES)}, "
+                         f"got {covariance!r}")
 
     jac = np.asarray(jac, dtype=np.float64)
     scale_log = np.asarray(scale_log)
@@ -209,11 +244,21 @@ def deform_gaussians(scale_log: np.ndarray, rotation: np.ndarray, sh_rest: np.nd
     q_norm = np.where(q_norm > 0, q_norm, 1.0)
     q_out = np.empty_like(q_in)
     s_out = scale_log[moved].astype(np.float64)
-    if sim.any():  # J = s R: compose directly (keeps the norm of q and every log-scale)
+    refused = 0
+    if covariance == "rotation":  # turn by R, scale by det(J)^(1/3); det <= 0 refused
+        det = np.linalg.det(jm)
+        ok = det > 0
+        refused = int((~ok).sum())
+        q_out[~ok] = q_in[~ok]
+        q_out[ok] = quaternion_multiply(matrix_to_quaternion(r[ok]), q_in[ok])
+        s_out[ok] += np.log(det[ok])[:, None] / 3
+        sim = np.ones_like(sim)  # nothing left for the general path
+    if sim.any() and covariance != "rotation":  # J = s R: compose directly (keeps |q|, scales)
         log_s = np.log(np.linalg.det(jm[sim])) / 3
         q_out[sim] = quaternion_multiply(matrix_to_quaternion(r[sim]), q_in[sim])
         s_out[sim] += log_s[:, None]
     gen = ~sim
+    s_in = s_out.copy()
     if gen.any():  # factor J R S by a relatively accurate SVD: no Sigma', no clamping
         factor = jm[gen] @ scale_rotation_to_factor(s_out[gen], q_in[gen])
         u, sigma, _ = svd3(factor)
@@ -221,6 +266,8 @@ def deform_gaussians(scale_log: np.ndarray, rotation: np.ndarray, sh_rest: np.nd
         # a singular J can zero an axis; keep it finite relative to the splat's largest axis
         sigma = np.maximum(sigma, sigma.max(axis=1, keepdims=True) * 1e-30)
         s_out[gen] = np.log(sigma)
+        if covariance == "limited":
+            s_out[gen] = limit_anisotropy(s_in[gen], s_out[gen])
         q_out[gen] = matrix_to_quaternion(u) * q_norm[gen][:, None]
     new_scale[moved] = s_out.astype(scale_log.dtype)
     new_rot[moved] = q_out.astype(rotation.dtype)
@@ -228,4 +275,4 @@ def deform_gaussians(scale_log: np.ndarray, rotation: np.ndarray, sh_rest: np.nd
         turned = moved[~(r == np.eye(3)).all(axis=(1, 2))]
         if turned.size:
             new_sh[turned] = rotate_sh_rest(new_sh[turned], rot_j[turned])
-    return DeformedGaussians(new_scale, new_rot, new_sh, rot_j, similar)
+    return DeformedGaussians(new_scale, new_rot, new_sh, rot_j, similar, refused)

@@ -19,15 +19,19 @@ from splatdeform.model import PointModel
 
 
 def _deform_gaussians(model: PointModel, out: PointModel, idx: np.ndarray,
-                      jac: np.ndarray) -> None:
-    """Sigma' = J Sigma J^T for 3DGS splats ``idx`` (similarities composed directly, else J R S
-    re-factored by a relatively accurate SVD) and SH bands 1..3 rotated by the polar R of J.
-    Splats whose J is exactly I are left bit-identical (see :mod:`splatdeform.deform.gaussians`)."""
+                      jac: np.ndarray, covariance: str, stats: dict | None) -> None:
+    """Covariances of 3DGS splats ``idx`` by the ``covariance`` mode (``jacobian``: J Sigma J^T,
+    similarities composed directly, else J R S re-factored by a relatively accurate SVD) and SH
+    bands 1..3 rotated by the polar R of J. Splats whose J is exactly I are left bit-identical
+    (see :mod:`splatdeform.deform.gaussians`). ``stats["refused_splats"]`` counts splats whose
+    covariance ``rotation`` refused (det J <= 0)."""
     from splatdeform.deform.gaussians import deform_gaussians
 
     g = model.gaussians
     sh_rest = None if g.sh_rest is None else g.sh_rest[idx]
-    new = deform_gaussians(g.scale_log[idx], g.rotation[idx], sh_rest, jac)
+    new = deform_gaussians(g.scale_log[idx], g.rotation[idx], sh_rest, jac, covariance)
+    if stats is not None:
+        stats["refused_splats"] = stats.get("refused_splats", 0) + new.refused
     out.gaussians.scale_log[idx] = new.scale_log
     out.gaussians.rotation[idx] = new.rotation
     if new.sh_rest is not None:
@@ -35,7 +39,8 @@ def _deform_gaussians(model: PointModel, out: PointModel, idx: np.ndarray,
 
 
 def _transform_attributes(model: PointModel, out: PointModel, idx: np.ndarray,
-                          jac: np.ndarray) -> None:
+                          jac: np.ndarray, covariance: str = "jacobian",
+                          stats: dict | None = None) -> None:
     if model.normals is not None:
         out.normals[idx] = ap.transform_normals(jac, model.normals[idx])
     if model.axes is not None:
@@ -44,7 +49,7 @@ def _transform_attributes(model: PointModel, out: PointModel, idx: np.ndarray,
         axes = ap.transform_axes(jac, ap.radius_to_axes(model.normals[idx], model.radius[idx]))
         out.radius[idx] = ap.axes_to_radius(axes)
     if model.gaussians is not None:
-        _deform_gaussians(model, out, idx, jac)
+        _deform_gaussians(model, out, idx, jac, covariance, stats)
 
 
 def handle_matrices(deformation: Deformation, moving_matrix
@@ -69,26 +74,30 @@ def handle_matrices(deformation: Deformation, moving_matrix
 
 
 def apply(deformation: Deformation, model: PointModel, delta_c: np.ndarray, *,
-          moving_matrix=None) -> PointModel:
+          moving_matrix=None, covariance: str = "jacobian", stats: dict | None = None
+          ) -> PointModel:
     """The deformed copy of ``model`` for control displacements delta_c (k, 3).
 
     Positions, normals (cof(J) n), tangent axes (J u), radius-only surfels (area-preserving
     radius) and 3DGS covariances follow. moving_matrix: the handles' 4x4 affine maps (one
     matrix for a single handle, or one per handle), used verbatim for handle points (else they
-    move by their coordinates, m . delta_c).
+    move by their coordinates, m . delta_c). covariance: how 3DGS covariances deform
+    (:data:`splatdeform.deform.gaussians.COVARIANCE_MODES`); ``stats``, when given, receives
+    ``refused_splats`` (splats whose covariance the ``rotation`` mode kept, det J <= 0).
     """
     if model.n_points != deformation.n_points:
         raise InputError(f"model: expected {deformation.n_points} points, got "
                          f"{model.n_points}")
     delta = np.asarray(delta_c, dtype=np.float64)
     with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
-        out = _apply(deformation, model, delta, moving_matrix)
+        out = _apply(deformation, model, delta, moving_matrix, covariance, stats)
     check_finite(model, out)
     return out
 
 
 def _apply(deformation: Deformation, model: PointModel, delta: np.ndarray,
-           moving_matrix: np.ndarray | None) -> PointModel:
+           moving_matrix: np.ndarray | None, covariance: str, stats: dict | None
+           ) -> PointModel:
     out = model.copy()
     free = deformation.free_idx
     values = deformation.basis.values.astype(np.float64, copy=False)
@@ -103,10 +112,10 @@ def _apply(deformation: Deformation, model: PointModel, delta: np.ndarray,
         if deformation.basis.gradients is None:
             raise InputError("deformation: basis has no gradients; normals/axes need them")
         grads = deformation.basis.gradients.astype(np.float64, copy=False)
-        _transform_attributes(model, out, free, ap.jacobians(grads, delta))
+        _transform_attributes(model, out, free, ap.jacobians(grads, delta), covariance, stats)
         _transform_attributes(model, out, mov,
                               ap.jacobians(np.ascontiguousarray(deformation.moving_gradients),
-                                           delta))
+                                           delta), covariance, stats)
     return out
 
 

@@ -87,8 +87,14 @@ class FitCfg(_Strict):
     on_not_converged: Literal["warn", "error"] = "warn"
 
 
+class GaussiansCfg(_Strict):
+    """``gaussians:``: how 3D Gaussian splats' covariances deform (README "covariance modes")."""
+
+    covariance: Literal["jacobian", "rotation", "limited"] = "limited"  # DEFAULT_COVARIANCE
+
+
 class RenderCfg(_Strict):
-    output: str
+    output: str | None = None  # None: only ``select -o`` / ``deform --render`` name the image
     size: Annotated[list[Annotated[int, Field(ge=MIN_IMAGE, le=MAX_IMAGE)]],
                     Field(min_length=2, max_length=2)] = [1200, 600]
     azimuth: float = 30.0
@@ -101,7 +107,8 @@ class RenderCfg(_Strict):
 
     @model_validator(mode="after")
     def _output_kind(self) -> RenderCfg:
-        check_render_output(self.output, self.frames)
+        if self.output is not None:
+            check_render_output(self.output, self.frames)
         return self
 
 
@@ -128,6 +135,7 @@ class EditConfig(_Strict):
     backend: Literal[BACKENDS] = "auto"  # basis.BACKENDS, the one list of names
     device: str | None = None
     render: RenderCfg | None = None
+    gaussians: GaussiansCfg = GaussiansCfg()
     memory_budget: str | int | None = None  # e.g. 2GB; deform streams above it (stream/)
 
     @model_validator(mode="after")

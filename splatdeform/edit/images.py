@@ -59,7 +59,8 @@ def render_result(result: EditResult, cfg: EditConfig, out: str | Path, *,
     from splatdeform.render import render_deformation_comparison, render_frames
 
     frames = render_frames_count(cfg, frames)
-    opts = cfg.render or RenderCfg(output=str(out), frames=frames)
+    opts = cfg.render or RenderCfg(frames=frames)
+    covariance = cfg.gaussians.covariance
     target, _ = render_target(out, frames)
     values, gradients = full_basis(result.deformation)
     t0 = time.perf_counter()
@@ -72,9 +73,9 @@ def render_result(result: EditResult, cfg: EditConfig, out: str | Path, *,
     view.update(azimuth=opts.azimuth, elevation=opts.elevation, fov=opts.fov)
     if frames >= 2:
         render_frames(result.model, values, gradients, result.delta_c, frames, target,
-                      size=size, **view)
+                      size=size, covariance=covariance, **view)
     else:
         render_deformation_comparison(result.model, values, gradients, result.delta_c, target,
-                                      size=size, **view)
+                                      size=size, covariance=covariance, **view)
     result.timings["render"] = time.perf_counter() - t0
     return target

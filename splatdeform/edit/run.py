@@ -145,7 +145,9 @@ def run_edit(cfg: EditConfig, base_dir: str | Path = ".", *, output: str | Path 
         log(format_counts(counts_of_deformation(deformation, moving_label(cfg))))
     delta_c, matrix = plain.control_displacement(cfg, model, deformation)
     t0 = time.perf_counter()
-    deformed = df.apply(deformation, model, delta_c, moving_matrix=matrix)  # checks finiteness
+    applied: dict = {}
+    deformed = df.apply(deformation, model, delta_c, moving_matrix=matrix,  # checks finiteness
+                        covariance=cfg.gaussians.covariance, stats=applied)
     timings["apply"] = time.perf_counter() - t0
     err, err_rms = df.constraint_errors(deformation, delta_c,
                                         partial(compute_basis, gradients=False,
@@ -164,6 +166,7 @@ def run_edit(cfg: EditConfig, base_dir: str | Path = ".", *, output: str | Path 
         "constraint_error": err,
         "constraint_error_rms": err_rms,
         "constraint_error_rel": err / max(model.diagonal(), 1e-300),
+        "refused_splats": int(applied.get("refused_splats", 0)),
     }
     result = EditResult(model, deformed, deformation, delta_c, matrix, None, stats, timings)
     if save_output:
@@ -185,6 +188,9 @@ def format_report(result: EditResult) -> str:
         f"{s['constraint_error_rms']:.3g} model units ({s['constraint_error_rel']:.2e} of the "
         "diagonal)",
     ]
+    if s.get("refused_splats"):
+        lines.append(f"gaussians.covariance rotation: {s['refused_splats']:,} splats folded "
+                     "(det J <= 0) kept their covariance")
     for stage in ("load", "rings", "fit", "basis", "apply", "save", "render"):
         if stage in result.timings:
             lines.append(f"{stage:<7}{result.timings[stage]:9.3f} s")

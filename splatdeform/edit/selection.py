@@ -113,3 +113,32 @@ def preview_model(model: PointModel, sel: Selection) -> PointModel:
     """A shallow copy of ``model`` coloured by region (stored colours win over 3DGS colours in
     the renderer)."""
     return replace(model, colors=region_colors(sel))
+
+
+CURVE_BEFORE_COLOR = (200, 20, 20)
+CURVE_AFTER_COLOR = (20, 160, 40)
+CONTROL_POINT_COLOR = (20, 20, 20)
+
+
+def curve_overlays(cfg: EditConfig, model: PointModel, base_dir: str | Path
+                   ) -> tuple[list, str]:
+    """What ``select -o`` draws over a curve edit's preview (the capture band is the coloured
+    moving region): the curve snapped to the model (red), the curve after the edit (green: the
+    same knots with each control point moved by moved_to - control_points) and the snapped
+    control points (black dots); and the legend to append. ([], "") without a curve."""
+    if cfg.curve is None:
+        return [], ""
+    from splatdeform.deform.curve import SAMPLES_PER_SPAN, snapped_curve
+    from splatdeform.edit.metaphors.curve import points
+    from splatdeform.render.overlay import Overlay
+
+    given, moved, _ = points(cfg.curve, cfg.regions.units, model)
+    curve = snapped_curve(model, given, degree=cfg.curve.degree,
+                          parametrization=cfg.curve.parametrization)
+    t = np.linspace(0, 1, SAMPLES_PER_SPAN * (given.shape[0] - 1) + 1)
+    before = curve.points(t)
+    after = before + curve.weights(t) @ (moved - given)
+    overlays = [Overlay(before, "line", CURVE_BEFORE_COLOR, 3),
+                Overlay(after, "line", CURVE_AFTER_COLOR, 3),
+                Overlay(curve.control_points, "markers", CONTROL_POINT_COLOR, 4)]
+    return overlays, "; curve red, moved green"

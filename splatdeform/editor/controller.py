@@ -516,7 +516,8 @@ class EditorController:
             data["device"] = s.device
         if s.render is not None:
             render = s.render.model_dump()
-            render["output"] = _relative((self.base_dir / s.render.output).resolve(), cdir)
+            if s.render.output is not None:
+                render["output"] = _relative((self.base_dir / s.render.output).resolve(), cdir)
             data["render"] = render
         return data
 

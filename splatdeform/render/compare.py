@@ -11,6 +11,7 @@ import numpy as np
 from splatdeform.errors import InputError
 from splatdeform.model import PointModel
 from splatdeform.render.camera import Camera, default_up, frame_points, write_camera
+from splatdeform.render.overlay import Overlay, draw_overlays
 from splatdeform.render.renderer import Renderer, deformation_session, save_png
 
 LABEL_HEIGHT = 18
@@ -53,32 +54,42 @@ def render_comparison(
     up: str | None = None,
     roll: float = 0.0,
     camera: Camera | None = None,
+    overlays: Sequence[Overlay] = (),
 ) -> np.ndarray:
-    """Render two CPU-side models with one camera (framing both) side by side, or ``before``
-    alone when ``after`` is None. ``size`` is one panel (W, H). ``up`` (None: the models'
-    convention), ``roll``: see :func:`splatdeform.render.camera.orbit`; ``camera`` replaces
-    the framing. Writes a PNG to ``out_path`` (atomically) and its camera to
-    ``OUT.camera.json`` when given; returns the composed (H', W', 3) uint8 image."""
+    """Render two CPU-side models side by side, or ``before`` alone when ``after`` is None.
+    ``size`` is one panel (W, H). One camera frames both when they are one scene before and
+    after an edit (:func:`same_scene`: the same number of points); two different models each
+    get their own framing. ``up`` (None: the models' convention), ``roll``: see
+    :func:`splatdeform.render.camera.orbit`; ``camera`` replaces the framing (both panels).
+    ``overlays`` (model coordinates, framed too) are drawn over every panel. Writes a PNG to
+    ``out_path`` (atomically) and the first panel's camera to ``OUT.camera.json`` when given;
+    returns the composed (H', W', 3) uint8 image."""
     models = [before] if after is None else [before, after]
     renderer = Renderer(size)
     try:
-        if camera is None:
-            camera = frame_points(
-                [m.positions for m in models],
-                azimuth=azimuth,
-                elevation=elevation,
-                fov=fov,
-                aspect=renderer.size[0] / renderer.size[1],
-                up=up or default_up(models),
-                roll=roll,
-            )
+        extra = [np.asarray(o.points, np.float64) for o in overlays]
+
+        def framed(group: list[PointModel]) -> Camera:
+            return frame_points([m.positions for m in group] + extra, azimuth=azimuth,
+                                elevation=elevation, fov=fov,
+                                aspect=renderer.size[0] / renderer.size[1],
+                                up=up or default_up(models), roll=roll)
+
+        if camera is not None:
+            cameras = [camera] * len(models)
+        elif after is None or same_scene(before, after):
+            cameras = [framed(models)] * len(models)
+        else:
+            cameras = [framed([m]) for m in models]
+        camera = cameras[0]
         images = []
-        for model in models:
+        for model, cam in zip(models, cameras, strict=True):
             gpu = renderer.upload(model)
             try:
-                images.append(renderer.draw(gpu, camera))
+                image = renderer.draw(gpu, cam)
             finally:
                 gpu.release()
+            images.append(draw_overlays(image, cam, list(overlays)) if overlays else image)
     finally:
         renderer.release()
     image = side_by_side(images, list(labels)[: len(images)])
@@ -86,6 +97,12 @@ def render_comparison(
         save_png(image, out_path)
         write_camera(out_path, camera, renderer.size)
     return image
+
+
+def same_scene(before: PointModel, after: PointModel) -> bool:
+    """True when two models are one scene before and after an edit (a deformation keeps every
+    point, so the counts match): one camera then shows the change. Different models differ."""
+    return before.n_points == after.n_points
 
 
 def render_deformation_comparison(
@@ -103,6 +120,7 @@ def render_deformation_comparison(
     up: str | None = None,
     roll: float = 0.0,
     camera: Camera | None = None,
+    covariance: str = "jacobian",
 ) -> np.ndarray:
     """Before (delta C = 0) and after (``delta_c`` (k, 3)) from ONE upload of the basis
     ``values`` (N, k) / ``gradients`` (N, k, 3): the shader deforms, the CPU only frames
@@ -110,7 +128,7 @@ def render_deformation_comparison(
     ``out_path`` and its ``OUT.camera.json`` when given; returns the composed image."""
     with deformation_session(model, values, gradients, delta_c, size=size, azimuth=azimuth,
                              elevation=elevation, fov=fov, camera=camera, up=up,
-                             roll=roll) as (renderer, gpu, camera):
+                             roll=roll, covariance=covariance) as (renderer, gpu, camera):
         images = [renderer.draw(gpu, camera, None), renderer.draw(gpu, camera, delta_c)]
         panel = renderer.size
     image = side_by_side(images, list(labels))

@@ -34,6 +34,7 @@ def render_frames(
     up: str | None = None,
     roll: float = 0.0,
     camera: Camera | None = None,
+    covariance: str = "jacobian",
 ) -> list[Path]:
     """Render ``n_frames`` (>= 2) frames with delta C = t * ``delta_c`` (k, 3), t = i / (n - 1),
     one camera framing the whole motion. ``out_path``: ``*.gif`` (one animated GIF, looping,
@@ -48,7 +49,7 @@ def render_frames(
     d = np.asarray(delta_c, dtype=np.float64)
     with deformation_session(model, values, gradients, delta_c, size=size, azimuth=azimuth,
                              elevation=elevation, fov=fov, camera=camera, up=up,
-                             roll=roll) as (renderer, gpu, camera):
+                             roll=roll, covariance=covariance) as (renderer, gpu, camera):
         frames = [
             renderer.draw(gpu, camera, d * (i / (n_frames - 1))) for i in range(int(n_frames))
         ]

@@ -28,13 +28,17 @@ SH_REST_PER_DEGREE = {1: 3, 2: 8, 3: 15}
 class GaussianData:
     """cov: (N, 6) float32 (xx, xy, xz, yy, yz, zz). color: (N, 4) float32 (rgb, opacity).
     sh_rest: (N, 3 r) float32 channel-major f_rest, or None. degree: SH degree used (0..3).
-    rest: r, f_rest coefficients per channel (the storage stride; >= the degree's count)."""
+    rest: r, f_rest coefficients per channel (the storage stride; >= the degree's count).
+    shape: (N, 2) float32 per splat: log(largest / smallest axis) and the mean log-scale, from
+    the float64 log-scales (the ``limited`` covariance mode needs both; a float32 eigen-solve of
+    a thin splat's Sigma loses its smallest axis)."""
 
     cov: np.ndarray
     color: np.ndarray
     sh_rest: np.ndarray | None
     degree: int
     rest: int
+    shape: np.ndarray
 
 
 def covariances(scale_log: np.ndarray, rotation: np.ndarray) -> np.ndarray:
@@ -43,6 +47,13 @@ def covariances(scale_log: np.ndarray, rotation: np.ndarray) -> np.ndarray:
     rot = quaternion_matrices(rotation)
     s2 = np.exp(2.0 * np.asarray(scale_log, dtype=np.float64))
     return np.einsum("nij,nj,nkj->nik", rot, s2, rot)
+
+
+def log_scale_shape(scale_log: np.ndarray) -> np.ndarray:
+    """(N, 2) float32: the spread (max - min) and the mean of (N, 3) log-scales."""
+    s = np.asarray(scale_log, dtype=np.float64)
+    return np.ascontiguousarray(np.stack([np.ptp(s, axis=1), s.mean(axis=1)], axis=1),
+                                dtype=np.float32)
 
 
 def sh_layout(n_rest: int) -> tuple[int, int]:
@@ -101,4 +112,5 @@ def gaussian_data(model: PointModel) -> GaussianData:
         sh_rest=sh_rest,
         degree=degree,
         rest=rest if degree else 0,
+        shape=log_scale_shape(g.scale_log),
     )

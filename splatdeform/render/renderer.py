@@ -42,6 +42,7 @@ from typing import Any
 
 import numpy as np
 
+from splatdeform.deform.gaussians import COVARIANCE_MODES
 from splatdeform.errors import DeviceError, InputError
 from splatdeform.model import PointModel
 from splatdeform.render.camera import Camera, default_up, frame_points, gl_bytes
@@ -58,7 +59,7 @@ FEEDBACK_VARYINGS = ("v_position", "v_normal", "v_axis_u", "v_axis_v")
 SURFEL_DEPTH_OFFSET = 1.0  # depth pre-pass pushed back by this many splat radii
 SURFEL_SCALE = 1.25  # surface splatting enlarges the discs so that neighbours overlap
 
-_programs: dict[tuple[str, bool, int, int], Any] = {}
+_programs: dict[tuple[str, bool, int, int, str], Any] = {}
 
 
 def _shader(name: str) -> str:
@@ -66,9 +67,11 @@ def _shader(name: str) -> str:
 
 
 def _source(name: str, *, deform: bool | None = None, shading: bool = False, k: int = 0,
-            storage: bool = False, sh: tuple[int, int] | None = None) -> str:
+            storage: bool = False, sh: tuple[int, int] | None = None,
+            covariance: str | None = None) -> str:
     """Shader source with the host header. ``k > MAX_K`` selects the basis storage buffer and
-    ``storage`` (SH bands) GLSL 4.30; vertex stages (``deform`` not None) get deform.glsl."""
+    ``storage`` (SH bands) GLSL 4.30; vertex stages (``deform`` not None) get deform.glsl;
+    ``covariance`` (a ``gaussians.covariance`` mode) defines COVARIANCE and adds covariance.glsl."""
     storage = storage or (bool(deform) and k > MAX_K)
     parts = ["#version 430 core\n" if storage else "#version 330 core\n"]
     if deform is not None:
@@ -79,13 +82,18 @@ def _source(name: str, *, deform: bool | None = None, shading: bool = False, k: 
         parts.append(f"#define SH_DEGREE {int(sh[0])}\n#define SH_REST {int(sh[1])}\n")
     if shading:
         parts.append(_shader("shading.glsl"))
+    if covariance is not None:
+        parts.append(f"#define COVARIANCE {COVARIANCE_MODES.index(covariance)}\n")
     if deform is not None:
         parts.append(_shader("deform.glsl"))
+    if covariance is not None:
+        parts.append(_shader("covariance.glsl"))
     parts.append(_shader(name))
     return "".join(parts)
 
 
-def program(name: str, k: int = 0, sh: tuple[int, int] = (0, 0)) -> Any:
+def program(name: str, k: int = 0, sh: tuple[int, int] = (0, 0),
+            covariance: str = "jacobian") -> Any:
     """A compiled program by name, cached. Names: ``<kind>_<mode>`` with mode ``plain`` or
     ``deform`` and kind ``splat`` (opaque discs), ``surfeldepth`` / ``surfelaccum`` (surface
     splatting passes 1-2), ``mesh``, ``gauss`` (3DGS), ``feedback`` (vertex stage only, the
@@ -94,7 +102,8 @@ def program(name: str, k: int = 0, sh: tuple[int, int] = (0, 0)) -> Any:
 
     k: basis columns of a ``*_deform`` program; k > 4 compiles the storage-buffer variant
     (cached per k), k <= 4 the attribute variant. sh: (degree, coefficients per channel of
-    f_rest) of a ``gauss_*`` program; degree > 0 reads them from a storage buffer."""
+    f_rest) of a ``gauss_*`` program; degree > 0 reads them from a storage buffer.
+    covariance: the ``gaussians.covariance`` mode of a ``gauss_deform`` program."""
     ctx = get_context()
     if name == "resolve":
         kind, deform = "resolve", False
@@ -103,7 +112,8 @@ def program(name: str, k: int = 0, sh: tuple[int, int] = (0, 0)) -> Any:
         deform = {"plain": False, "deform": True}[mode]
     k = int(k) if deform and int(k) > MAX_K else 0
     sh = (int(sh[0]), int(sh[1])) if kind == "gauss" and int(sh[0]) > 0 else (0, 0)
-    key = (kind, deform, k, sh[0] * 1000 + sh[1])
+    covariance = covariance if kind == "gauss" and deform else "jacobian"
+    key = (kind, deform, k, sh[0] * 1000 + sh[1], covariance)
     if key not in _programs:
         if (k or sh[0]) and ctx.version_code < STORAGE_GL_VERSION:
             what = f"k = {k} control DOFs" if k else f"SH degree {sh[0]} colours"
@@ -118,7 +128,8 @@ def program(name: str, k: int = 0, sh: tuple[int, int] = (0, 0)) -> Any:
             return prog
         if kind == "gauss":
             prog = ctx.program(
-                vertex_shader=_source("gauss.vert", deform=deform, k=k, storage=sh[0] > 0, sh=sh),
+                vertex_shader=_source("gauss.vert", deform=deform, k=k, storage=sh[0] > 0, sh=sh,
+                                      covariance=covariance),
                 geometry_shader=_source("gauss.geom"),
                 fragment_shader=_source("gauss.frag"),
             )
@@ -310,6 +321,7 @@ class Renderer:
         gradients: np.ndarray | None = None,
         *,
         fill_holes: bool = True,
+        covariance: str = "jacobian",
     ) -> GpuModel:
         """Send ``model`` and (optionally) its basis to the GPU once.
 
@@ -317,10 +329,14 @@ class Renderer:
         vertex attributes, 4 < k <= MAX_STORAGE_K into a shader storage buffer (GL 4.3+).
         fill_holes: enlarge stored surfels smaller than the sample spacing
         (:func:`splatdeform.render.splats.splat_geometry`); False renders stored axes as they are.
-        Models with 3D Gaussian splat fields render as Gaussians.
+        Models with 3D Gaussian splat fields render as Gaussians, deformed covariances by the
+        ``covariance`` mode (:data:`splatdeform.deform.gaussians.COVARIANCE_MODES`).
         """
         if (values is None) != (gradients is None):
             raise InputError("values, gradients: expected both or neither")
+        if covariance not in COVARIANCE_MODES:
+            raise InputError(f"gaussians.covariance: expected one of "
+                             f"{', '.join(COVARIANCE_MODES)}, got {covariance!r}")
         ctx = self.ctx
         n = model.n_points
         if n == 0:
@@ -335,11 +351,11 @@ class Renderer:
             if model.gaussians is not None:
                 kind = "gaussian"
                 gd = gaussian_data(model)
-                attrs = np.concatenate([positions, gd.cov, gd.color], axis=1)
+                attrs = np.concatenate([positions, gd.cov, gd.color, gd.shape], axis=1)
                 attrs = np.ascontiguousarray(attrs, dtype=np.float32)
                 buffers.append(ctx.buffer(attrs.tobytes()))
-                content = [(buffers[0], "3f 3f 3f 4f", "in_position", "in_cov_a", "in_cov_b",
-                            "in_color")]
+                content = [(buffers[0], "3f 3f 3f 4f 2f", "in_position", "in_cov_a",
+                            "in_cov_b", "in_color", "in_shape")]
                 order = ctx.buffer(reserve=n * 4)
                 buffers.append(order)
                 extra.update(order=order, positions=positions, sh=(gd.degree, gd.rest))
@@ -398,7 +414,7 @@ class Renderer:
                 full = content + ([basis] if mode == "deform" and basis is not None else [])
                 for prefix in prefixes:
                     vaos[f"{prefix}_{mode}"] = ctx.vertex_array(
-                        program(f"{prefix}_{mode}", k, sh),
+                        program(f"{prefix}_{mode}", k, sh, covariance),
                         full,
                         index_buffer=index if prefix in ("mesh", "gauss") else None,
                         index_element_size=4,
@@ -660,15 +676,17 @@ def deformation_session(
     camera: Camera | None = None,
     up: str | None = None,
     roll: float = 0.0,
+    covariance: str = "jacobian",
 ) -> Iterator[tuple[Renderer, GpuModel, Camera]]:
     """Upload ``model`` with its basis (values (N, k), gradients (N, k, 3), or None) once,
     frame a camera on the undeformed and the ``delta_c`` (k, 3)-deformed positions (unless
     ``camera`` is given; ``up`` None: the model's convention, see
     :func:`~splatdeform.render.camera.default_up`), and release the GL objects on exit.
+    covariance: how Gaussians' covariances deform (``gaussians.covariance``).
     Yields (renderer, gpu, camera)."""
     renderer = Renderer(size)
     try:
-        gpu = renderer.upload(model, values, gradients)
+        gpu = renderer.upload(model, values, gradients, covariance=covariance)
     except BaseException:
         renderer.release()
         raise
@@ -702,6 +720,7 @@ def render_image(
     fov: float = 35.0,
     up: str | None = None,
     roll: float = 0.0,
+    covariance: str = "jacobian",
 ) -> np.ndarray:
     """Render ``model`` (deformed on the GPU by ``delta_c`` (k, 3) when the basis ``values``
     (N, k) / ``gradients`` (N, k, 3) are given) to an (H, W, 3) uint8 image.
@@ -709,8 +728,9 @@ def render_image(
     camera: None frames the union of the bounding boxes before and after the deformation
     from ``azimuth`` / ``elevation`` / ``fov`` (degrees) about the ``up`` axis (None: the
     model's convention, -y for 3DGS scenes, else +y), rolled by ``roll`` degrees.
+    covariance: how Gaussians' covariances deform (``gaussians.covariance``).
     """
     with deformation_session(model, values, gradients, delta_c, size=size, azimuth=azimuth,
                              elevation=elevation, fov=fov, camera=camera, up=up,
-                             roll=roll) as (renderer, gpu, cam):
+                             roll=roll, covariance=covariance) as (renderer, gpu, cam):
         return renderer.draw(gpu, cam, delta_c)

@@ -42,6 +42,7 @@ class Shared:
     delta_c: np.ndarray
     backend: str
     device: str | None
+    covariance: str = "jacobian"  # gaussians.covariance
 
 
 def deform_chunk(src: ChunkFile, start: int, stop: int, labels: np.ndarray,
@@ -71,7 +72,8 @@ def deform_chunk(src: ChunkFile, start: int, stop: int, labels: np.ndarray,
         constraint_rhs=np.empty((0, 4)), control_points=frame.control_points,
         fit=shared.fit, basis=basis,
         groups=[df.Group("regions.handle", (0, 4), np.arange(mov.size), frame)])
-    out = df.apply(deformation, model, shared.delta_c, moving_matrix=shared.matrix)
+    out = df.apply(deformation, model, shared.delta_c, moving_matrix=shared.matrix,
+                   covariance=shared.covariance)
     if not np.isfinite(out.positions).all():
         raise ProcessingError("the deformation produced non-finite positions; check the "
                               "regions and the transform")
@@ -216,7 +218,7 @@ def stream_deform(src: ChunkFile, cfg, base_dir: Path, out: Path, *, chunk: int,
     if check_fit is not None:
         check_fit(plan.border.fit)  # warns, or raises before any output
     shared = Shared(plan.border.fit, plan.frame, plan.matrix, plan.delta_c, cfg.backend,
-                    cfg.device)
+                    cfg.device, cfg.gaussians.covariance)
     t0 = time.perf_counter()
     if client is None:
         second_pass_local(src, plan, shared, out, chunk, quiet)

@@ -1,0 +1,174 @@
+"""Needles of deformed 3D Gaussian splats per ``gaussians.covariance`` mode (issue 22).
+
+    python benchmarks/bench_needles.py [--scenes guitar,tile,bar] [--images docs/images]
+
+A needle is a splat whose anisotropy (largest / smallest axis) grew by more than 4x. Each scene
+(the shared guitar and SH-3 tile, and a generated bar of round splats) gets one fit (fixed: the
+first 40 % along its longest axis; handle: the last 40 %) and three strong edits of the handle:
+bends of 45 and 90 degrees about an axis across it, and a drag of 30 % of the scene's size
+across the longest axis. Every mode deforms the same splats with the same Jacobians; the table
+counts needles (all, and among splats that were round, anisotropy < 2, in the input), splats
+``rotation`` refused (det J <= 0, folded) and the largest anisotropy growth.
+
+``--images DIR`` also writes, for the guitar's 45-degree bend with the drag, the before/after of
+every mode side by side (``covariance_modes.png``) and the ``jacobian`` needles in red
+(``needles_jacobian.png``), small PNGs for the README.
+"""
+
+from __future__ import annotations
+
+import argparse
+import copy
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+if str(ROOT) not in sys.path:
+    sys.path.insert(0, str(ROOT))
+
+from data_tools.synth import bumpy_bar  # noqa: E402
+from splatdeform import deform as df  # noqa: E402
+from splatdeform.deform.gaussians import COVARIANCE_MODES  # noqa: E402
+from splatdeform.edit import plain  # noqa: E402
+from splatdeform.edit.config import parse_edit  # noqa: E402
+from splatdeform.edit.run import precompute  # noqa: E402
+from splatdeform.io import load  # noqa: E402
+from splatdeform.model import Gaussians, PointModel  # noqa: E402
+
+SHARED = ROOT.parent / "shared" / "data" / "splats"
+GROWTH = 4.0
+ROUND = 2.0
+
+
+def round_bar(n: int = 20000, seed: int = 3) -> PointModel:
+    """The bumpy bar with round splats (scale jitter 5 %): any needle is the edit's doing."""
+    rng = np.random.default_rng(seed)
+    bar = bumpy_bar(n, seed=seed)
+    q = rng.normal(size=(n, 4))
+    g = Gaussians(scale_log=(np.log(0.02) + rng.uniform(-0.05, 0.05, (n, 3))).astype(np.float32),
+                  rotation=(q / np.linalg.norm(q, axis=1, keepdims=True)).astype(np.float32),
+                  opacity=np.full(n, 3.0, np.float32),
+                  sh_dc=rng.normal(0, 0.3, (n, 3)).astype(np.float32))
+    return PointModel(positions=bar.positions, gaussians=g, kind="gaussians")
+
+
+def scene(name: str) -> PointModel:
+    if name == "bar":
+        return round_bar()
+    return load(SHARED / {"guitar": "guitar_3dgs_sh0.ply", "tile": "tile_3dgs_sh3.ply"}[name])
+
+
+def edit_config(model: PointModel, degrees: float, drag: float) -> dict:
+    """Fixed / handle by 40 % slabs along the longest axis a; the handle turns by ``degrees``
+    about the third axis c (pivot at the handle's inner face) and moves ``drag`` x size along
+    the second axis b (relative units)."""
+    lo, hi = model.bbox()
+    a, b, c = (int(i) for i in np.argsort(hi - lo)[::-1])
+    fmin, fmax, hmin, hmax = np.zeros(3), np.ones(3), np.zeros(3), np.ones(3)
+    fmax[a], hmin[a] = 0.4, 0.6
+    pivot, axis, move = np.full(3, 0.5), np.zeros(3), np.zeros(3)
+    pivot[a], axis[c], move[b] = 0.6, 1.0, drag
+    return {
+        "input": "x.ply", "output": "y.ply",
+        "regions": {"units": "relative", "fixed": [{"box": {"min": fmin.tolist(),
+                                                            "max": fmax.tolist()}}],
+                    "handle": [{"box": {"min": hmin.tolist(), "max": hmax.tolist()}}]},
+        "handle": {"transform": {"pivot": pivot.tolist(),
+                                 "rotate": {"axis": axis.tolist(), "degrees": degrees},
+                                 "translate": move.tolist()}},
+        "boundary": {"continuity": 1, "neighbors": 10},
+        "fit": {"tolerance": 2e-3, "max_centers": 1500},
+        "backend": "auto",
+    }
+
+
+EDITS = {"bend 45": (45.0, 0.0), "bend 90": (90.0, 0.0), "drag 30%": (0.0, 0.3),
+         "bend 45 + drag 30%": (45.0, 0.3)}
+
+
+def anisotropy(scale_log: np.ndarray) -> np.ndarray:
+    return np.exp(np.ptp(np.asarray(scale_log, np.float64), axis=1))
+
+
+def measure(name: str, images: Path | None) -> list[dict]:
+    model = scene(name)
+    cfgs = {e: parse_edit(edit_config(model, *v), "bench") for e, v in EDITS.items()}
+    t0 = time.perf_counter()
+    deformation = precompute(next(iter(cfgs.values())), model, ROOT)
+    fit_s = time.perf_counter() - t0
+    ratio_in = anisotropy(model.gaussians.scale_log)
+    was_round = ratio_in < ROUND
+    rows = []
+    for edit, cfg in cfgs.items():
+        delta_c, matrix = plain.control_displacement(cfg, model, deformation)
+        for mode in COVARIANCE_MODES:
+            stats: dict = {}
+            t0 = time.perf_counter()
+            out = df.apply(deformation, model, delta_c, moving_matrix=matrix, covariance=mode,
+                           stats=stats)
+            growth = anisotropy(out.gaussians.scale_log) / ratio_in
+            needle = growth > GROWTH
+            rows.append({"scene": name, "splats": model.n_points, "edit": edit, "mode": mode,
+                         "needles": int(needle.sum()),
+                         "needles_round": int((needle & was_round).sum()),
+                         "refused": int(stats.get("refused_splats", 0)),
+                         "max_growth": float(growth.max()),
+                         "apply_s": time.perf_counter() - t0, "fit_s": fit_s})
+            if images is not None and name == "guitar" and edit == "bend 45 + drag 30%" \
+                    and mode == "jacobian":
+                write_needles(out, needle, images / "needles_jacobian.png")
+        if images is not None and name == "guitar" and edit == "bend 45 + drag 30%":
+            write_modes(model, deformation, delta_c, images / "covariance_modes.png")
+    return rows
+
+
+def write_needles(deformed: PointModel, needle: np.ndarray, path: Path) -> None:
+    from splatdeform.render import render_comparison, save_png
+
+    shown = copy.copy(deformed)
+    colors = np.full((deformed.n_points, 3), 200, np.uint8)
+    colors[needle] = (220, 30, 30)
+    shown.colors = colors
+    save_png(render_comparison(shown, None, None, size=(360, 300), labels=(
+        f"jacobian: {int(needle.sum()):,} needles (red, anisotropy grew > 4x)",)), path)
+
+
+def write_modes(model: PointModel, deformation, delta_c: np.ndarray, path: Path) -> None:
+    from splatdeform.render.compare import side_by_side
+    from splatdeform.render.renderer import deformation_session, save_png
+
+    values, gradients = df.full_basis(deformation)
+    images, labels = [], []
+    for mode in COVARIANCE_MODES:
+        with deformation_session(model, values, gradients, delta_c, size=(300, 300),
+                                 azimuth=30, elevation=20, fov=35,
+                                 covariance=mode) as (renderer, gpu, camera):
+            if not images:
+                images.append(renderer.draw(gpu, camera, None))
+                labels.append("before")
+            images.append(renderer.draw(gpu, camera, delta_c))
+            labels.append(mode)
+    save_png(side_by_side(images, labels), path)
+
+
+def main(argv: list[str] | None = None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--scenes", default="guitar,tile,bar")
+    ap.add_argument("--images", type=Path, help="write the README images into this folder")
+    args = ap.parse_args(argv)
+    if args.images is not None:
+        args.images.mkdir(parents=True, exist_ok=True)
+    print(f"{'scene':<8}{'splats':>8}  {'edit':<20}{'mode':<10}{'needles':>9}{'of round':>10}"
+          f"{'refused':>9}{'max growth':>12}{'apply s':>9}")
+    for name in args.scenes.split(","):
+        for r in measure(name, args.images):
+            print(f"{r['scene']:<8}{r['splats']:>8,}  {r['edit']:<20}{r['mode']:<10}"
+                  f"{r['needles']:>9,}{r['needles_round']:>10,}{r['refused']:>9,}"
+                  f"{r['max_growth']:>12.3g}{r['apply_s']:>9.2f}", flush=True)
+
+
+if __name__ == "__main__":
+    main()
