@@ -337,6 +337,23 @@ def _stdout_gone() -> int:
     return 141  # 128 + SIGPIPE
 
 
+def _lossy_writes_as_lines() -> None:
+    """A quantised write's note (which properties lose what) is one warning line per write
+    (inside ``warnings.catch_warnings``, which restores the hook)."""
+    from .io.splats import LossyWriteWarning
+
+    warnings.simplefilter("always", LossyWriteWarning)
+    shown = warnings.showwarning
+
+    def show(message, category, *args, **kwargs):
+        if issubclass(category, LossyWriteWarning):
+            _warn(str(message))
+        else:
+            shown(message, category, *args, **kwargs)
+
+    warnings.showwarning = show
+
+
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
     debug = "--debug" in argv
@@ -347,6 +364,7 @@ def main(argv: list[str] | None = None) -> int:
         with warnings.catch_warnings():
             if not debug:  # numpy RuntimeWarnings must not turn one error line into several
                 warnings.simplefilter("ignore", RuntimeWarning)
+            _lossy_writes_as_lines()
             return _run(argv, debug)
     finally:  # callers in the same process (tests, the API) get their handler back
         if previous is not None:

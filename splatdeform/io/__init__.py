@@ -13,7 +13,7 @@ from pathlib import Path
 
 from ..errors import FormatError, InputError
 from ..model import PointModel
-from . import las, open3d_io, ply
+from . import las, open3d_io, playcanvas, ply, splat, spz
 from .atomic import atomic_path, atomic_write, check_output_path
 from .regular import require_regular
 
@@ -21,10 +21,13 @@ from .regular import require_regular
 @dataclass(frozen=True)
 class Format:
     """One file format: ``read(path, drop_nonfinite=) -> PointModel`` and
-    ``write(model, path, text)`` (atomic)."""
+    ``write(model, path, text)`` (atomic); ``stream``: chunked reading for the streaming and
+    Dask paths; ``lossy``: a write quantises (and says once what it loses)."""
 
     read: Callable[..., PointModel]
     write: Callable[[PointModel, Path, bool | None], None]
+    stream: bool = False
+    lossy: bool = False
 
 
 def _write_ply(model: PointModel, path: Path, text: bool | None) -> None:
@@ -42,18 +45,42 @@ def _write_open3d(model: PointModel, path: Path, text: bool | None) -> None:
         open3d_io.write_model(model, tmp)
 
 
+def _streamed_writer(module) -> Callable[[PointModel, Path, bool | None], None]:
+    def write(model: PointModel, path: Path, text: bool | None) -> None:
+        with atomic_write(path) as stream:
+            module.write_model(model, path, stream)
+    return write
+
+
 #: Readers and writers in one table by extension: a new format is one module plus one line.
+#: A double extension (``.compressed.ply``) is matched before the plain one.
 FORMATS: dict[str, Format] = {
-    ".ply": Format(ply.read_model, _write_ply),
+    ".ply": Format(ply.read_model, _write_ply, stream=True),
+    ".compressed.ply": Format(ply.read_model, _streamed_writer(playcanvas), lossy=True),
+    **{ext: Format(splat.read_model, _streamed_writer(splat), lossy=True)
+       for ext in splat.EXTENSIONS},
+    **{ext: Format(spz.read_model, _streamed_writer(spz), lossy=True) for ext in spz.EXTENSIONS},
     **{ext: Format(open3d_io.read_model, _write_open3d) for ext in open3d_io.EXTENSIONS},
-    **{ext: Format(las.read_model, _write_las) for ext in las.EXTENSIONS},
+    **{ext: Format(las.read_model, _write_las, stream=True) for ext in las.EXTENSIONS},
 }
 READERS = {ext: fmt.read for ext, fmt in FORMATS.items()}
 SUPPORTED = tuple(FORMATS)
+#: extensions the streaming / Dask paths read in chunks
+STREAMABLE = tuple(ext for ext, fmt in FORMATS.items() if fmt.stream)
+
+
+def extension_of(path: str | Path) -> str:
+    """The table key of ``path``: its double extension when the table has it, else its
+    suffix (lower case; '' when none)."""
+    name = Path(path).name.lower()
+    for ext in FORMATS:
+        if ext.count(".") > 1 and name.endswith(ext) and len(name) > len(ext):
+            return ext
+    return Path(name).suffix
 
 
 def _extension(path: Path, what: str) -> str:
-    ext = path.suffix.lower()
+    ext = extension_of(path)
     if ext not in READERS:
         raise InputError(f"{path}: unknown {what} extension {ext or '(none)'!r}; expected one of "
                          f"{', '.join(SUPPORTED)}")
@@ -61,7 +88,7 @@ def _extension(path: Path, what: str) -> str:
 
 
 def load(path: str | Path, *, drop_nonfinite: bool = False) -> PointModel:
-    """Load a model file (.ply, .las, .laz, .pcd, .xyz, .xyzn, .pts).
+    """Load a model file (any extension of :data:`FORMATS`).
 
     drop_nonfinite: drop vertices with NaN/Inf coordinates (and the faces using them) instead of
     raising. Raises InputError/FormatError with one line naming the file.
@@ -95,5 +122,5 @@ def save(model: PointModel, path: str | Path, *, text: bool | None = None) -> Pa
     return path
 
 
-__all__ = ["FORMATS", "Format", "load", "save", "SUPPORTED", "atomic_path", "atomic_write",
-           "check_output_path"]
+__all__ = ["FORMATS", "Format", "load", "save", "SUPPORTED", "STREAMABLE", "extension_of",
+           "atomic_path", "atomic_write", "check_output_path"]

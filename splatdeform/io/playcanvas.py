@@ -5,8 +5,9 @@ and, in newer files, colour), a ``vertex`` element of four packed ``uint`` prope
 (``packed_position`` 11/10/11 bits, ``packed_rotation`` 2-bit index of the largest quaternion
 component + three 10-bit others, ``packed_scale`` 11/10/11, ``packed_color`` RGBA 8 bits each) and
 an optional ``sh`` element of ``uchar f_rest_*``. Decoding gives the usual INRIA 3DGS vertex
-properties (x y z f_dc_0..2 opacity scale_0..2 rot_0..3 [f_rest_*], float), so a save writes a
-plain, uncompressed 3DGS PLY (the quantised input is not reproduced).
+properties (x y z f_dc_0..2 opacity scale_0..2 rot_0..3 [f_rest_*], float); a save to ``.ply``
+writes that plain 3DGS PLY, a save to ``.compressed.ply`` re-quantises (:func:`write_model`).
+An 8-bit SH code v decodes to its bin centre ((v + 0.5) / 256 - 0.5) * 8. Axes as PLY space.
 """
 
 from __future__ import annotations
@@ -28,6 +29,9 @@ CHUNK_COLORS = tuple(f"{m}_{c}" for m in ("min", "max") for c in "rgb")
 SPLATS_PER_CHUNK = 256
 # an 8-bit opacity of exactly 0 or 1 has no finite logit: clamp to half a quantisation step
 OPACITY_EPS = 0.5 / 255
+SH_RANGE = 8.0  # SH rest codes cover [-4, 4) in 256 bins
+EXTENSIONS = (".compressed.ply",)
+SCALE_CLAMP = 20.0  # log scales are clamped to +-20 before the chunk ranges are taken
 
 
 def is_compressed(source: PlySource) -> bool:
@@ -112,7 +116,7 @@ def decompress(source: PlySource, path: str | Path) -> PlySource:
                        if p.name.startswith("f_rest_") and p.name[7:].isdigit()),
                       key=lambda name: int(name[7:]))
         for name in rest:
-            fields[name] = (sh.data[name].astype(np.float64) / 256 - 0.5) * 8.0
+            fields[name] = ((sh.data[name].astype(np.float64) + 0.5) / 256 - 0.5) * SH_RANGE
     data = np.empty(n, dtype=[(name, "<f4") for name in fields])
     for name, values in fields.items():
         data[name] = values
@@ -120,3 +124,98 @@ def decompress(source: PlySource, path: str | Path) -> PlySource:
     comments = [*source.comments, "decompressed from a PlayCanvas .compressed.ply by splatdeform"]
     return replace(source, elements=[PlyElementData("vertex", props, data)], comments=comments,
                    text=False, byte_order="<")
+
+
+def _quantise(t: np.ndarray, bits: int) -> np.ndarray:
+    mask = (1 << bits) - 1
+    return np.clip(np.round(t * mask), 0, mask).astype(np.uint32)
+
+
+def _chunk_ranges(values: np.ndarray, chunks: int) -> tuple[np.ndarray, np.ndarray]:
+    """(N,) -> per-chunk (min, max) float32 of consecutive runs of 256 values."""
+    pad = chunks * SPLATS_PER_CHUNK - len(values)
+    grid = np.concatenate([values, np.full(pad, values[-1])]).reshape(chunks, -1)
+    return grid.min(axis=1).astype(np.float32), grid.max(axis=1).astype(np.float32)
+
+
+def _normalised(values: np.ndarray, low: np.ndarray, high: np.ndarray,
+                owner: np.ndarray) -> np.ndarray:
+    lo = low.astype(np.float64)[owner]
+    span = high.astype(np.float64)[owner] - lo
+    return np.where(span > 0, (values - lo) / np.where(span > 0, span, 1), 0.0)
+
+
+def _pack3(columns: np.ndarray, prefix: str, chunk_cols: dict, owner: np.ndarray,
+           chunks: int) -> np.ndarray:
+    word = np.zeros(len(columns), dtype=np.uint32)
+    for axis, bits, shift, column in zip("xyz", (11, 10, 11), (21, 11, 0), columns.T,
+                                         strict=True):
+        low, high = _chunk_ranges(column, chunks)
+        chunk_cols[f"min_{prefix}{axis}"], chunk_cols[f"max_{prefix}{axis}"] = low, high
+        word |= _quantise(_normalised(column, low, high, owner), bits) << np.uint32(shift)
+    return word
+
+
+def _rotation_words(quat: np.ndarray) -> np.ndarray:
+    """(N, 4) unit quaternions (w x y z) -> (N,) uint32: largest index + three 10-bit others."""
+    n = len(quat)
+    largest = np.argmax(np.abs(quat), axis=1)
+    q = quat * np.where(quat[np.arange(n), largest] < 0, -1.0, 1.0)[:, None]
+    keep = np.ones((n, 4), dtype=bool)
+    keep[np.arange(n), largest] = False
+    others = q[keep].reshape(n, 3)
+    word = largest.astype(np.uint32) << np.uint32(30)
+    for i, shift in enumerate((20, 10, 0)):
+        word |= _quantise(others[:, i] / np.sqrt(2.0) + 0.5, 10) << np.uint32(shift)
+    return word
+
+
+def compress(fields, comments: list[str]) -> PlySource:
+    """The PlayCanvas compressed PlySource of ``fields`` (a :class:`~.splats.SplatFields`),
+    splats in their given order, chunks of 256 consecutive splats."""
+    from .splats import dc_to_color, normalised_quaternions, sigmoid
+
+    n = fields.count
+    chunks = -(-n // SPLATS_PER_CHUNK)
+    owner = np.arange(n) // SPLATS_PER_CHUNK
+    chunk_cols: dict[str, np.ndarray] = {}
+    vertex = np.empty(n, dtype=[(p, "<u4") for p in PACKED])
+    vertex["packed_position"] = _pack3(fields.positions, "", chunk_cols, owner, chunks)
+    scale = np.clip(fields.scale_log.astype(np.float64), -SCALE_CLAMP, SCALE_CLAMP)
+    vertex["packed_scale"] = _pack3(scale, "scale_", chunk_cols, owner, chunks)
+    color = dc_to_color(fields.sh_dc)
+    word = _quantise(sigmoid(fields.opacity), 8)
+    for i, c in enumerate("rgb"):
+        low, high = _chunk_ranges(color[:, i], chunks)
+        chunk_cols[f"min_{c}"], chunk_cols[f"max_{c}"] = low, high
+        word |= _quantise(_normalised(color[:, i], low, high, owner), 8) << np.uint32(24 - 8 * i)
+    vertex["packed_color"] = word
+    vertex["packed_rotation"] = _rotation_words(normalised_quaternions(fields.rotation))
+    order = [*CHUNK_BOUNDS[:6], *CHUNK_BOUNDS[6:], *CHUNK_COLORS]
+    chunk = np.empty(chunks, dtype=[(c, "<f4") for c in order])
+    for c in order:
+        chunk[c] = chunk_cols[c]
+    elements = [PlyElementData("chunk", [PlyProperty(c, "f4", "float") for c in order], chunk),
+                PlyElementData("vertex", [PlyProperty(p, "u4", "uint") for p in PACKED], vertex)]
+    rest = fields.sh_rest.reshape(n, -1)
+    if rest.shape[1]:
+        names = [f"f_rest_{i}" for i in range(rest.shape[1])]
+        sh = np.empty(n, dtype=[(name, "u1") for name in names])
+        codes = np.clip(np.floor((rest.astype(np.float64) / SH_RANGE + 0.5) * 256), 0, 255)
+        for i, name in enumerate(names):
+            sh[name] = codes[:, i]
+        elements.append(PlyElementData("sh", [PlyProperty(m, "u1", "uchar") for m in names], sh))
+    return PlySource(elements=elements, comments=comments, text=False, byte_order="<")
+
+
+def write_model(model, path: Path, stream) -> None:
+    """Write ``model`` (3D Gaussian splats) as a PlayCanvas ``.compressed.ply`` to ``stream``."""
+    from .ply_format import write_ply
+    from .splats import fields_of, note_lossy
+
+    fields = fields_of(model, path, ".compressed.ply")
+    note_lossy(path, ".compressed.ply", "positions and log scales 11/10/11 bits within each "
+               "256-splat chunk's range, colour and opacity 8 bits, rotation 10 bits per "
+               "component, SH rest 8 bits in [-4, 4)", model)
+    write_ply(compress(fields, ["written by splatdeform (PlayCanvas compressed layout)"]),
+              stream, text=False)
