@@ -173,3 +173,82 @@ def test_non_splat_model_is_refused_with_one_line(tmp_path):
         with pytest.raises(FormatError, match="holds 3D Gaussian splats"):
             save(model, tmp_path / f"x{ext}")
         assert not (tmp_path / f"x{ext}").exists()
+
+
+def _glb_json(path: Path) -> dict:
+    import json
+    import struct
+
+    raw = path.read_bytes()
+    assert struct.unpack_from("<III", raw)[:2] == (0x46546C67, 2)
+    size, kind = struct.unpack_from("<II", raw, 12)
+    assert kind == 0x4E4F534A and struct.unpack_from("<I", raw, 8)[0] == len(raw)
+    return json.loads(raw[20:20 + size])
+
+
+@pytest.mark.parametrize("degree", [0, 1, 3])
+def test_glb_follows_the_specification_and_matches_the_oracle(tmp_path, oracle, degree):
+    """Our .glb has the KHR_gaussian_splatting required fields; our decode of splat-transform's
+    .glb equals its source (it writes, it does not read glTF); float conversions within 1 ulp."""
+    src = write_scene(tmp_path / "scene.ply", 600, degree, seed=degree + 20)
+    original = fields(load(src))
+    ours_file = tmp_path / "ours.glb"
+    save(load(src), ours_file)
+    doc = _glb_json(ours_file)
+    assert "KHR_gaussian_splatting" in doc["extensionsUsed"]
+    prim = doc["meshes"][0]["primitives"][0]
+    assert prim["mode"] == 0
+    ext = prim["extensions"]["KHR_gaussian_splatting"]
+    assert ext["kernel"] == "ellipse" and ext["colorSpace"] in (
+        "srgb_rec709_display", "lin_rec709_display")
+    attrs = prim["attributes"]
+    for name in ("POSITION", "KHR_gaussian_splatting:ROTATION", "KHR_gaussian_splatting:SCALE",
+                 "KHR_gaussian_splatting:OPACITY", "KHR_gaussian_splatting:SH_DEGREE_0_COEF_0"):
+        assert name in attrs
+    sh = [a for a in attrs if "SH_DEGREE_" in a and not a.endswith("DEGREE_0_COEF_0")]
+    assert len(sh) == {0: 0, 1: 3, 3: 15}[degree]
+    accessors = doc["accessors"]
+    assert {"min", "max"} <= set(accessors[attrs["POSITION"]])
+    types = {"KHR_gaussian_splatting:ROTATION": "VEC4", "KHR_gaussian_splatting:SCALE": "VEC3",
+             "KHR_gaussian_splatting:OPACITY": "SCALAR", **{a: "VEC3" for a in sh}}
+    for name, kind in types.items():
+        assert accessors[attrs[name]]["type"] == kind
+    ours = fields(load(ours_file))
+    exact = dict(pos=0.0, scale=0.0, rot=1e-7, alpha=1e-7, dc=0.0, rest=0.0)
+    compare(ours, original, **exact)
+    ulp = np.abs(ours.scale_log - original.scale_log) / np.spacing(np.abs(original.scale_log))
+    assert ulp.max() <= 1
+    logit_ulp = np.abs(ours.opacity - original.opacity) / np.spacing(np.abs(original.opacity))
+    assert np.median(logit_ulp) <= 1
+    theirs_file = tmp_path / "theirs.glb"
+    splat_transform.run("-w", "-q", str(src), str(theirs_file))
+    compare(fields(load(theirs_file)), original, **exact)
+
+
+def test_gltf_with_an_external_buffer_and_bad_glb(tmp_path):
+    import json
+
+    src = write_scene(tmp_path / "scene.ply", 40, 1)
+    save(load(src), tmp_path / "embedded.gltf")
+    doc = json.loads((tmp_path / "embedded.gltf").read_text())
+    import base64
+    blob = base64.b64decode(doc["buffers"][0]["uri"].split(",", 1)[1])
+    (tmp_path / "data.bin").write_bytes(blob)
+    doc["buffers"][0]["uri"] = "data.bin"
+    (tmp_path / "external.gltf").write_text(json.dumps(doc))
+    compare(fields(load(tmp_path / "external.gltf")), fields(load(src)),
+            pos=0, scale=0, rot=1e-7, alpha=1e-7, dc=0, rest=0)
+    doc["buffers"][0]["uri"] = "../elsewhere.bin"
+    (tmp_path / "escape.gltf").write_text(json.dumps(doc))
+    with pytest.raises(FormatError, match="escape.gltf: glTF buffer 0"):
+        load(tmp_path / "escape.gltf")
+    glb = tmp_path / "x.glb"
+    save(load(src), glb)
+    glb.write_bytes(glb.read_bytes()[:-8])
+    with pytest.raises(FormatError, match="x.glb: GLB header declares"):
+        load(glb)
+    doc["buffers"][0]["uri"] = "data.bin"
+    del doc["meshes"][0]["primitives"][0]["extensions"]
+    (tmp_path / "plain.gltf").write_text(json.dumps(doc))
+    with pytest.raises(FormatError, match="no glTF primitive with the KHR_gaussian_splatting"):
+        load(tmp_path / "plain.gltf")

@@ -13,7 +13,7 @@ from pathlib import Path
 
 from ..errors import FormatError, InputError
 from ..model import PointModel
-from . import las, open3d_io, playcanvas, ply, splat, spz
+from . import gltf, las, open3d_io, playcanvas, ply, splat, spz
 from .atomic import atomic_path, atomic_write, check_output_path
 from .regular import require_regular
 
@@ -60,6 +60,7 @@ FORMATS: dict[str, Format] = {
     **{ext: Format(splat.read_model, _streamed_writer(splat), lossy=True)
        for ext in splat.EXTENSIONS},
     **{ext: Format(spz.read_model, _streamed_writer(spz), lossy=True) for ext in spz.EXTENSIONS},
+    **{ext: Format(gltf.read_model, _streamed_writer(gltf)) for ext in gltf.EXTENSIONS},
     **{ext: Format(open3d_io.read_model, _write_open3d) for ext in open3d_io.EXTENSIONS},
     **{ext: Format(las.read_model, _write_las, stream=True) for ext in las.EXTENSIONS},
 }

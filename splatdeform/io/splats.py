@@ -118,10 +118,15 @@ def dropped_properties(model: PointModel) -> list[str]:
     return [n for n in names if n not in known and not n.startswith("f_rest_")]
 
 
-def note_lossy(path: str | Path, fmt: str, losses: str, model: PointModel,
+def note_lossy(path: str | Path, fmt: str, losses: str | None, model: PointModel,
                sh_kept: int | None = None) -> None:
-    """Say once for this write which properties the format quantises or drops."""
+    """Say once for this write which properties the format quantises or drops (``losses``
+    None: a format that keeps float32 values says something only when it drops properties)."""
     dropped = dropped_properties(model)
+    if losses is None:
+        if not dropped:
+            return
+        losses = "float32 values kept"
     g = model.gaussians
     n_rest = 0 if g is None or g.sh_rest is None else g.sh_rest.shape[1]
     if sh_kept is not None and n_rest > sh_kept:
