@@ -13,7 +13,7 @@ from pathlib import Path
 
 from ..errors import FormatError, InputError
 from ..model import PointModel
-from . import gltf, las, open3d_io, playcanvas, ply, splat, spz
+from . import gltf, las, open3d_io, pcd, playcanvas, ply, splat, spz
 from .atomic import atomic_path, atomic_write, check_output_path
 from .regular import require_regular
 
@@ -61,7 +61,9 @@ FORMATS: dict[str, Format] = {
        for ext in splat.EXTENSIONS},
     **{ext: Format(spz.read_model, _streamed_writer(spz), lossy=True) for ext in spz.EXTENSIONS},
     **{ext: Format(gltf.read_model, _streamed_writer(gltf)) for ext in gltf.EXTENSIONS},
-    **{ext: Format(open3d_io.read_model, _write_open3d) for ext in open3d_io.EXTENSIONS},
+    **{ext: Format(pcd.read_model, _streamed_writer(pcd)) for ext in pcd.EXTENSIONS},
+    **{ext: Format(open3d_io.read_model, _write_open3d) for ext in open3d_io.EXTENSIONS
+       if ext not in pcd.EXTENSIONS},
     **{ext: Format(las.read_model, _write_las, stream=True) for ext in las.EXTENSIONS},
 }
 READERS = {ext: fmt.read for ext, fmt in FORMATS.items()}
@@ -118,6 +120,9 @@ def save(model: PointModel, path: str | Path, *, text: bool | None = None) -> Pa
     ext = _extension(path, "output")
     if isinstance(model.source, las.LasSource) and ext not in las.EXTENSIONS:
         model = replace(model, source=las.ply_source_from_las(model.source)
+                        if ext == ".ply" else None)
+    if isinstance(model.source, pcd.PcdSource) and ext not in pcd.EXTENSIONS:
+        model = replace(model, source=pcd.ply_source_from_pcd(model.source)
                         if ext == ".ply" else None)
     FORMATS[ext].write(model, path, text)
     return path
