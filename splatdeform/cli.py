@@ -27,10 +27,11 @@ class _Parser(argparse.ArgumentParser):
 
 def cmd_info(args: argparse.Namespace) -> int:
     from .info import describe, format_text, to_json
-    from .io import load
+    from .io import format_fields, load
 
     model = load(args.model, drop_nonfinite=args.drop_nonfinite)
     info = describe(model)
+    info.update(format_fields(args.model))
     print(to_json(info) if args.json else format_text(info))
     return 0
 

@@ -252,3 +252,26 @@ def test_gltf_with_an_external_buffer_and_bad_glb(tmp_path):
     (tmp_path / "plain.gltf").write_text(json.dumps(doc))
     with pytest.raises(FormatError, match="no glTF primitive with the KHR_gaussian_splatting"):
         load(tmp_path / "plain.gltf")
+
+
+def test_info_reports_sh_degree_and_format_fields(tmp_path):
+    import json
+    import subprocess
+    import sys
+
+    src = write_scene(tmp_path / "scene.ply", 300, 2)
+    _save_quiet(load(src), tmp_path / "x.spz")
+    save(load(src), tmp_path / "x.glb")
+    _save_quiet(load(src), tmp_path / "x.compressed.ply")
+    expect = {"x.spz": ("SPZ v3", "version"), "x.glb": ("glTF 2.0", "extensions"),
+              "x.compressed.ply": ("PlayCanvas compressed", "sh_bands"),
+              "scene.ply": ("binary_little_endian", None)}
+    for name, (fmt, key) in expect.items():
+        proc = subprocess.run([sys.executable, "-m", "splatdeform.cli", "info", "--json",
+                               str(tmp_path / name)], capture_output=True, text=True, timeout=120)
+        assert proc.returncode == 0, proc.stderr
+        info = json.loads(proc.stdout)
+        assert info["sh_degree"] == 2 and info["format"].startswith(fmt)
+        if key:
+            assert key in info["format_fields"]
+    assert info.get("format_fields") is None

@@ -70,6 +70,9 @@ READERS = {ext: fmt.read for ext, fmt in FORMATS.items()}
 SUPPORTED = tuple(FORMATS)
 #: extensions the streaming / Dask paths read in chunks
 STREAMABLE = tuple(ext for ext, fmt in FORMATS.items() if fmt.stream)
+#: extensions whose files start with a PLY header (the batch probe reads their counts there)
+PLY_EXTENSIONS = tuple(ext for ext in FORMATS if ext.endswith(".ply"))
+LAS_EXTENSIONS = las.EXTENSIONS
 
 
 def extension_of(path: str | Path) -> str:
@@ -80,6 +83,52 @@ def extension_of(path: str | Path) -> str:
         if ext.count(".") > 1 and name.endswith(ext) and len(name) > len(ext):
             return ext
     return Path(name).suffix
+
+
+def _compressed_ply_fields(path: Path) -> dict:
+    source = ply.read_ply(path)
+    chunk, sh = source.element("chunk"), source.element("sh")
+    n_rest = 0 if sh is None else len(sh.properties)
+    return {"format": "PlayCanvas compressed PLY", "format_fields": {
+        "chunks": 0 if chunk is None else chunk.count, "sh_bands": {0: 0, 9: 1, 24: 2, 45: 3}
+        .get(n_rest, n_rest)}}
+
+
+def _spz_fields(path: Path) -> dict:
+    h = spz.read_info(path)
+    return {"format": f"SPZ v{h['version']} (gzip)", "format_fields": {
+        "version": h["version"], "sh_degree": h["sh_degree"],
+        "fractional_bits": h["fractional_bits"], "antialiased": h["antialiased"]}}
+
+
+def _gltf_fields(path: Path) -> dict:
+    doc, _ = gltf.read_document(path)
+    used = doc.get("extensionsUsed", [])
+    return {"format": "glTF 2.0 " + ("binary (.glb)" if path.suffix.lower() == ".glb" else
+                                     "JSON (.gltf)"),
+            "format_fields": {"extensions": ", ".join(used) or "none",
+                              "generator": doc.get("asset", {}).get("generator", "?")}}
+
+
+def _pcd_fields(path: Path) -> dict:
+    source, _ = pcd.read_source(path)
+    return {"format": f"PCD DATA {source.encoding}", "format_fields": {
+        "version": dict(source.header).get("VERSION", "?"), "width": source.width,
+        "height": source.height, "fields": " ".join(source.fields)}}
+
+
+_FIELDS = {".compressed.ply": _compressed_ply_fields, ".spz": _spz_fields, ".glb": _gltf_fields,
+           ".gltf": _gltf_fields, ".pcd": _pcd_fields,
+           ".splat": lambda path: {"format": ".splat (32-byte records)"}}
+
+
+def format_fields(path: str | Path) -> dict:
+    """The format's own fields for ``info`` (``format`` and ``format_fields``: SPZ version,
+    glTF extensions, compressed-PLY chunks and SH bands, PCD encoding); {} for formats whose
+    header ``describe`` already shows."""
+    path = Path(path)
+    reader = _FIELDS.get(extension_of(path))
+    return {} if reader is None else reader(path)
 
 
 def _extension(path: Path, what: str) -> str:
@@ -128,5 +177,6 @@ def save(model: PointModel, path: str | Path, *, text: bool | None = None) -> Pa
     return path
 
 
-__all__ = ["FORMATS", "Format", "load", "save", "SUPPORTED", "STREAMABLE", "extension_of",
-           "atomic_path", "atomic_write", "check_output_path"]
+__all__ = ["FORMATS", "Format", "load", "save", "SUPPORTED", "STREAMABLE", "PLY_EXTENSIONS",
+           "LAS_EXTENSIONS", "extension_of", "format_fields", "atomic_path", "atomic_write",
+           "check_output_path"]
