@@ -152,9 +152,13 @@ def to_model(fields: SplatFields, path: str | Path, comments: list[str], *,
                ("opacity", fields.opacity),
                *((f"scale_{i}", fields.scale_log[:, i]) for i in range(3)),
                *((f"rot_{i}", fields.rotation[:, i]) for i in range(4))]
-    data = np.empty(n, dtype=[(name, "<f4") for name, _ in columns])
-    for name, values in columns:
-        data[name] = values
+    table = np.empty((n, len(columns)), dtype="<f4")  # filled by contiguous blocks, then viewed
+    at = 0
+    for block in (fields.positions, fields.sh_dc, rest, fields.opacity[:, None],
+                  fields.scale_log, fields.rotation):
+        table[:, at:at + block.shape[1]] = block
+        at += block.shape[1]
+    data = table.view([(name, "<f4") for name, _ in columns]).reshape(n)
     props = [PlyProperty(name, "f4", "float") for name, _ in columns]
     source = PlySource(elements=[PlyElementData("vertex", props, data)], comments=comments,
                        text=False, byte_order="<")

@@ -45,6 +45,7 @@ ALPHA_EPS = 0.5 / 255
 # sign of each SH rest coefficient under the RDF <-> RUB flip (y -> -y, z -> -z)
 SH_FLIP = np.array([-1, -1, 1, -1, 1, 1, -1, 1, -1, 1, -1, -1, 1, -1, 1], dtype=np.float32)
 FLIP = np.array([1.0, -1.0, -1.0])
+GZIP_LEVEL = 1  # level 6 is 7x slower for ~3% smaller files
 
 
 def _rot_bytes(version: int) -> int:
@@ -190,8 +191,10 @@ def _fractional_bits(positions: np.ndarray) -> int:
 
 
 def _sh_codes(values: np.ndarray, step: int) -> np.ndarray:
-    q = np.round(values.astype(np.float64) * 128) + 128
-    q = np.floor((q + step / 2) / step) * step
+    """SH values -> uint8 codes 128 + 128 * v on a grid of ``step`` codes (float32 math)."""
+    q = np.asarray(values, dtype=np.float32) * np.float32(128 / step) + np.float32(128 / step)
+    np.rint(q, out=q)
+    q *= step
     return np.clip(q, 0, 255).astype(np.uint8)
 
 
@@ -234,5 +237,5 @@ def write_model(model: PointModel, path: Path, stream) -> None:
     note_lossy(path, ".spz", "positions 24-bit fixed point, opacity, colour, log scale 8 bits, "
                "rotation 10 bits per component, SH rest 5 bits (degree 1) and 4 bits (2-3)",
                model)
-    with gzip.GzipFile(fileobj=stream, mode="wb", compresslevel=6, mtime=0) as gz:
+    with gzip.GzipFile(fileobj=stream, mode="wb", compresslevel=GZIP_LEVEL, mtime=0) as gz:
         gz.write(encode(fields))
