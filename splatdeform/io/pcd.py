@@ -24,6 +24,7 @@ import numpy as np
 
 from ..errors import FormatError
 from ..model import PlyElementData, PlyProperty, PlySource, PointModel, classify
+from .ply_format import shortest_text
 
 EXTENSIONS = (".pcd",)
 ENCODINGS = ("ascii", "binary", "binary_compressed")
@@ -372,16 +373,6 @@ def read_model(path: str | Path, *, drop_nonfinite: bool = False) -> PointModel:
 
 # ---- writing --------------------------------------------------------------------------------
 
-def _shortest(values: np.ndarray, dtype: np.dtype) -> list[str]:
-    if dtype.kind == "f":
-        kind = np.float32 if dtype.itemsize == 4 else np.float64
-        return [np.format_float_positional(kind(v), unique=True, trim="-")
-                if abs(v) < 1e16 and (v == 0 or abs(v) >= 1e-5) else
-                np.format_float_scientific(kind(v), unique=True, trim="-")
-                for v in values]
-    return [str(int(v)) for v in values]
-
-
 def source_for_save(model: PointModel) -> PcdSource:
     """The model's PCD source with its positions (and normals) written in, or a new xyz
     (+ normals, rgb) source for a model not read from PCD."""
@@ -421,7 +412,8 @@ def source_for_save(model: PointModel) -> PcdSource:
         column[changed] = new[changed]
         if texts is not None and changed.any():
             col = starts[source.fields.index(name)]
-            texts[changed, col] = [t.encode() for t in _shortest(new[changed], column.dtype)]
+            texts[changed, col] = [t.encode() for t in shortest_text(new[changed],
+                                                                     column.dtype.str[1:])]
     return replace(source, data=data, ascii_text=texts)
 
 
@@ -483,7 +475,8 @@ def _ascii_texts(source: PcdSource) -> np.ndarray:
             if name in ("rgb", "rgba") and column.dtype.kind == "f":
                 cols.append([str(int(v)).encode() for v in column[:, i].view(np.uint32)])
             else:
-                cols.append([t.encode() for t in _shortest(column[:, i], column.dtype)])
+                cols.append([t.encode() for t in shortest_text(column[:, i],
+                                                               column.dtype.str[1:])])
     return np.array(cols, dtype=object).T if cols else np.empty((0, 0), dtype=object)
 
 

@@ -89,41 +89,44 @@ def decompress(source: PlySource, path: str | Path) -> PlySource:
                           "properties")
     owner = np.arange(n) // SPLATS_PER_CHUNK
     packed = {p: vertex.data[p].astype(np.uint32) for p in PACKED}
-    fields: dict[str, np.ndarray] = {}
-    for axis, (shift, bits) in zip("xyz", ((21, 11), (11, 10), (0, 11)), strict=True):
-        t = _unorm(packed["packed_position"], shift, bits)
-        fields[axis] = _lerp(chunk, f"min_{axis}", f"max_{axis}", t, owner)
-    color = [_unorm(packed["packed_color"], s, 8) for s in (24, 16, 8, 0)]
-    has_range = all(c in chunk_names for c in CHUNK_COLORS)
-    for i, c in enumerate("rgb"):
-        value = _lerp(chunk, f"min_{c}", f"max_{c}", color[i], owner) if has_range else color[i]
-        fields[f"f_dc_{i}"] = (value - 0.5) / SH_C0
-    alpha = np.clip(color[3], OPACITY_EPS, 1 - OPACITY_EPS)
-    fields["opacity"] = -np.log(1 / alpha - 1)
+    positions = np.empty((n, 3))
+    scale_log = np.empty((n, 3))
     for i, (axis, (shift, bits)) in enumerate(zip("xyz", ((21, 11), (11, 10), (0, 11)),
                                                   strict=True)):
-        t = _unorm(packed["packed_scale"], shift, bits)
-        fields[f"scale_{i}"] = _lerp(chunk, f"min_scale_{axis}", f"max_scale_{axis}", t, owner)
-    quat = _rotations(packed["packed_rotation"])
-    for i in range(4):
-        fields[f"rot_{i}"] = quat[:, i]
+        positions[:, i] = _lerp(chunk, f"min_{axis}", f"max_{axis}",
+                                _unorm(packed["packed_position"], shift, bits), owner)
+        scale_log[:, i] = _lerp(chunk, f"min_scale_{axis}", f"max_scale_{axis}",
+                                _unorm(packed["packed_scale"], shift, bits), owner)
+    color = [_unorm(packed["packed_color"], s, 8) for s in (24, 16, 8, 0)]
+    has_range = all(c in chunk_names for c in CHUNK_COLORS)
+    dc = np.empty((n, 3))
+    for i, c in enumerate("rgb"):
+        value = _lerp(chunk, f"min_{c}", f"max_{c}", color[i], owner) if has_range else color[i]
+        dc[:, i] = (value - 0.5) / SH_C0
+    alpha = np.clip(color[3], OPACITY_EPS, 1 - OPACITY_EPS)
+    rest = np.zeros((n, 0))
     sh = source.element("sh")
     if sh is not None:
         if sh.count != n:
             raise FormatError(f"{path}: PlayCanvas compressed file: the sh element has "
                               f"{sh.count} rows for {n} splats")
-        rest = sorted((p.name for p in sh.properties
-                       if p.name.startswith("f_rest_") and p.name[7:].isdigit()),
-                      key=lambda name: int(name[7:]))
-        for name in rest:
-            fields[name] = ((sh.data[name].astype(np.float64) + 0.5) / 256 - 0.5) * SH_RANGE
-    data = np.empty(n, dtype=[(name, "<f4") for name in fields])
-    for name, values in fields.items():
-        data[name] = values
-    props = [PlyProperty(name, "f4", "float") for name in fields]
+        names = sorted((p.name for p in sh.properties
+                        if p.name.startswith("f_rest_") and p.name[7:].isdigit()),
+                       key=lambda name: int(name[7:]))
+        if len(names) % 3:
+            raise FormatError(f"{path}: PlayCanvas compressed file: {len(names)} f_rest "
+                              "values per splat (a multiple of 3 expected)")
+        codes = np.stack([sh.data[name] for name in names], axis=1).astype(np.float32)
+        rest = ((codes + np.float32(0.5)) / np.float32(256) - np.float32(0.5)) \
+            * np.float32(SH_RANGE)
+    from .splats import SplatFields, gaussian_source
+
+    fields = SplatFields(positions=positions, scale_log=scale_log.astype(np.float32),
+                         rotation=_rotations(packed["packed_rotation"]).astype(np.float32),
+                         opacity=(-np.log(1 / alpha - 1)).astype(np.float32),
+                         sh_dc=dc.astype(np.float32), sh_rest=rest.reshape(n, 3, -1))
     comments = [*source.comments, "decompressed from a PlayCanvas .compressed.ply by splatdeform"]
-    return replace(source, elements=[PlyElementData("vertex", props, data)], comments=comments,
-                   text=False, byte_order="<")
+    return replace(gaussian_source(fields, comments), obj_info=list(source.obj_info))
 
 
 def _quantise(t: np.ndarray, bits: int) -> np.ndarray:

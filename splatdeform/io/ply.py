@@ -328,7 +328,8 @@ def source_for_save(model: PointModel) -> PlySource:
             else:
                 data, props = _set_field(data, props, name, values)
     elements = [el for el in source.elements]
-    new_vertex = PlyElementData("vertex", props, data)
+    new_vertex = PlyElementData("vertex", props, data, None if model.source is None
+                                else source.element("vertex").ascii_text)
     if model.source is None:
         elements = [new_vertex]
         if model.faces is not None and model.n_faces:

@@ -137,32 +137,34 @@ def note_lossy(path: str | Path, fmt: str, losses: str | None, model: PointModel
     warnings.warn(text, LossyWriteWarning, stacklevel=3)
 
 
-def to_model(fields: SplatFields, path: str | Path, comments: list[str], *,
-             drop_nonfinite: bool = False) -> PointModel:
-    """A PointModel (kind gaussians) whose PLY source is the standard 3DGS vertex element."""
-    from .ply import model_from_source  # ply imports playcanvas, which imports this module
-
+def gaussian_source(fields: SplatFields, comments: list[str]) -> PlySource:
+    """The standard 3DGS PlySource (x y z f_dc_* f_rest_* opacity scale_* rot_*, float)."""
     n = fields.count
-    if n == 0:
-        raise FormatError(f"{path}: the file holds no splats")
     rest = fields.sh_rest.reshape(n, -1)
-    columns = [*zip("xyz", fields.positions.T, strict=True),
-               *((f"f_dc_{i}", fields.sh_dc[:, i]) for i in range(3)),
-               *((f"f_rest_{i}", rest[:, i]) for i in range(rest.shape[1])),
-               ("opacity", fields.opacity),
-               *((f"scale_{i}", fields.scale_log[:, i]) for i in range(3)),
-               *((f"rot_{i}", fields.rotation[:, i]) for i in range(4))]
-    table = np.empty((n, len(columns)), dtype="<f4")  # filled by contiguous blocks, then viewed
+    names = [*"xyz", *(f"f_dc_{i}" for i in range(3)),
+             *(f"f_rest_{i}" for i in range(rest.shape[1])), "opacity",
+             *(f"scale_{i}" for i in range(3)), *(f"rot_{i}" for i in range(4))]
+    table = np.empty((n, len(names)), dtype="<f4")  # filled by contiguous blocks, then viewed
     at = 0
     for block in (fields.positions, fields.sh_dc, rest, fields.opacity[:, None],
                   fields.scale_log, fields.rotation):
         table[:, at:at + block.shape[1]] = block
         at += block.shape[1]
-    data = table.view([(name, "<f4") for name, _ in columns]).reshape(n)
-    props = [PlyProperty(name, "f4", "float") for name, _ in columns]
-    source = PlySource(elements=[PlyElementData("vertex", props, data)], comments=comments,
-                       text=False, byte_order="<")
-    return model_from_source(source, path, drop_nonfinite=drop_nonfinite)
+    data = table.view([(name, "<f4") for name in names]).reshape(n)
+    props = [PlyProperty(name, "f4", "float") for name in names]
+    return PlySource(elements=[PlyElementData("vertex", props, data)], comments=comments,
+                     text=False, byte_order="<")
+
+
+def to_model(fields: SplatFields, path: str | Path, comments: list[str], *,
+             drop_nonfinite: bool = False) -> PointModel:
+    """A PointModel (kind gaussians) whose PLY source is the standard 3DGS vertex element."""
+    from .ply import model_from_source  # ply imports playcanvas, which imports this module
+
+    if fields.count == 0:
+        raise FormatError(f"{path}: the file holds no splats")
+    return model_from_source(gaussian_source(fields, comments), path,
+                             drop_nonfinite=drop_nonfinite)
 
 
 def read_bytes(path: str | Path, limit: int = 1 << 34) -> bytes:
