@@ -113,7 +113,9 @@ class PlySource:
     """Everything a PLY file held, kept verbatim for a lossless save.
 
     elements: in file order; comments / obj_info: header lines in order; text: ascii format;
-    byte_order: '<' or '>' for binary files.
+    byte_order: '<' or '>' for binary files. quantised: the quantised file this source was
+    decoded from (a PlayCanvas compressed PlySource), so a re-quantising save keeps the codes
+    of untouched chunks; None otherwise.
     """
 
     elements: list[PlyElementData]
@@ -121,6 +123,7 @@ class PlySource:
     obj_info: list[str] = field(default_factory=list)
     text: bool = False
     byte_order: str = "<"
+    quantised: PlySource | None = None
 
     def element(self, name: str) -> PlyElementData | None:
         for element in self.elements:

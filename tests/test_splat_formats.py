@@ -275,3 +275,29 @@ def test_info_reports_sh_degree_and_format_fields(tmp_path):
         if key:
             assert key in info["format_fields"]
     assert info.get("format_fields") is None
+
+
+def test_compressed_untouched_chunks_keep_their_codes(tmp_path):
+    """Re-saving an edited .compressed.ply: chunks whose splats all kept their decoded values
+    keep the input's chunk bounds and codes (byte-identical rows); edited chunks re-quantise."""
+    from splatdeform.io.ply_format import read_ply
+
+    src = write_scene(tmp_path / "scene.ply", 1000, 3, seed=2)
+    first = tmp_path / "first.compressed.ply"
+    _save_quiet(load(src), first)
+    model = load(first)
+    model.positions[300:310] += 0.5  # inside chunk 1 only
+    second = tmp_path / "second.compressed.ply"
+    _save_quiet(model, second)
+    a, b = read_ply(first), read_ply(second)
+    for name in ("chunk", "vertex", "sh"):
+        assert a.element(name).count == b.element(name).count
+    ca, cb = a.element("chunk").data, b.element("chunk").data
+    va, vb = a.element("vertex").data, b.element("vertex").data
+    for chunk in (0, 2, 3):
+        assert ca[chunk].tobytes() == cb[chunk].tobytes()
+        rows = slice(chunk * 256, min(chunk * 256 + 256, 1000))
+        assert va[rows].tobytes() == vb[rows].tobytes()
+    assert ca[1].tobytes() != cb[1].tobytes()
+    back = fields(load(second))
+    np.testing.assert_allclose(back.positions[300:310], model.positions[300:310], atol=0.01)

@@ -126,7 +126,8 @@ def decompress(source: PlySource, path: str | Path) -> PlySource:
                          opacity=(-np.log(1 / alpha - 1)).astype(np.float32),
                          sh_dc=dc.astype(np.float32), sh_rest=rest.reshape(n, 3, -1))
     comments = [*source.comments, "decompressed from a PlayCanvas .compressed.ply by splatdeform"]
-    return replace(gaussian_source(fields, comments), obj_info=list(source.obj_info))
+    return replace(gaussian_source(fields, comments), obj_info=list(source.obj_info),
+                   quantised=source)
 
 
 def _quantise(t: np.ndarray, bits: int) -> np.ndarray:
@@ -211,6 +212,55 @@ def compress(fields, comments: list[str]) -> PlySource:
     return PlySource(elements=elements, comments=comments, text=False, byte_order="<")
 
 
+def _untouched_chunks(model, fields) -> np.ndarray | None:
+    """(chunks,) bool: chunks whose every splat still has the values decoded from the model's
+    compressed input (same count and order); None when the model has no such input."""
+    source = model.source
+    original = getattr(source, "quantised", None)
+    decoded = None if source is None else source.element("vertex")
+    if original is None or decoded is None or decoded.count != fields.count:
+        return None
+    data = decoded.data
+    names = data.dtype.names or ()
+    n = fields.count
+    rest = fields.sh_rest.reshape(n, -1)
+    n_rest = sum(1 for m in names if m.startswith("f_rest_"))
+    if n_rest != rest.shape[1]:
+        return None
+    same = np.ones(n, dtype=bool)
+    for cols, values in ((list("xyz"), fields.positions.astype(np.float32)),
+                         ([f"scale_{i}" for i in range(3)], fields.scale_log),
+                         ([f"rot_{i}" for i in range(4)], fields.rotation),
+                         (["opacity"], fields.opacity[:, None]),
+                         ([f"f_dc_{i}" for i in range(3)], fields.sh_dc),
+                         ([f"f_rest_{i}" for i in range(n_rest)], rest)):
+        for j, name in enumerate(cols):
+            same &= data[name] == values[:, j]
+    chunks = -(-n // SPLATS_PER_CHUNK)
+    pad = np.concatenate([same, np.ones(chunks * SPLATS_PER_CHUNK - n, dtype=bool)])
+    return pad.reshape(chunks, -1).all(axis=1)
+
+
+def _keep_codes(out: PlySource, original: PlySource, keep: np.ndarray) -> None:
+    """Copy the original chunk rows and splat codes of the ``keep`` chunks into ``out``."""
+    n = out.element("vertex").count
+    rows = np.repeat(keep, SPLATS_PER_CHUNK)[:n]
+    chunk, old_chunk = out.element("chunk").data, original.element("chunk").data
+    old_names = old_chunk.dtype.names or ()
+    for name in chunk.dtype.names:
+        if name in old_names:
+            chunk[name][keep] = old_chunk[name][:len(keep)][keep]
+        elif name.startswith(("min_", "max_")):  # no colour range in the input: plain 0..1
+            chunk[name][keep] = 0.0 if name.startswith("min_") else 1.0
+    vertex, old_vertex = out.element("vertex").data, original.element("vertex").data
+    for name in PACKED:
+        vertex[name][rows] = old_vertex[name][rows]
+    sh, old_sh = out.element("sh"), original.element("sh")
+    if sh is not None and old_sh is not None:
+        for name in sh.data.dtype.names:
+            sh.data[name][rows] = old_sh.data[name][rows]
+
+
 def write_model(model, path: Path, stream) -> None:
     """Write ``model`` (3D Gaussian splats) as a PlayCanvas ``.compressed.ply`` to ``stream``."""
     from .ply_format import write_ply
@@ -220,5 +270,8 @@ def write_model(model, path: Path, stream) -> None:
     note_lossy(path, ".compressed.ply", "positions and log scales 11/10/11 bits within each "
                "256-splat chunk's range, colour and opacity 8 bits, rotation 10 bits per "
                "component, SH rest 8 bits in [-4, 4)", model)
-    write_ply(compress(fields, ["written by splatdeform (PlayCanvas compressed layout)"]),
-              stream, text=False)
+    out = compress(fields, ["written by splatdeform (PlayCanvas compressed layout)"])
+    keep = _untouched_chunks(model, fields)
+    if keep is not None and keep.any():  # untouched chunks keep the input's bounds and codes
+        _keep_codes(out, model.source.quantised, keep)
+    write_ply(out, stream, text=False)
