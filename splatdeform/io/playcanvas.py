@@ -204,10 +204,10 @@ def compress(fields, comments: list[str]) -> PlySource:
     rest = fields.sh_rest.reshape(n, -1)
     if rest.shape[1]:
         names = [f"f_rest_{i}" for i in range(rest.shape[1])]
-        sh = np.empty(n, dtype=[(name, "u1") for name in names])
-        codes = np.clip(np.floor((rest.astype(np.float64) / SH_RANGE + 0.5) * 256), 0, 255)
-        for i, name in enumerate(names):
-            sh[name] = codes[:, i]
+        codes = rest.astype(np.float32) * np.float32(256 / SH_RANGE) + np.float32(128)
+        np.floor(codes, out=codes)
+        np.clip(codes, 0, 255, out=codes)
+        sh = codes.astype(np.uint8).view([(name, "u1") for name in names]).reshape(n)
         elements.append(PlyElementData("sh", [PlyProperty(m, "u1", "uchar") for m in names], sh))
     return PlySource(elements=elements, comments=comments, text=False, byte_order="<")
 
