@@ -62,8 +62,7 @@ FORMATS: dict[str, Format] = {
     **{ext: Format(spz.read_model, _streamed_writer(spz), lossy=True) for ext in spz.EXTENSIONS},
     **{ext: Format(gltf.read_model, _streamed_writer(gltf)) for ext in gltf.EXTENSIONS},
     **{ext: Format(pcd.read_model, _streamed_writer(pcd)) for ext in pcd.EXTENSIONS},
-    **{ext: Format(open3d_io.read_model, _write_open3d) for ext in open3d_io.EXTENSIONS
-       if ext not in pcd.EXTENSIONS},
+    **{ext: Format(open3d_io.read_model, _write_open3d) for ext in open3d_io.EXTENSIONS},
     **{ext: Format(las.read_model, _write_las, stream=True) for ext in las.EXTENSIONS},
 }
 READERS = {ext: fmt.read for ext, fmt in FORMATS.items()}

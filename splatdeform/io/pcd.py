@@ -24,6 +24,7 @@ import numpy as np
 
 from ..errors import FormatError
 from ..model import PlyElementData, PlyProperty, PlySource, PointModel, classify
+from .checks import nonfinite_points
 from .ply_format import shortest_text
 
 EXTENSIONS = (".pcd",)
@@ -350,12 +351,8 @@ def read_model(path: str | Path, *, drop_nonfinite: bool = False) -> PointModel:
     source, _ = read_source(path)
     data = source.data
     positions = _columns(data, ("x", "y", "z"))
-    bad = ~np.isfinite(positions).all(axis=1)
+    bad = nonfinite_points(path, positions, drop_nonfinite)
     if bad.any():
-        if not drop_nonfinite:
-            raise FormatError(f"{path}: {int(bad.sum())} point(s) with NaN/Inf coordinates "
-                              f"(first at index {int(np.flatnonzero(bad)[0])}); fix the file or "
-                              "load with drop_nonfinite=True (CLI: --drop-nonfinite)")
         keep = ~bad
         source = replace(source, data=data[keep], width=int(keep.sum()), height=1,
                          ascii_text=None if source.ascii_text is None
