@@ -301,3 +301,31 @@ def test_compressed_untouched_chunks_keep_their_codes(tmp_path):
     assert ca[1].tobytes() != cb[1].tobytes()
     back = fields(load(second))
     np.testing.assert_allclose(back.positions[300:310], model.positions[300:310], atol=0.01)
+
+
+@pytest.mark.parametrize("ext", [".spz", ".splat", ".glb", ".gltf", ".compressed.ply", ".pcd"])
+def test_mutated_files_give_one_line_errors(tmp_path, ext):
+    """Truncations and byte flips of each format: a clean FormatError/InputError naming the
+    file, or a successful load; never another exception (seeded, bounded)."""
+    from splatdeform.errors import InputError
+
+    src = write_scene(tmp_path / "scene.ply", 300, 1, seed=7)
+    good = tmp_path / f"good{ext}"
+    _save_quiet(load(src), good)
+    raw = good.read_bytes()
+    rng = np.random.default_rng(11)
+    cases = [raw[:k] for k in (0, 5, 15, 40, len(raw) // 2, len(raw) - 1)]
+    for _ in range(30):
+        b = bytearray(raw)
+        for at in rng.integers(0, len(b), 3):
+            b[at] = int(rng.integers(0, 256))
+        cases.append(bytes(b))
+    bad = tmp_path / f"bad{ext}"
+    for case in cases:
+        bad.write_bytes(case)
+        try:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                load(bad)
+        except (FormatError, InputError) as exc:
+            assert str(bad) in str(exc) and "\n" not in str(exc)
