@@ -340,7 +340,7 @@ def _stdout_gone() -> int:
 
 def _lossy_writes_as_lines() -> None:
     """A quantised write's note (which properties lose what) is one warning line per write
-    (inside ``warnings.catch_warnings``, which restores the hook)."""
+    (called inside main's ``warnings.catch_warnings``, which restores the hook)."""
     from .io.splats import LossyWriteWarning
 
     warnings.simplefilter("always", LossyWriteWarning)
@@ -365,7 +365,6 @@ def main(argv: list[str] | None = None) -> int:
         with warnings.catch_warnings():
             if not debug:  # numpy RuntimeWarnings must not turn one error line into several
                 warnings.simplefilter("ignore", RuntimeWarning)
-            _lossy_writes_as_lines()
             return _run(argv, debug)
     finally:  # callers in the same process (tests, the API) get their handler back
         if previous is not None:
@@ -383,6 +382,7 @@ def _run(argv: list[str], debug: bool) -> int:
         return code
 
     try:
+        _lossy_writes_as_lines()  # inside the try: an import here may meet a SIGTERM
         args = build_parser().parse_args(argv)
         if args.command == "render" and len(args.models) > 2:
             raise InputError("render: expected one or two model files")
