@@ -136,7 +136,8 @@ def _buffers(path: Path, doc: dict, glb_bin: bytes | None) -> list[bytes]:
 
 
 def _accessor(path: Path, doc: dict, buffers: list[bytes], index: int, name: str) -> np.ndarray:
-    """(count, width) float64 values of accessor ``index`` (normalised integers scaled)."""
+    """(count, width) values of accessor ``index``: float32 as stored, normalised integers
+    scaled to float64."""
     try:
         acc = doc["accessors"][index]
         view = doc["bufferViews"][acc["bufferView"]]
@@ -154,14 +155,13 @@ def _accessor(path: Path, doc: dict, buffers: list[bytes], index: int, name: str
             or end > len(data):
         raise FormatError(f"{path}: glTF attribute {name}: {count:,} values run past their "
                           "buffer view")
-    values = np.ndarray((count, width), dtype=dtype, buffer=data, offset=start,
-                        strides=(stride, dtype.itemsize)).astype(np.float64)
-    if kind != FLOAT:
-        if not acc.get("normalized"):
-            raise FormatError(f"{path}: glTF attribute {name}: integer values must be "
-                              "normalized")
-        values = NORMALISE[kind](values)
-    return values
+    view = np.ndarray((count, width), dtype=dtype, buffer=data, offset=start,
+                      strides=(stride, dtype.itemsize))
+    if kind == FLOAT:
+        return view.astype(np.float32)  # float32 stays float32 (no float64 copy of 45 SH)
+    if not acc.get("normalized"):
+        raise FormatError(f"{path}: glTF attribute {name}: integer values must be normalized")
+    return NORMALISE[kind](view.astype(np.float64))
 
 
 def splat_primitives(path: str | Path, doc: dict) -> list[dict]:
@@ -208,17 +208,20 @@ def _fields(path: Path, doc: dict, buffers: list[bytes], prim: dict) -> SplatFie
     parts = [get(name) for name in _sh_names(degree)]
     if any(len(a) != n for a in (xyzw, scale, opacity, dc, *parts)):
         raise FormatError(f"{path}: {EXT} attributes have different counts")
-    rest = (np.stack(parts, axis=2) if parts else np.zeros((n, 3, 0)))
+    rest = np.empty((n, 3, len(parts)), dtype=np.float32)
+    for j, part in enumerate(parts):
+        rest[:, :, j] = part
     with np.errstate(divide="ignore", invalid="ignore"):
-        scale_log = np.log(scale)
-        p = np.clip(opacity, OPACITY_EPS, 1 - OPACITY_EPS)
+        scale_log = np.log(scale.astype(np.float64))
+        p = np.clip(opacity.astype(np.float64), OPACITY_EPS, 1 - OPACITY_EPS)
         logit = np.log(p) - np.log1p(-p)
     wxyz = np.stack([xyzw[:, 3], xyzw[:, 0], xyzw[:, 1], xyzw[:, 2]], axis=1)
     k = SH_COEFFS[degree]
+    rest *= SH_FLIP[:k]
     return SplatFields(positions=positions * FLIP, scale_log=scale_log.astype(np.float32),
                        rotation=_unturn(wxyz).astype(np.float32),
                        opacity=logit.astype(np.float32), sh_dc=dc.astype(np.float32),
-                       sh_rest=(rest * SH_FLIP[:k]).astype(np.float32))
+                       sh_rest=rest)
 
 
 def read_document(path: str | Path) -> tuple[dict, list[bytes]]:
