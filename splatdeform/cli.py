@@ -27,10 +27,11 @@ class _Parser(argparse.ArgumentParser):
 
 def cmd_info(args: argparse.Namespace) -> int:
     from .info import describe, format_text, to_json
-    from .io import load
+    from .io import format_fields, load
 
     model = load(args.model, drop_nonfinite=args.drop_nonfinite)
     info = describe(model)
+    info.update(format_fields(args.model))
     print(to_json(info) if args.json else format_text(info))
     return 0
 
@@ -353,6 +354,23 @@ def _stdout_gone() -> int:
     return 141  # 128 + SIGPIPE
 
 
+def _lossy_writes_as_lines() -> None:
+    """A quantised write's note (which properties lose what) is one warning line per write
+    (called inside main's ``warnings.catch_warnings``, which restores the hook)."""
+    from .io.splats import LossyWriteWarning
+
+    warnings.simplefilter("always", LossyWriteWarning)
+    shown = warnings.showwarning
+
+    def show(message, category, *args, **kwargs):
+        if issubclass(category, LossyWriteWarning):
+            _warn(str(message))
+        else:
+            shown(message, category, *args, **kwargs)
+
+    warnings.showwarning = show
+
+
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
     debug = "--debug" in argv
@@ -381,6 +399,7 @@ def _run(argv: list[str], debug: bool) -> int:
         return code
 
     try:
+        _lossy_writes_as_lines()  # inside the try: an import here may meet a SIGTERM
         args = build_parser().parse_args(argv)
         if args.command == "render" and len(args.models) > 2:
             raise InputError("render: expected one or two model files")

@@ -52,6 +52,12 @@ def _describe(model: PointModel) -> dict[str, Any]:
         info["normal_length_range"] = [float(length.min()), float(length.max())]
     if model.radius is not None:
         info["radius_median"] = float(np.median(model.radius))
+    g = model.gaussians
+    if g is not None:
+        n_rest = 0 if g.sh_rest is None else g.sh_rest.shape[1]
+        degrees = {0: 0, 9: 1, 24: 2, 45: 3}
+        info["sh_degree"] = degrees.get(n_rest)  # None: not a standard 3DGS layout
+        info["sh_rest_coefficients"] = n_rest
     return info
 
 
@@ -85,6 +91,13 @@ def format_text(info: dict[str, Any]) -> str:
     ]
     if "radius_median" in info:
         lines.append(f"radius:   median {info['radius_median']:.6g}")
+    if "sh_degree" in info:
+        degree = info["sh_degree"]
+        lines.append(f"SH:       degree {degree if degree is not None else '? (non-standard)'} "
+                     f"({info['sh_rest_coefficients']} f_rest values)")
+    if info.get("format_fields"):
+        fields = ", ".join(f"{k} {v}" for k, v in info["format_fields"].items())
+        lines.append(f"format:   {fields}")
     for el in info.get("elements", []):
         props = ", ".join(f"{p['name']}:{p['type']}" for p in el["properties"])
         lines.append(f"element {el['name']} ({el['count']:,}): {props}")

@@ -69,16 +69,33 @@ class PlyProperty:
 
 
 @dataclass
+class AsciiRows:
+    """The body rows of one ascii PLY element as read.
+
+    body: the rows' bytes; starts: (R + 1,) int64 offset of each row in ``body`` (row i is
+    body[starts[i]:starts[i + 1]], without its newline); original: the data parsed from them
+    (the same array object the reader returned, never modified in place).
+    """
+
+    body: bytes
+    starts: np.ndarray
+    original: np.ndarray
+
+
+@dataclass
 class PlyElementData:
     """One PLY element: its properties and its rows.
 
     data: (count,) structured array; scalar properties are plain fields, list properties are
     object fields holding one 1-D array per row (the plyfile convention).
+    ascii_text: for an element read from an ascii file, its rows as read (AsciiRows), so a save
+    keeps the original text of every value that did not change; None otherwise.
     """
 
     name: str
     properties: list[PlyProperty]
     data: np.ndarray
+    ascii_text: AsciiRows | None = None
 
     @property
     def count(self) -> int:
@@ -96,7 +113,9 @@ class PlySource:
     """Everything a PLY file held, kept verbatim for a lossless save.
 
     elements: in file order; comments / obj_info: header lines in order; text: ascii format;
-    byte_order: '<' or '>' for binary files.
+    byte_order: '<' or '>' for binary files. quantised: the quantised file this source was
+    decoded from (a PlayCanvas compressed PlySource), so a re-quantising save keeps the codes
+    of untouched chunks; None otherwise.
     """
 
     elements: list[PlyElementData]
@@ -104,6 +123,7 @@ class PlySource:
     obj_info: list[str] = field(default_factory=list)
     text: bool = False
     byte_order: str = "<"
+    quantised: PlySource | None = None
 
     def element(self, name: str) -> PlyElementData | None:
         for element in self.elements:

@@ -19,7 +19,7 @@ import splatdeform.io as sio
 from data_tools.synth import bumpy_bar, sphere
 from splatdeform.deform.normals import estimate_normals
 from splatdeform.errors import InputError
-from splatdeform.io import load, open3d_io, ply, save
+from splatdeform.io import load, open3d_io, pcd, ply, save
 from splatdeform.model import PlySource, PointModel
 
 # file -> kind the loader must recognise (see ../shared/data/README.md)
@@ -348,10 +348,16 @@ def _partial_o3d_writer(model, path):
     raise RuntimeError("disk on fire")
 
 
+def _partial_stream_writer(model, path, stream):
+    stream.write(b"# .PCD v0.7\nVERSION 0.7\n")
+    raise RuntimeError("disk on fire")
+
+
 @pytest.mark.parametrize("ext", [".ply", ".xyz", ".pcd"])
 def test_failed_save_leaves_nothing(ext: str, tmp_path: Path, monkeypatch) -> None:
     monkeypatch.setattr(ply, "write_model", _partial_ply_writer)
     monkeypatch.setattr(open3d_io, "write_model", _partial_o3d_writer)
+    monkeypatch.setattr(pcd, "write_model", _partial_stream_writer)
     out_dir = tmp_path / "out"
     out_dir.mkdir()
     with pytest.raises(RuntimeError, match="disk on fire"):
@@ -467,7 +473,8 @@ def test_open3d_to_ply(tmp_path: Path) -> None:
 
 
 def test_registry_lists_all_formats() -> None:
-    assert set(sio.SUPPORTED) == {".ply", ".pcd", ".xyz", ".xyzn", ".pts", ".las", ".laz"}
+    assert set(sio.SUPPORTED) == {".ply", ".compressed.ply", ".splat", ".spz", ".glb", ".gltf",
+                                  ".pcd", ".xyz", ".xyzn", ".pts", ".las", ".laz"}
 
 
 # --------------------------------------------------------------------------------------------

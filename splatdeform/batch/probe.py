@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError
+from ..io import LAS_EXTENSIONS, PLY_EXTENSIONS, extension_of
 from ..io.ply_format import MAX_HEADER_BYTES, parse_header
 
 HEAD_BYTES = MAX_HEADER_BYTES + 4096   # enough to hold any header the PLY reader accepts
@@ -44,10 +45,10 @@ def probe(name: str, head: bytes, size: int, *, suffix: str | None = None) -> Pr
 
     ``name`` names the scan in errors; ``suffix`` (default: the name's) picks the format.
     Raises FormatError (from the PLY header parser) for a malformed PLY header."""
-    suffix = (suffix or Path(name).suffix).lower()
-    if suffix in (".las", ".laz"):
+    suffix = (suffix or extension_of(name)).lower()
+    if suffix in LAS_EXTENSIONS:
         return Probe(_las_points(head), size, False, None)
-    if suffix != ".ply":
+    if suffix not in PLY_EXTENSIONS:
         return Probe(size // 12, size, True, None)
     header = parse_header(Path(name), head)
     points = sum(count for el, count, _ in header.elements if el == "vertex")

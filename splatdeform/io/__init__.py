@@ -13,7 +13,7 @@ from pathlib import Path
 
 from ..errors import FormatError, InputError
 from ..model import PointModel
-from . import las, open3d_io, ply
+from . import gltf, las, open3d_io, pcd, playcanvas, ply, splat, spz
 from .atomic import atomic_path, atomic_write, check_output_path
 from .regular import require_regular
 
@@ -21,10 +21,13 @@ from .regular import require_regular
 @dataclass(frozen=True)
 class Format:
     """One file format: ``read(path, drop_nonfinite=) -> PointModel`` and
-    ``write(model, path, text)`` (atomic)."""
+    ``write(model, path, text)`` (atomic); ``stream``: chunked reading for the streaming and
+    Dask paths; ``lossy``: a write quantises (and says once what it loses)."""
 
     read: Callable[..., PointModel]
     write: Callable[[PointModel, Path, bool | None], None]
+    stream: bool = False
+    lossy: bool = False
 
 
 def _write_ply(model: PointModel, path: Path, text: bool | None) -> None:
@@ -42,18 +45,93 @@ def _write_open3d(model: PointModel, path: Path, text: bool | None) -> None:
         open3d_io.write_model(model, tmp)
 
 
+def _streamed_writer(module) -> Callable[[PointModel, Path, bool | None], None]:
+    def write(model: PointModel, path: Path, text: bool | None) -> None:
+        with atomic_write(path) as stream:
+            module.write_model(model, path, stream)
+    return write
+
+
 #: Readers and writers in one table by extension: a new format is one module plus one line.
+#: A double extension (``.compressed.ply``) is matched before the plain one.
 FORMATS: dict[str, Format] = {
-    ".ply": Format(ply.read_model, _write_ply),
+    ".ply": Format(ply.read_model, _write_ply, stream=True),
+    ".compressed.ply": Format(ply.read_model, _streamed_writer(playcanvas), lossy=True),
+    **{ext: Format(splat.read_model, _streamed_writer(splat), lossy=True)
+       for ext in splat.EXTENSIONS},
+    **{ext: Format(spz.read_model, _streamed_writer(spz), lossy=True) for ext in spz.EXTENSIONS},
+    **{ext: Format(gltf.read_model, _streamed_writer(gltf)) for ext in gltf.EXTENSIONS},
+    **{ext: Format(pcd.read_model, _streamed_writer(pcd)) for ext in pcd.EXTENSIONS},
     **{ext: Format(open3d_io.read_model, _write_open3d) for ext in open3d_io.EXTENSIONS},
-    **{ext: Format(las.read_model, _write_las) for ext in las.EXTENSIONS},
+    **{ext: Format(las.read_model, _write_las, stream=True) for ext in las.EXTENSIONS},
 }
 READERS = {ext: fmt.read for ext, fmt in FORMATS.items()}
 SUPPORTED = tuple(FORMATS)
+#: extensions the streaming / Dask paths read in chunks
+STREAMABLE = tuple(ext for ext, fmt in FORMATS.items() if fmt.stream)
+#: extensions whose files start with a PLY header (the batch probe reads their counts there)
+PLY_EXTENSIONS = tuple(ext for ext in FORMATS if ext.endswith(".ply"))
+LAS_EXTENSIONS = las.EXTENSIONS
+
+
+def extension_of(path: str | Path) -> str:
+    """The table key of ``path``: its double extension when the table has it, else its
+    suffix (lower case; '' when none)."""
+    name = Path(path).name.lower()
+    for ext in FORMATS:
+        if ext.count(".") > 1 and name.endswith(ext) and len(name) > len(ext):
+            return ext
+    return Path(name).suffix
+
+
+def _compressed_ply_fields(path: Path) -> dict:
+    source = ply.read_ply(path)
+    chunk, sh = source.element("chunk"), source.element("sh")
+    n_rest = 0 if sh is None else len(sh.properties)
+    return {"format": "PlayCanvas compressed PLY", "format_fields": {
+        "chunks": 0 if chunk is None else chunk.count, "sh_bands": {0: 0, 9: 1, 24: 2, 45: 3}
+        .get(n_rest, n_rest)}}
+
+
+def _spz_fields(path: Path) -> dict:
+    h = spz.read_info(path)
+    return {"format": f"SPZ v{h['version']} (gzip)", "format_fields": {
+        "version": h["version"], "sh_degree": h["sh_degree"],
+        "fractional_bits": h["fractional_bits"], "antialiased": h["antialiased"]}}
+
+
+def _gltf_fields(path: Path) -> dict:
+    doc, _ = gltf.read_document(path)
+    used = doc.get("extensionsUsed", [])
+    return {"format": "glTF 2.0 " + ("binary (.glb)" if path.suffix.lower() == ".glb" else
+                                     "JSON (.gltf)"),
+            "format_fields": {"extensions": ", ".join(used) or "none",
+                              "generator": doc.get("asset", {}).get("generator", "?")}}
+
+
+def _pcd_fields(path: Path) -> dict:
+    source, _ = pcd.read_source(path)
+    return {"format": f"PCD DATA {source.encoding}", "format_fields": {
+        "version": dict(source.header).get("VERSION", "?"), "width": source.width,
+        "height": source.height, "fields": " ".join(source.fields)}}
+
+
+_FIELDS = {".compressed.ply": _compressed_ply_fields, ".spz": _spz_fields, ".glb": _gltf_fields,
+           ".gltf": _gltf_fields, ".pcd": _pcd_fields,
+           ".splat": lambda path: {"format": ".splat (32-byte records)"}}
+
+
+def format_fields(path: str | Path) -> dict:
+    """The format's own fields for ``info`` (``format`` and ``format_fields``: SPZ version,
+    glTF extensions, compressed-PLY chunks and SH bands, PCD encoding); {} for formats whose
+    header ``describe`` already shows."""
+    path = Path(path)
+    reader = _FIELDS.get(extension_of(path))
+    return {} if reader is None else reader(path)
 
 
 def _extension(path: Path, what: str) -> str:
-    ext = path.suffix.lower()
+    ext = extension_of(path)
     if ext not in READERS:
         raise InputError(f"{path}: unknown {what} extension {ext or '(none)'!r}; expected one of "
                          f"{', '.join(SUPPORTED)}")
@@ -61,7 +139,7 @@ def _extension(path: Path, what: str) -> str:
 
 
 def load(path: str | Path, *, drop_nonfinite: bool = False) -> PointModel:
-    """Load a model file (.ply, .las, .laz, .pcd, .xyz, .xyzn, .pts).
+    """Load a model file (any extension of :data:`FORMATS`).
 
     drop_nonfinite: drop vertices with NaN/Inf coordinates (and the faces using them) instead of
     raising. Raises InputError/FormatError with one line naming the file.
@@ -91,9 +169,13 @@ def save(model: PointModel, path: str | Path, *, text: bool | None = None) -> Pa
     if isinstance(model.source, las.LasSource) and ext not in las.EXTENSIONS:
         model = replace(model, source=las.ply_source_from_las(model.source)
                         if ext == ".ply" else None)
+    if isinstance(model.source, pcd.PcdSource) and ext not in pcd.EXTENSIONS:
+        model = replace(model, source=pcd.ply_source_from_pcd(model.source)
+                        if ext == ".ply" else None)
     FORMATS[ext].write(model, path, text)
     return path
 
 
-__all__ = ["FORMATS", "Format", "load", "save", "SUPPORTED", "atomic_path", "atomic_write",
+__all__ = ["FORMATS", "Format", "load", "save", "SUPPORTED", "STREAMABLE", "PLY_EXTENSIONS",
+           "LAS_EXTENSIONS", "extension_of", "format_fields", "atomic_path", "atomic_write",
            "check_output_path"]

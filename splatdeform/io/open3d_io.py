@@ -1,4 +1,4 @@
-"""Point cloud formats read and written through Open3D: .pcd .xyz .xyzn .pts."""
+"""Point cloud formats read and written through Open3D: .xyz .xyzn .pts (PCD: ``pcd.py``)."""
 
 from __future__ import annotations
 
@@ -8,8 +8,9 @@ import numpy as np
 
 from ..errors import FormatError
 from ..model import PointModel, classify
+from .checks import nonfinite_points
 
-EXTENSIONS = (".pcd", ".xyz", ".xyzn", ".pts")
+EXTENSIONS = (".xyz", ".xyzn", ".pts")
 
 
 def _o3d():
@@ -20,29 +21,9 @@ def _o3d():
     return open3d
 
 
-def _check_pcd_ascii(path: Path) -> None:
-    """Open3D loads a truncated ascii PCD body as uninitialised memory: count the rows first."""
-    points = None
-    with open(path, "rb") as f:
-        for line in f:
-            words = line.split()
-            if words[:1] == [b"POINTS"] and len(words) == 2 and words[1].isdigit():
-                points = int(words[1])
-            elif words[:1] == [b"DATA"]:
-                if words[1:2] != [b"ascii"] or points is None:
-                    return
-                rows = sum(1 for row in f if row.strip())
-                if rows < points:
-                    raise FormatError(f"{path}: truncated PCD body: header says POINTS {points}, "
-                                      f"{rows} rows present")
-                return
-
-
 def read_model(path: str | Path, *, drop_nonfinite: bool = False) -> PointModel:
     """Load a point cloud through Open3D (positions, normals and colors when present)."""
     o3d = _o3d()
-    if Path(path).suffix.lower() == ".pcd":
-        _check_pcd_ascii(Path(path))
     cloud = o3d.io.read_point_cloud(str(path), remove_nan_points=False,
                                     remove_infinite_points=False)
     positions = np.asarray(cloud.points, dtype=np.float64)
@@ -56,12 +37,8 @@ def read_model(path: str | Path, *, drop_nonfinite: bool = False) -> PointModel:
     tiny = (positions != 0) & (np.abs(positions) < np.finfo(np.float64).tiny)
     if tiny.any():  # denormals: what Open3D returns for rows it could not read
         raise FormatError(f"{path}: malformed or truncated {Path(path).suffix} body")
-    bad = ~np.isfinite(positions).all(axis=1)
+    bad = nonfinite_points(path, positions, drop_nonfinite)
     if bad.any():
-        if not drop_nonfinite:
-            raise FormatError(f"{path}: {int(bad.sum())} point(s) with NaN/Inf coordinates (first "
-                              f"at index {int(np.flatnonzero(bad)[0])}); fix the file or load "
-                              "with drop_nonfinite=True (CLI: --drop-nonfinite)")
         positions = positions[~bad]
         normals = None if normals is None else normals[~bad]
         colors = None if colors is None else colors[~bad]
@@ -79,5 +56,5 @@ def write_model(model: PointModel, path: Path) -> None:
         cloud.normals = o3d.utility.Vector3dVector(model.normals)
     if model.colors is not None:
         cloud.colors = o3d.utility.Vector3dVector(model.colors.astype(np.float64) / 255.0)
-    if not o3d.io.write_point_cloud(str(path), cloud, write_ascii=path.suffix != ".pcd"):
+    if not o3d.io.write_point_cloud(str(path), cloud, write_ascii=True):
         raise FormatError(f"{path}: Open3D could not write this file")

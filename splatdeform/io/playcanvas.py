@@ -5,8 +5,9 @@ and, in newer files, colour), a ``vertex`` element of four packed ``uint`` prope
 (``packed_position`` 11/10/11 bits, ``packed_rotation`` 2-bit index of the largest quaternion
 component + three 10-bit others, ``packed_scale`` 11/10/11, ``packed_color`` RGBA 8 bits each) and
 an optional ``sh`` element of ``uchar f_rest_*``. Decoding gives the usual INRIA 3DGS vertex
-properties (x y z f_dc_0..2 opacity scale_0..2 rot_0..3 [f_rest_*], float), so a save writes a
-plain, uncompressed 3DGS PLY (the quantised input is not reproduced).
+properties (x y z f_dc_0..2 opacity scale_0..2 rot_0..3 [f_rest_*], float); a save to ``.ply``
+writes that plain 3DGS PLY, a save to ``.compressed.ply`` re-quantises (:func:`write_model`).
+An 8-bit SH code v decodes to its bin centre ((v + 0.5) / 256 - 0.5) * 8. Axes as PLY space.
 """
 
 from __future__ import annotations
@@ -28,6 +29,9 @@ CHUNK_COLORS = tuple(f"{m}_{c}" for m in ("min", "max") for c in "rgb")
 SPLATS_PER_CHUNK = 256
 # an 8-bit opacity of exactly 0 or 1 has no finite logit: clamp to half a quantisation step
 OPACITY_EPS = 0.5 / 255
+SH_RANGE = 8.0  # SH rest codes cover [-4, 4) in 256 bins
+EXTENSIONS = (".compressed.ply",)
+SCALE_CLAMP = 20.0  # log scales are clamped to +-20 before the chunk ranges are taken
 
 
 def is_compressed(source: PlySource) -> bool:
@@ -85,38 +89,189 @@ def decompress(source: PlySource, path: str | Path) -> PlySource:
                           "properties")
     owner = np.arange(n) // SPLATS_PER_CHUNK
     packed = {p: vertex.data[p].astype(np.uint32) for p in PACKED}
-    fields: dict[str, np.ndarray] = {}
-    for axis, (shift, bits) in zip("xyz", ((21, 11), (11, 10), (0, 11)), strict=True):
-        t = _unorm(packed["packed_position"], shift, bits)
-        fields[axis] = _lerp(chunk, f"min_{axis}", f"max_{axis}", t, owner)
-    color = [_unorm(packed["packed_color"], s, 8) for s in (24, 16, 8, 0)]
-    has_range = all(c in chunk_names for c in CHUNK_COLORS)
-    for i, c in enumerate("rgb"):
-        value = _lerp(chunk, f"min_{c}", f"max_{c}", color[i], owner) if has_range else color[i]
-        fields[f"f_dc_{i}"] = (value - 0.5) / SH_C0
-    alpha = np.clip(color[3], OPACITY_EPS, 1 - OPACITY_EPS)
-    fields["opacity"] = -np.log(1 / alpha - 1)
+    positions = np.empty((n, 3))
+    scale_log = np.empty((n, 3))
     for i, (axis, (shift, bits)) in enumerate(zip("xyz", ((21, 11), (11, 10), (0, 11)),
                                                   strict=True)):
-        t = _unorm(packed["packed_scale"], shift, bits)
-        fields[f"scale_{i}"] = _lerp(chunk, f"min_scale_{axis}", f"max_scale_{axis}", t, owner)
-    quat = _rotations(packed["packed_rotation"])
-    for i in range(4):
-        fields[f"rot_{i}"] = quat[:, i]
+        positions[:, i] = _lerp(chunk, f"min_{axis}", f"max_{axis}",
+                                _unorm(packed["packed_position"], shift, bits), owner)
+        scale_log[:, i] = _lerp(chunk, f"min_scale_{axis}", f"max_scale_{axis}",
+                                _unorm(packed["packed_scale"], shift, bits), owner)
+    color = [_unorm(packed["packed_color"], s, 8) for s in (24, 16, 8, 0)]
+    has_range = all(c in chunk_names for c in CHUNK_COLORS)
+    dc = np.empty((n, 3))
+    for i, c in enumerate("rgb"):
+        value = _lerp(chunk, f"min_{c}", f"max_{c}", color[i], owner) if has_range else color[i]
+        dc[:, i] = (value - 0.5) / SH_C0
+    alpha = np.clip(color[3], OPACITY_EPS, 1 - OPACITY_EPS)
+    rest = np.zeros((n, 0))
     sh = source.element("sh")
     if sh is not None:
         if sh.count != n:
             raise FormatError(f"{path}: PlayCanvas compressed file: the sh element has "
                               f"{sh.count} rows for {n} splats")
-        rest = sorted((p.name for p in sh.properties
-                       if p.name.startswith("f_rest_") and p.name[7:].isdigit()),
-                      key=lambda name: int(name[7:]))
-        for name in rest:
-            fields[name] = (sh.data[name].astype(np.float64) / 256 - 0.5) * 8.0
-    data = np.empty(n, dtype=[(name, "<f4") for name in fields])
-    for name, values in fields.items():
-        data[name] = values
-    props = [PlyProperty(name, "f4", "float") for name in fields]
+        names = sorted((p.name for p in sh.properties
+                        if p.name.startswith("f_rest_") and p.name[7:].isdigit()),
+                       key=lambda name: int(name[7:]))
+        if len(names) % 3:
+            raise FormatError(f"{path}: PlayCanvas compressed file: {len(names)} f_rest "
+                              "values per splat (a multiple of 3 expected)")
+        codes = np.stack([sh.data[name] for name in names], axis=1).astype(np.float32)
+        rest = ((codes + np.float32(0.5)) / np.float32(256) - np.float32(0.5)) \
+            * np.float32(SH_RANGE)
+    from .splats import SplatFields, gaussian_source
+
+    fields = SplatFields(positions=positions, scale_log=scale_log.astype(np.float32),
+                         rotation=_rotations(packed["packed_rotation"]).astype(np.float32),
+                         opacity=(-np.log(1 / alpha - 1)).astype(np.float32),
+                         sh_dc=dc.astype(np.float32), sh_rest=rest.reshape(n, 3, -1))
     comments = [*source.comments, "decompressed from a PlayCanvas .compressed.ply by splatdeform"]
-    return replace(source, elements=[PlyElementData("vertex", props, data)], comments=comments,
-                   text=False, byte_order="<")
+    return replace(gaussian_source(fields, comments), obj_info=list(source.obj_info),
+                   quantised=source)
+
+
+def _quantise(t: np.ndarray, bits: int) -> np.ndarray:
+    mask = (1 << bits) - 1
+    return np.clip(np.round(t * mask), 0, mask).astype(np.uint32)
+
+
+def _chunk_ranges(values: np.ndarray, chunks: int) -> tuple[np.ndarray, np.ndarray]:
+    """(N,) -> per-chunk (min, max) float32 of consecutive runs of 256 values."""
+    pad = chunks * SPLATS_PER_CHUNK - len(values)
+    grid = np.concatenate([values, np.full(pad, values[-1])]).reshape(chunks, -1)
+    return grid.min(axis=1).astype(np.float32), grid.max(axis=1).astype(np.float32)
+
+
+def _normalised(values: np.ndarray, low: np.ndarray, high: np.ndarray,
+                owner: np.ndarray) -> np.ndarray:
+    lo = low.astype(np.float64)[owner]
+    span = high.astype(np.float64)[owner] - lo
+    return np.where(span > 0, (values - lo) / np.where(span > 0, span, 1), 0.0)
+
+
+def _pack3(columns: np.ndarray, prefix: str, chunk_cols: dict, owner: np.ndarray,
+           chunks: int) -> np.ndarray:
+    word = np.zeros(len(columns), dtype=np.uint32)
+    for axis, bits, shift, column in zip("xyz", (11, 10, 11), (21, 11, 0), columns.T,
+                                         strict=True):
+        low, high = _chunk_ranges(column, chunks)
+        chunk_cols[f"min_{prefix}{axis}"], chunk_cols[f"max_{prefix}{axis}"] = low, high
+        word |= _quantise(_normalised(column, low, high, owner), bits) << np.uint32(shift)
+    return word
+
+
+def _rotation_words(quat: np.ndarray) -> np.ndarray:
+    """(N, 4) unit quaternions (w x y z) -> (N,) uint32: largest index + three 10-bit others."""
+    n = len(quat)
+    largest = np.argmax(np.abs(quat), axis=1)
+    q = quat * np.where(quat[np.arange(n), largest] < 0, -1.0, 1.0)[:, None]
+    keep = np.ones((n, 4), dtype=bool)
+    keep[np.arange(n), largest] = False
+    others = q[keep].reshape(n, 3)
+    word = largest.astype(np.uint32) << np.uint32(30)
+    for i, shift in enumerate((20, 10, 0)):
+        word |= _quantise(others[:, i] / np.sqrt(2.0) + 0.5, 10) << np.uint32(shift)
+    return word
+
+
+def compress(fields, comments: list[str]) -> PlySource:
+    """The PlayCanvas compressed PlySource of ``fields`` (a :class:`~.splats.SplatFields`),
+    splats in their given order, chunks of 256 consecutive splats."""
+    from .splats import dc_to_color, normalised_quaternions, sigmoid
+
+    n = fields.count
+    chunks = -(-n // SPLATS_PER_CHUNK)
+    owner = np.arange(n) // SPLATS_PER_CHUNK
+    chunk_cols: dict[str, np.ndarray] = {}
+    vertex = np.empty(n, dtype=[(p, "<u4") for p in PACKED])
+    vertex["packed_position"] = _pack3(fields.positions, "", chunk_cols, owner, chunks)
+    scale = np.clip(fields.scale_log.astype(np.float64), -SCALE_CLAMP, SCALE_CLAMP)
+    vertex["packed_scale"] = _pack3(scale, "scale_", chunk_cols, owner, chunks)
+    color = dc_to_color(fields.sh_dc)
+    word = _quantise(sigmoid(fields.opacity), 8)
+    for i, c in enumerate("rgb"):
+        low, high = _chunk_ranges(color[:, i], chunks)
+        chunk_cols[f"min_{c}"], chunk_cols[f"max_{c}"] = low, high
+        word |= _quantise(_normalised(color[:, i], low, high, owner), 8) << np.uint32(24 - 8 * i)
+    vertex["packed_color"] = word
+    vertex["packed_rotation"] = _rotation_words(normalised_quaternions(fields.rotation))
+    order = [*CHUNK_BOUNDS[:6], *CHUNK_BOUNDS[6:], *CHUNK_COLORS]
+    chunk = np.empty(chunks, dtype=[(c, "<f4") for c in order])
+    for c in order:
+        chunk[c] = chunk_cols[c]
+    elements = [PlyElementData("chunk", [PlyProperty(c, "f4", "float") for c in order], chunk),
+                PlyElementData("vertex", [PlyProperty(p, "u4", "uint") for p in PACKED], vertex)]
+    rest = fields.sh_rest.reshape(n, -1)
+    if rest.shape[1]:
+        names = [f"f_rest_{i}" for i in range(rest.shape[1])]
+        codes = rest.astype(np.float32) * np.float32(256 / SH_RANGE) + np.float32(128)
+        np.floor(codes, out=codes)
+        np.clip(codes, 0, 255, out=codes)
+        sh = codes.astype(np.uint8).view([(name, "u1") for name in names]).reshape(n)
+        elements.append(PlyElementData("sh", [PlyProperty(m, "u1", "uchar") for m in names], sh))
+    return PlySource(elements=elements, comments=comments, text=False, byte_order="<")
+
+
+def _untouched_chunks(model, fields) -> np.ndarray | None:
+    """(chunks,) bool: chunks whose every splat still has the values decoded from the model's
+    compressed input (same count and order); None when the model has no such input."""
+    source = model.source
+    original = getattr(source, "quantised", None)
+    decoded = None if source is None else source.element("vertex")
+    if original is None or decoded is None or decoded.count != fields.count:
+        return None
+    data = decoded.data
+    names = data.dtype.names or ()
+    n = fields.count
+    rest = fields.sh_rest.reshape(n, -1)
+    n_rest = sum(1 for m in names if m.startswith("f_rest_"))
+    if n_rest != rest.shape[1]:
+        return None
+    same = np.ones(n, dtype=bool)
+    for cols, values in ((list("xyz"), fields.positions.astype(np.float32)),
+                         ([f"scale_{i}" for i in range(3)], fields.scale_log),
+                         ([f"rot_{i}" for i in range(4)], fields.rotation),
+                         (["opacity"], fields.opacity[:, None]),
+                         ([f"f_dc_{i}" for i in range(3)], fields.sh_dc),
+                         ([f"f_rest_{i}" for i in range(n_rest)], rest)):
+        for j, name in enumerate(cols):
+            same &= data[name] == values[:, j]
+    chunks = -(-n // SPLATS_PER_CHUNK)
+    pad = np.concatenate([same, np.ones(chunks * SPLATS_PER_CHUNK - n, dtype=bool)])
+    return pad.reshape(chunks, -1).all(axis=1)
+
+
+def _keep_codes(out: PlySource, original: PlySource, keep: np.ndarray) -> None:
+    """Copy the original chunk rows and splat codes of the ``keep`` chunks into ``out``."""
+    n = out.element("vertex").count
+    rows = np.repeat(keep, SPLATS_PER_CHUNK)[:n]
+    chunk, old_chunk = out.element("chunk").data, original.element("chunk").data
+    old_names = old_chunk.dtype.names or ()
+    for name in chunk.dtype.names:
+        if name in old_names:
+            chunk[name][keep] = old_chunk[name][:len(keep)][keep]
+        elif name.startswith(("min_", "max_")):  # no colour range in the input: plain 0..1
+            chunk[name][keep] = 0.0 if name.startswith("min_") else 1.0
+    vertex, old_vertex = out.element("vertex").data, original.element("vertex").data
+    for name in PACKED:
+        vertex[name][rows] = old_vertex[name][rows]
+    sh, old_sh = out.element("sh"), original.element("sh")
+    if sh is not None and old_sh is not None:
+        for name in sh.data.dtype.names:
+            sh.data[name][rows] = old_sh.data[name][rows]
+
+
+def write_model(model, path: Path, stream) -> None:
+    """Write ``model`` (3D Gaussian splats) as a PlayCanvas ``.compressed.ply`` to ``stream``."""
+    from .ply_format import write_ply
+    from .splats import fields_of, note_lossy
+
+    fields = fields_of(model, path, ".compressed.ply")
+    note_lossy(path, ".compressed.ply", "positions and log scales 11/10/11 bits within each "
+               "256-splat chunk's range, colour and opacity 8 bits, rotation 10 bits per "
+               "component, SH rest 8 bits in [-4, 4)", model)
+    out = compress(fields, ["written by splatdeform (PlayCanvas compressed layout)"])
+    keep = _untouched_chunks(model, fields)
+    if keep is not None and keep.any():  # untouched chunks keep the input's bounds and codes
+        _keep_codes(out, model.source.quantised, keep)
+    write_ply(out, stream, text=False)

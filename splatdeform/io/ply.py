@@ -13,6 +13,7 @@ from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
+from numpy.lib.recfunctions import structured_to_unstructured
 
 from ..errors import FormatError
 from ..model import Gaussians, PlyElementData, PlyProperty, PlySource, PointModel, classify
@@ -23,10 +24,15 @@ AXIS_NAMES = ("ux", "uy", "uz", "vx", "vy", "vz")
 RADIUS_NAMES = ("radius", "surfel_radius")
 
 
-def _columns(data: np.ndarray, names: list[str] | tuple[str, ...]) -> np.ndarray | None:
+def _columns(data: np.ndarray, names: list[str] | tuple[str, ...],
+             dtype: type = np.float64) -> np.ndarray | None:
+    """(N, len(names)) ``dtype`` copy of those fields (None when one is missing); fields of one
+    type are taken as a strided view first (no per-column float64 round trip)."""
     if not all(n in (data.dtype.names or ()) for n in names):
         return None
-    return np.stack([data[n].astype(np.float64) for n in names], axis=1)
+    if len({data.dtype[n] for n in names}) == 1:
+        return structured_to_unstructured(data[list(names)]).astype(dtype)
+    return np.stack([data[n].astype(dtype) for n in names], axis=1)
 
 
 def _triangles_from_faces(column: np.ndarray) -> np.ndarray:
@@ -124,12 +130,11 @@ def model_from_source(source: PlySource, path: str | Path, *,
         rest = sorted((n for n in names if n.startswith("f_rest_")),
                       key=lambda n: int(n[7:]) if n[7:].isdigit() else 0)
         gaussians = Gaussians(
-            scale_log=_columns(data, [f"scale_{i}" for i in range(3)]).astype(np.float32),
-            rotation=_columns(data, [f"rot_{i}" for i in range(4)]).astype(np.float32),
+            scale_log=_columns(data, [f"scale_{i}" for i in range(3)], np.float32),
+            rotation=_columns(data, [f"rot_{i}" for i in range(4)], np.float32),
             opacity=data["opacity"].astype(np.float32) if "opacity" in names else None,
-            sh_dc=None if _columns(data, ["f_dc_0", "f_dc_1", "f_dc_2"]) is None else
-            _columns(data, ["f_dc_0", "f_dc_1", "f_dc_2"]).astype(np.float32),
-            sh_rest=_columns(data, rest).astype(np.float32) if rest else None,
+            sh_dc=_columns(data, ["f_dc_0", "f_dc_1", "f_dc_2"], np.float32),
+            sh_rest=_columns(data, rest, np.float32) if rest else None,
         )
         if colors is None and gaussians.sh_dc is not None:
             from splatdeform.model import dc_to_colors
@@ -323,7 +328,8 @@ def source_for_save(model: PointModel) -> PlySource:
             else:
                 data, props = _set_field(data, props, name, values)
     elements = [el for el in source.elements]
-    new_vertex = PlyElementData("vertex", props, data)
+    new_vertex = PlyElementData("vertex", props, data, None if model.source is None
+                                else source.element("vertex").ascii_text)
     if model.source is None:
         elements = [new_vertex]
         if model.faces is not None and model.n_faces:

@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import FormatError
-from ..model import PlyElementData, PlyProperty, PlySource
+from ..model import AsciiRows, PlyElementData, PlyProperty, PlySource
 from .regular import check_regular
 
 TYPE_CODES = {
@@ -31,6 +31,7 @@ TYPE_NAMES = {"i1": "char", "u1": "uchar", "i2": "short", "u2": "ushort", "i4": 
               "u4": "uint", "f4": "float", "f8": "double"}  # fmt: skip
 FORMATS = {"ascii": None, "binary_little_endian": "<", "binary_big_endian": ">"}
 MAX_HEADER_BYTES = 1 << 20
+ASCII_CHUNK_ROWS = 100_000  # ascii rows parsed (and written) per block: bounded token lists
 MAX_COUNT_DIGITS = 15  # 1e15 rows: far beyond any file that fits on a disk
 
 
@@ -413,6 +414,30 @@ def _parse_ascii_rows(el: _AsciiElement, props: list[PlyProperty]) -> np.ndarray
     return out
 
 
+def _ascii_rows(rows: list[bytes], data: np.ndarray) -> AsciiRows:
+    rows = [r.strip() for r in rows]
+    starts = np.zeros(len(rows) + 1, dtype=np.int64)
+    np.cumsum(np.fromiter((len(r) for r in rows), dtype=np.int64, count=len(rows)),
+              out=starts[1:])
+    return AsciiRows(b"".join(rows), starts, data)
+
+
+def shortest_text(values: np.ndarray, dtype: str) -> list[str]:
+    """The shortest text that reads back to each value of type ``dtype`` ('f4', 'i2', ...)."""
+    if dtype[0] != "f":
+        return [str(int(v)) for v in values]
+    kind = np.float32 if dtype == "f4" else np.float64
+    out = []
+    for v in np.asarray(values, dtype=kind):
+        if not np.isfinite(v):
+            out.append("nan" if np.isnan(v) else ("inf" if v > 0 else "-inf"))
+        elif v == 0 or 1e-5 <= abs(v) < 1e16:
+            out.append(np.format_float_positional(v, unique=True, trim="-"))
+        else:
+            out.append(np.format_float_scientific(v, unique=True, trim="-"))
+    return out
+
+
 def _read_file(path: Path) -> bytes:
     """The whole file; refuses anything but a regular file before reading (a FIFO or a device
     would block or never end)."""
@@ -457,9 +482,14 @@ def read_ply(path: str | Path) -> PlySource:
             if len(rows) < count:
                 raise FormatError(f"{path}: truncated ascii body: element '{name}' declares "
                                   f"{count} rows, {len(rows)} present")
-            start = pos
-            el = _AsciiElement(path, name, rows, lambda i, s=start: line_of(s + i))
-            elements.append(PlyElementData(name, props, _parse_ascii_rows(el, props)))
+            parts = []
+            for first in range(0, max(count, 1), ASCII_CHUNK_ROWS):  # bounded token lists
+                start = pos + first
+                el = _AsciiElement(path, name, rows[first:first + ASCII_CHUNK_ROWS],
+                                   lambda i, s=start: line_of(s + i))
+                parts.append(_parse_ascii_rows(el, props))
+            data = parts[0] if len(parts) == 1 else np.concatenate(parts)
+            elements.append(PlyElementData(name, props, data, _ascii_rows(rows, data)))
             pos += count
         if pos < len(lines):
             raise FormatError(f"{path}: {len(lines) - pos} ascii lines after the last element "
@@ -539,8 +569,46 @@ def _format_ascii_column(values: np.ndarray, dtype: str) -> np.ndarray:
     return np.char.mod("%d", values.astype(np.int64))
 
 
+def _kept_rows(el: PlyElementData) -> list[bytes] | None:
+    """The element's rows as text, reusing the text read for every unchanged value (the
+    shortest round-trip text for changed ones); None when the element has no text to reuse
+    (not read from ascii, other properties or rows, or changed list properties)."""
+    text = el.ascii_text
+    if text is None or len(text.starts) - 1 != el.count:
+        return None
+    orig = text.original
+    names = [p.name for p in el.properties]
+    if list(orig.dtype.names or ()) != names or orig.dtype != el.data.dtype:
+        return None
+    body, starts = text.body, text.starts
+    if el.data is orig:
+        return [body[starts[i]:starts[i + 1]] for i in range(el.count)]
+    if any(p.is_list for p in el.properties):
+        return None
+    changed = np.zeros((el.count, len(names)), dtype=bool)
+    for j, p in enumerate(el.properties):
+        a, b = el.data[p.name], orig[p.name]
+        diff = a != b
+        if p.dtype[0] == "f":
+            diff &= ~(np.isnan(a) & np.isnan(b))
+        changed[:, j] = diff
+    rows = [body[starts[i]:starts[i + 1]] for i in range(el.count)]
+    for i in np.flatnonzero(changed.any(axis=1)):
+        tokens = rows[i].split()
+        for j in np.flatnonzero(changed[i]):
+            p = el.properties[j]
+            tokens[j] = shortest_text(el.data[p.name][i:i + 1], p.dtype)[0].encode()
+        rows[i] = b" ".join(tokens)
+    return rows
+
+
 def _write_ascii_element(out: io.BufferedIOBase, el: PlyElementData) -> None:
     if el.count == 0:
+        return
+    kept = _kept_rows(el)
+    if kept is not None:
+        for first in range(0, len(kept), ASCII_CHUNK_ROWS):
+            out.write(b"\n".join(kept[first:first + ASCII_CHUNK_ROWS]) + b"\n")
         return
     columns: list[np.ndarray] = []  # one string per row and property
     for p in el.properties:

@@ -24,6 +24,7 @@ import numpy as np
 from splatdeform.edit.stream.progress import Progress
 from splatdeform.edit.stream.sources import STREAMABLE, open_chunks
 from splatdeform.errors import ConfigError
+from splatdeform.io import extension_of
 
 BASE_RSS = 150 * 2**20  # measured: Python + numpy + scipy + pyopencl (+ PoCL) resident
 _UNITS = {"": 1, "b": 1, "k": 2**10, "kb": 2**10, "kib": 2**10, "m": 2**20, "mb": 2**20,
@@ -89,7 +90,7 @@ def chunk_for_budget(budget: int, record_bytes: int, fixed_bytes: int) -> int:
 
 def should_stream(cfg, in_path: Path, budget: int | None) -> bool:
     """True when the input is streamable and its in-memory estimate exceeds the budget."""
-    if Path(in_path).suffix.lower() not in STREAMABLE:
+    if extension_of(in_path) not in STREAMABLE:
         return False
     peak = estimate_in_memory_peak(in_path, cfg.boundary.neighbors)
     return peak is not None and peak > (budget or default_budget())

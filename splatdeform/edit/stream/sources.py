@@ -19,13 +19,13 @@ from pathlib import Path
 import numpy as np
 
 from splatdeform.errors import FormatError, InputError
+from splatdeform.io import STREAMABLE, extension_of
 from splatdeform.io import las as laslib
 from splatdeform.io import ply as plylib
 from splatdeform.io import ply_format as plyfmt
 from splatdeform.model import PlyElementData, PlySource, PointModel
 
-PLY_EXTENSIONS = (".ply",)
-STREAMABLE = PLY_EXTENSIONS + laslib.EXTENSIONS
+__all__ = ["STREAMABLE", "open_chunks"]  # STREAMABLE: the io format table's streamable list
 
 
 class ChunkModel(PointModel):
@@ -183,10 +183,11 @@ class LasChunks(ChunkFile):
 def open_chunks(path: str | Path) -> ChunkFile:
     """The chunk reader for ``path`` by extension (InputError when not streamable)."""
     path = Path(path)
-    ext = path.suffix.lower()
-    if ext in PLY_EXTENSIONS:
-        return PlyChunks(path)
-    if ext in laslib.EXTENSIONS:
+    ext = extension_of(path)
+    if ext in STREAMABLE and ext in laslib.EXTENSIONS:
         return LasChunks(path)
-    raise InputError(f"{path}: streaming reads .ply (binary) and .las/.laz; this {ext} file "
-                     "must fit the memory budget (raise --memory-budget)")
+    if ext in STREAMABLE:
+        return PlyChunks(path)
+    raise InputError(f"{path}: streaming reads {', '.join(STREAMABLE)} (PLY binary); this "
+                     f"{ext or 'extensionless'} file must fit the memory budget (raise "
+                     "--memory-budget)")

@@ -1,0 +1,88 @@
+"""Splat formats: our read and write vs PlayCanvas splat-transform (``-g cpu``), whole process,
+one run each, plus peak RSS (``/usr/bin/time -f %M``) against the decoded arrays' size.
+
+    python benchmarks/bench_formats.py              # 1M Gaussians, SH degree 3
+    python benchmarks/bench_formats.py --n 200000
+
+Scene: random 3DGS fields (seeded) written as a binary PLY (62 float32 per splat). Write: a
+process converting that PLY to the format (both sides read the PLY first); read: a process
+decoding the format's file (ours from our write, splat-transform's from its own) and writing
+nothing (ours: ``load``; splat-transform: output ``null``). The decoded arrays: N x 62 float32
+(plus N x 3 float64 positions in our model).
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "tests"))
+
+from data_tools import splat_transform  # noqa: E402
+
+FORMATS = [".compressed.ply", ".spz", ".glb", ".splat"]
+OURS = ("import warnings, sys; warnings.simplefilter('ignore');"
+        "from splatdeform.io import load, save; save(load(sys.argv[1]), sys.argv[2])")
+OURS_READ = "import sys; from splatdeform.io import load; load(sys.argv[1])"
+
+
+def timed(argv: list[str]) -> tuple[float, int]:
+    """(wall seconds, peak RSS MiB) of one process."""
+    start = time.perf_counter()
+    proc = subprocess.run(["/usr/bin/time", "-f", "%M", *argv], capture_output=True, text=True,
+                          env={**os.environ, "PYTHONPATH": str(ROOT)})
+    wall = time.perf_counter() - start
+    if proc.returncode != 0:
+        raise SystemExit(f"failed: {' '.join(argv)}\n{proc.stderr[-2000:]}")
+    return wall, int(proc.stderr.strip().splitlines()[-1]) // 1024
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser()
+    parser.add_argument("--n", type=int, default=1_000_000)
+    parser.add_argument("--formats", nargs="*", default=FORMATS)
+    args = parser.parse_args()
+    from splat_oracle import write_scene
+
+    splat_transform.install()
+    st = [*splat_transform.command(), "-g", "cpu", "-q", "-w"]
+    decoded_mib = args.n * (62 * 4 + 24) / 2**20
+    with tempfile.TemporaryDirectory() as tmp:
+        tmp = Path(tmp)
+        src = write_scene(tmp / "scene.ply", args.n, 3, seed=1)
+        print(f"{args.n:,} Gaussians, SH3, {src.stat().st_size / 2**20:.0f} MiB PLY; decoded "
+              f"arrays {decoded_mib:.0f} MiB; load average {os.getloadavg()[0]:.1f}")
+        print("| format | step | ours s | splat-transform -g cpu s | ratio | ours peak MiB "
+              "(x decoded) | theirs peak MiB |")
+        print("|---|---|---|---|---|---|---|")
+        for ext in args.formats:
+            extra = ["--spz-version", "3"] if ext == ".spz" else []
+            ours_out, theirs_out = tmp / f"ours{ext}", tmp / f"theirs{ext}"
+            rows = []
+            w_ours = timed([sys.executable, "-c", OURS, str(src), str(ours_out)])
+            w_theirs = (timed([*st, *extra, str(src), str(theirs_out)]) if ext != ".splat"
+                        else None)
+            rows.append(("write", w_ours, w_theirs))
+            r_ours = timed([sys.executable, "-c", OURS_READ, str(ours_out)])
+            r_theirs = (timed([*st, str(ours_out if ext == ".splat" else theirs_out), "null"])
+                        if ext != ".glb" else None)
+            rows.append(("read", r_ours, r_theirs))
+            for step, ours, theirs in rows:
+                t = f"{theirs[0]:.2f}" if theirs else "n/a"
+                ratio = f"{theirs[0] / ours[0]:.2f}x" if theirs else "-"
+                tm = f"{theirs[1]}" if theirs else "n/a"
+                print(f"| {ext} | {step} | {ours[0]:.2f} | {t} | {ratio} | {ours[1]} "
+                      f"({ours[1] / decoded_mib:.1f}x) | {tm} |", flush=True)
+            for p in (ours_out, theirs_out):
+                p.unlink(missing_ok=True)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,486 @@
+"""PCD (Point Cloud Library) files, read and written by this module, every field kept.
+
+Header lines (``#`` comments allowed): VERSION, FIELDS, SIZE, TYPE (I, U, F), COUNT, WIDTH,
+HEIGHT, VIEWPOINT, POINTS, DATA (``ascii``, ``binary`` or ``binary_compressed``). The header's
+fields are validated against each other and against the file size before anything is allocated.
+Bodies: ``ascii`` rows of whitespace-separated values (parsed in chunks); ``binary`` packed rows
+(little-endian); ``binary_compressed``: uint32 compressed size, uint32 raw size, then an LZF
+block holding the data column by column (each field's values for every point in turn).
+
+A save to ``.pcd`` writes the same fields, types, counts and DATA encoding as the input, with the
+model's positions (and normals, when the file has ``normal_x..z``) written in; ascii values that
+did not change keep their original text. Packed ``rgb``/``rgba`` floats are kept as raw bits.
+"""
+
+from __future__ import annotations
+
+import io
+import re
+import struct
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import FormatError
+from ..model import PlyElementData, PlyProperty, PlySource, PointModel, classify
+from .checks import nonfinite_points
+from .ply_format import shortest_text
+
+EXTENSIONS = (".pcd",)
+ENCODINGS = ("ascii", "binary", "binary_compressed")
+TYPE_SIZES = {"I": (1, 2, 4, 8), "U": (1, 2, 4, 8), "F": (4, 8)}
+MAX_HEADER_LINES = 64
+ASCII_CHUNK_ROWS = 200_000
+PLY_TYPES = {"i1": "char", "u1": "uchar", "i2": "short", "u2": "ushort", "i4": "int",
+             "u4": "uint", "f4": "float", "f8": "double", "i8": "double", "u8": "double"}
+
+
+@dataclass
+class PcdSource:
+    """Everything a PCD file held. header: (key, value text) pairs in file order (comments as
+    ('#', text)); fields/sizes/types/counts: the field table; data: (N,) structured array with
+    one column per field (a COUNT > 1 field is a sub-array); encoding: the DATA line;
+    ascii_text: for ascii files, (N, columns) the original value texts (bytes), else None."""
+
+    header: list[tuple[str, str]]
+    fields: list[str]
+    sizes: list[int]
+    types: list[str]
+    counts: list[int]
+    width: int
+    height: int
+    encoding: str
+    data: np.ndarray
+    ascii_text: np.ndarray | None = None
+    obj_info: list[str] = field(default_factory=list)
+    text: bool = False
+    byte_order: str = "<"
+
+    @property
+    def comments(self) -> list[str]:
+        return [f"PCD {dict(self.header).get('VERSION', '')} DATA {self.encoding}",
+                *(v for k, v in self.header if k == "#")]
+
+    def element(self, name: str) -> PlyElementData | None:
+        return self.elements[0] if name == "vertex" else None
+
+    @property
+    def elements(self) -> list[PlyElementData]:
+        """The fields as one PLY-like vertex element (a COUNT > 1 field as name_0 ..)."""
+        columns = []
+        for name, count in zip(self.fields, self.counts, strict=True):
+            col = self.data[name]
+            if count == 1:
+                columns.append((name, col))
+            else:
+                columns += [(f"{name}_{i}", col[:, i]) for i in range(count)]
+        data = np.empty(len(self.data), dtype=[(n, c.dtype) for n, c in columns])
+        props = []
+        for n, c in columns:
+            data[n] = c
+            props.append(PlyProperty(n, c.dtype.str[1:], PLY_TYPES[c.dtype.str[1:]]))
+        return [PlyElementData("vertex", props, data)]
+
+
+def _dtype(src_fields, sizes, types, counts) -> np.dtype:
+    parts = []
+    for name, size, kind, count in zip(src_fields, sizes, types, counts, strict=True):
+        code = {"I": "i", "U": "u", "F": "f"}[kind] + str(size)
+        parts.append((name, "<" + code) if count == 1 else (name, "<" + code, (count,)))
+    return np.dtype(parts)
+
+
+def _ints(path, key: str, words: list[str], low: int = 0) -> list[int]:
+    try:
+        values = [int(w) for w in words]
+    except ValueError:
+        raise FormatError(f"{path}: PCD {key} must be integers, got {' '.join(words)!r}") \
+            from None
+    if any(v < low for v in values):
+        raise FormatError(f"{path}: PCD {key} values must be >= {low}")
+    return values
+
+
+def parse_header(path: str | Path, raw: bytes) -> tuple[PcdSource, int]:
+    """(source without data, body offset); every field validated, one line per fault."""
+    header: list[tuple[str, str]] = []
+    values: dict[str, list[str]] = {}
+    at = 0
+    for _ in range(MAX_HEADER_LINES + 200):
+        end = raw.find(b"\n", at)
+        if end < 0:
+            raise FormatError(f"{path}: PCD header has no DATA line")
+        try:
+            line = raw[at:end].decode("ascii").strip()
+        except UnicodeDecodeError:
+            raise FormatError(f"{path}: PCD header is not ASCII text") from None
+        at = end + 1
+        if not line:
+            continue
+        if line.startswith("#"):
+            header.append(("#", line[1:].strip()))
+            continue
+        key, *words = line.split()
+        if key not in ("VERSION", "FIELDS", "SIZE", "TYPE", "COUNT", "WIDTH", "HEIGHT",
+                       "VIEWPOINT", "POINTS", "DATA"):
+            raise FormatError(f"{path}: unknown PCD header line {line[:60]!r}")
+        if key in values:
+            raise FormatError(f"{path}: PCD header line {key} appears twice")
+        values[key] = words
+        header.append((key, " ".join(words)))
+        if key == "DATA":
+            break
+    else:
+        raise FormatError(f"{path}: PCD header is too long")
+    missing = [k for k in ("FIELDS", "SIZE", "TYPE", "WIDTH", "HEIGHT", "POINTS", "DATA")
+               if k not in values]
+    if missing:
+        raise FormatError(f"{path}: PCD header lacks {', '.join(missing)}")
+    names = values["FIELDS"]
+    if not names or len(set(names)) != len(names) \
+            or not all(re.fullmatch(r"[A-Za-z_][A-Za-z0-9_]*", n) for n in names):
+        raise FormatError(f"{path}: PCD FIELDS must be distinct names, got "
+                          f"{' '.join(names)[:80]!r}")
+    n_fields = len(names)
+    sizes = _ints(path, "SIZE", values["SIZE"], 1)
+    types = values["TYPE"]
+    counts = _ints(path, "COUNT", values.get("COUNT", ["1"] * n_fields), 1)
+    for key, got in (("SIZE", sizes), ("TYPE", types), ("COUNT", counts)):
+        if len(got) != n_fields:
+            raise FormatError(f"{path}: PCD {key} has {len(got)} entries for {n_fields} FIELDS")
+    for name, size, kind in zip(names, sizes, types, strict=True):
+        if kind not in TYPE_SIZES or size not in TYPE_SIZES[kind]:
+            raise FormatError(f"{path}: PCD field {name}: TYPE {kind} SIZE {size} is not valid "
+                              "(I/U with 1, 2, 4 or 8 bytes; F with 4 or 8)")
+    if not all(n in names for n in "xyz"):
+        raise FormatError(f"{path}: PCD FIELDS lack x, y or z")
+    width, = _ints(path, "WIDTH", values["WIDTH"][:1] or ["?"])
+    height, = _ints(path, "HEIGHT", values["HEIGHT"][:1] or ["?"])
+    points, = _ints(path, "POINTS", values["POINTS"][:1] or ["?"])
+    if width * height != points:
+        raise FormatError(f"{path}: PCD WIDTH {width} x HEIGHT {height} != POINTS {points}")
+    if points == 0:
+        raise FormatError(f"{path}: PCD file has no points")
+    if "VIEWPOINT" in values:
+        try:
+            vp = [float(v) for v in values["VIEWPOINT"]]
+        except ValueError:
+            vp = []
+        if len(vp) != 7 or not np.isfinite(vp).all():
+            raise FormatError(f"{path}: PCD VIEWPOINT must be 7 finite numbers")
+    encoding = values["DATA"][0] if len(values["DATA"]) == 1 else ""
+    if encoding not in ENCODINGS:
+        raise FormatError(f"{path}: PCD DATA {' '.join(values['DATA'])!r}; expected one of "
+                          f"{', '.join(ENCODINGS)}")
+    dtype = _dtype(names, sizes, types, counts)
+    body = len(raw) - at
+    need = {"binary": points * dtype.itemsize, "binary_compressed": 8,
+            "ascii": points * 2 * sum(counts) - 1}[encoding]
+    if body < need:
+        raise FormatError(f"{path}: PCD header declares {points:,} points ({need:,} bytes at "
+                          f"least for DATA {encoding}); the body has {body:,}")
+    source = PcdSource(header=header, fields=names, sizes=sizes, types=types, counts=counts,
+                       width=width, height=height, encoding=encoding,
+                       data=np.empty(0, dtype=dtype))
+    return source, at
+
+
+# ---- LZF (the binary_compressed block) ------------------------------------------------------
+
+def lzf_decompress(path, data: bytes, size: int) -> bytes:
+    out = bytearray(size)
+    i = o = 0
+    n = len(data)
+    try:
+        while i < n:
+            ctrl = data[i]
+            i += 1
+            if ctrl < 32:  # a literal run of ctrl + 1 bytes
+                run = ctrl + 1
+                if i + run > n or o + run > size:
+                    raise IndexError
+                out[o:o + run] = data[i:i + run]
+                i += run
+                o += run
+                continue
+            length = ctrl >> 5
+            if length == 7:
+                length += data[i]
+                i += 1
+            back = o - ((ctrl & 31) << 8) - data[i] - 1
+            i += 1
+            length += 2
+            if back < 0 or o + length > size:
+                raise IndexError
+            if back + length <= o:
+                out[o:o + length] = out[back:back + length]
+            else:  # overlapping copy: byte by byte semantics
+                for k in range(length):
+                    out[o + k] = out[back + k]
+            o += length
+    except IndexError:
+        raise FormatError(f"{path}: PCD binary_compressed block is corrupt") from None
+    if o != size:
+        raise FormatError(f"{path}: PCD binary_compressed block decodes to {o:,} bytes, its "
+                          f"header says {size:,}")
+    return bytes(out)
+
+
+def lzf_compress(data: bytes) -> bytes:
+    """A valid LZF stream of ``data`` made of literal runs only (32 bytes each)."""
+    n = len(data)
+    runs = -(-n // 32)
+    out = np.zeros(n + runs, dtype=np.uint8)
+    src = np.frombuffer(data, dtype=np.uint8)
+    full = n // 32
+    if full:
+        block = out[:full * 33].reshape(full, 33)
+        block[:, 0] = 31
+        block[:, 1:] = src[:full * 32].reshape(full, 32)
+    tail = n - full * 32
+    if tail:
+        out[full * 33] = tail - 1
+        out[full * 33 + 1:] = src[full * 32:]
+    return out.tobytes()
+
+
+# ---- reading --------------------------------------------------------------------------------
+
+def _parse_ascii(path, body: bytes, source: PcdSource, points: int):
+    dtype = source.data.dtype
+    columns = sum(source.counts)
+    rows = body.split(b"\n", points)
+    lines = [r for r in rows[:points] if r.strip()]
+    if len(lines) < points or (len(rows) > points and rows[points].strip()):
+        got = len(lines)
+        raise FormatError(f"{path}: PCD ascii body has {got:,} rows"
+                          f"{'' if got < points else ' or more'}; the header says POINTS "
+                          f"{points:,}" if got < points else
+                          f"{path}: PCD ascii body has more rows than POINTS {points:,}")
+    texts = np.empty((points, columns), dtype=object)
+    data = np.empty(points, dtype=dtype)
+    flat_kinds = [(name, i) for name, c in zip(source.fields, source.counts, strict=True)
+                  for i in range(c)]
+    for start in range(0, points, ASCII_CHUNK_ROWS):
+        chunk = lines[start:start + ASCII_CHUNK_ROWS]
+        words = [ln.split() for ln in chunk]
+        if any(len(w) != columns for w in words):
+            bad = next(k for k, w in enumerate(words) if len(w) != columns)
+            raise FormatError(f"{path}: PCD ascii row {start + bad} has {len(words[bad])} "
+                              f"values; expected {columns}")
+        block = np.array(words, dtype=object)
+        texts[start:start + len(chunk)] = block
+        for col, (name, i) in enumerate(flat_kinds):
+            target = data[name][start:start + len(chunk)]
+            kind = dtype[name].base.kind
+            try:
+                if kind == "f" and name in ("rgb", "rgba"):
+                    vals = np.array([_packed_color(w) for w in block[:, col]], dtype=np.uint32)\
+                        .view(np.float32)
+                elif kind == "f":
+                    vals = np.array(block[:, col].astype(str), dtype=np.float64)
+                else:
+                    vals = np.array(block[:, col].astype(str), dtype=np.int64)
+            except ValueError:
+                raise FormatError(f"{path}: PCD ascii field {name}: a value is not a "
+                                  f"{'number' if kind == 'f' else 'integer'}") from None
+            if target.ndim == 2:
+                target[:, i] = vals
+            else:
+                target[:] = vals
+    return data, texts
+
+
+def _packed_color(word: bytes) -> int:
+    """An ascii rgb value: PCL writes the packed float's bits as an unsigned integer (or as
+    the float's own text): keep the 32 bits."""
+    if re.fullmatch(rb"[0-9]+", word):
+        return int(word) & 0xFFFFFFFF
+    return int(np.array(float(word), dtype=np.float32).view(np.uint32))
+
+
+def read_source(path: str | Path) -> tuple[PcdSource, int]:
+    path = Path(path)
+    raw = path.read_bytes()
+    source, at = parse_header(path, raw)
+    points = source.width * source.height
+    dtype = source.data.dtype
+    texts = None
+    if source.encoding == "binary":
+        data = np.frombuffer(raw, dtype=dtype, count=points, offset=at).copy()
+    elif source.encoding == "binary_compressed":
+        packed, size = struct.unpack_from("<II", raw, at)
+        if size != points * dtype.itemsize:
+            raise FormatError(f"{path}: PCD binary_compressed raw size {size:,} != POINTS "
+                              f"{points:,} x {dtype.itemsize} bytes")
+        if at + 8 + packed > len(raw):
+            raise FormatError(f"{path}: PCD binary_compressed block of {packed:,} bytes runs "
+                              "past the end of the file")
+        block = lzf_decompress(path, raw[at + 8:at + 8 + packed], size)
+        data = np.empty(points, dtype=dtype)
+        offset = 0
+        for name in source.fields:
+            sub = dtype[name]
+            width = sub.itemsize * points
+            column = np.frombuffer(block, dtype=sub.base, count=points * (sub.itemsize //
+                                   sub.base.itemsize), offset=offset)
+            data[name] = column.reshape(data[name].shape)
+            offset += width
+    else:
+        data, texts = _parse_ascii(path, raw[at:], source, points)
+    return replace(source, data=data, ascii_text=texts), at
+
+
+def _columns(data: np.ndarray, names: tuple[str, ...]) -> np.ndarray | None:
+    if not all(n in (data.dtype.names or ()) for n in names):
+        return None
+    return np.stack([data[n].astype(np.float64) for n in names], axis=1)
+
+
+def _colors(data: np.ndarray) -> np.ndarray | None:
+    name = next((n for n in ("rgb", "rgba") if n in (data.dtype.names or ())), None)
+    if name is None or data[name].ndim != 1:
+        return None
+    bits = data[name].view(np.uint32) if data[name].dtype.itemsize == 4 else \
+        data[name].astype(np.uint32)
+    return np.stack([(bits >> 16) & 255, (bits >> 8) & 255, bits & 255], axis=1).astype(np.uint8)
+
+
+def read_model(path: str | Path, *, drop_nonfinite: bool = False) -> PointModel:
+    source, _ = read_source(path)
+    data = source.data
+    positions = _columns(data, ("x", "y", "z"))
+    bad = nonfinite_points(path, positions, drop_nonfinite)
+    if bad.any():
+        keep = ~bad
+        source = replace(source, data=data[keep], width=int(keep.sum()), height=1,
+                         ascii_text=None if source.ascii_text is None
+                         else source.ascii_text[keep])
+        data, positions = source.data, positions[keep]
+    normals = _columns(data, ("normal_x", "normal_y", "normal_z"))
+    if normals is not None and not np.isfinite(normals).all():
+        normals = None
+    colors = _colors(data)
+    kind = classify(has_faces=False, has_normals=normals is not None, has_radius=False,
+                    has_axes=False, has_gaussians=False)
+    return PointModel(positions=positions, normals=normals, colors=colors, kind=kind,
+                      source=source, path=str(path))
+
+
+# ---- writing --------------------------------------------------------------------------------
+
+def source_for_save(model: PointModel) -> PcdSource:
+    """The model's PCD source with its positions (and normals) written in, or a new xyz
+    (+ normals, rgb) source for a model not read from PCD."""
+    source = model.source if isinstance(model.source, PcdSource) else None
+    if source is None:
+        names = ["x", "y", "z"]
+        cols = [model.positions[:, i] for i in range(3)]
+        if model.normals is not None:
+            names += ["normal_x", "normal_y", "normal_z"]
+            cols += [model.normals[:, i] for i in range(3)]
+        data = np.empty(model.n_points, dtype=[(n, "<f4") for n in names]
+                        + ([("rgb", "<f4")] if model.colors is not None else []))
+        for n, c in zip(names, cols, strict=True):
+            data[n] = c
+        if model.colors is not None:
+            c = model.colors.astype(np.uint32)
+            data["rgb"] = ((c[:, 0] << 16) | (c[:, 1] << 8) | c[:, 2]).view(np.float32)
+        names = list(data.dtype.names)
+        return PcdSource(header=[("#", "written by splatdeform")], fields=names,
+                         sizes=[4] * len(names), types=["F"] * len(names),
+                         counts=[1] * len(names), width=model.n_points, height=1,
+                         encoding="binary", data=data)
+    if len(source.data) != model.n_points:
+        raise FormatError(f"model has {model.n_points} points but its PCD source "
+                          f"{len(source.data)}; cannot save it field by field")
+    data = source.data.copy()
+    texts = None if source.ascii_text is None else source.ascii_text.copy()
+    updates = [("x", model.positions[:, 0]), ("y", model.positions[:, 1]),
+               ("z", model.positions[:, 2])]
+    if model.normals is not None and all(f"normal_{a}" in source.fields for a in "xyz"):
+        updates += [(f"normal_{a}", model.normals[:, i]) for i, a in enumerate("xyz")]
+    starts = np.cumsum([0, *source.counts])
+    for name, values in updates:
+        column = data[name]
+        new = values.astype(column.dtype)
+        changed = new != column
+        column[changed] = new[changed]
+        if texts is not None and changed.any():
+            col = starts[source.fields.index(name)]
+            texts[changed, col] = [t.encode() for t in shortest_text(new[changed],
+                                                                     column.dtype.str[1:])]
+    return replace(source, data=data, ascii_text=texts)
+
+
+def _header_bytes(source: PcdSource) -> bytes:
+    points = len(source.data)
+    width, height = (source.width, source.height) if source.width * source.height == points \
+        else (points, 1)
+    table = {"FIELDS": " ".join(source.fields), "SIZE": " ".join(map(str, source.sizes)),
+             "TYPE": " ".join(source.types), "COUNT": " ".join(map(str, source.counts)),
+             "WIDTH": str(width), "HEIGHT": str(height), "POINTS": str(points),
+             "DATA": source.encoding}
+    lines, seen = [], set()
+    for key, value in source.header:
+        if key == "#":
+            lines.append(f"# {value}".rstrip())
+            continue
+        lines.append(f"{key} {table.get(key, value)}")
+        seen.add(key)
+    defaults = [("VERSION", "0.7"), ("FIELDS", None), ("SIZE", None), ("TYPE", None),
+                ("COUNT", None), ("WIDTH", None), ("HEIGHT", None),
+                ("VIEWPOINT", "0 0 0 1 0 0 0"), ("POINTS", None), ("DATA", None)]
+    body = [ln for ln in lines if not ln.startswith("DATA ")]
+    for key, value in defaults:
+        if key not in seen and key != "DATA":
+            body.append(f"{key} {table.get(key, value)}")
+    body.append(f"DATA {source.encoding}")
+    return ("\n".join(body) + "\n").encode("ascii")
+
+
+def write_source(source: PcdSource, out) -> None:
+    out.write(_header_bytes(source))
+    data = source.data
+    if source.encoding == "binary":
+        out.write(data.astype(data.dtype.newbyteorder("<")).tobytes())
+    elif source.encoding == "binary_compressed":
+        raw = b"".join(np.ascontiguousarray(data[n]).tobytes() for n in source.fields)
+        packed = lzf_compress(raw)
+        out.write(struct.pack("<II", len(packed), len(raw)))
+        out.write(packed)
+    else:
+        texts = source.ascii_text
+        if texts is None:
+            texts = _ascii_texts(source)
+        buf = io.BytesIO()
+        for start in range(0, len(texts), ASCII_CHUNK_ROWS):
+            block = texts[start:start + ASCII_CHUNK_ROWS]
+            buf.seek(0)
+            buf.truncate()
+            buf.write(b"\n".join(b" ".join(row) for row in block) + b"\n")
+            out.write(buf.getvalue())
+
+
+def _ascii_texts(source: PcdSource) -> np.ndarray:
+    cols = []
+    for name in source.fields:
+        column = source.data[name]
+        column = column if column.ndim == 2 else column[:, None]
+        for i in range(column.shape[1]):
+            if name in ("rgb", "rgba") and column.dtype.kind == "f":
+                cols.append([str(int(v)).encode() for v in column[:, i].view(np.uint32)])
+            else:
+                cols.append([t.encode() for t in shortest_text(column[:, i],
+                                                               column.dtype.str[1:])])
+    return np.array(cols, dtype=object).T if cols else np.empty((0, 0), dtype=object)
+
+
+def write_model(model: PointModel, path: Path, stream) -> None:
+    write_source(source_for_save(model), stream)
+
+
+def ply_source_from_pcd(source: PcdSource) -> PlySource:
+    """Every PCD field as a PLY vertex property (for PCD -> PLY conversion)."""
+    return PlySource(elements=source.elements, comments=source.comments)

@@ -1,0 +1,175 @@
+"""The 3D Gaussian splat fields the quantised splat formats (.splat, .spz, .compressed.ply, ...)
+encode, and their conversion to and from a :class:`PointModel` in PLY space.
+
+PLY space is the INRIA 3DGS convention (x right, y down, z forward: RDF); every format module
+converts its own axes to it on read and back on write, so comparisons are made in one frame.
+A read builds a standard 3DGS vertex element (x y z f_dc_0..2 f_rest_* opacity scale_0..2
+rot_0..3, float) and goes through the PLY model builder, so every loader shares one set of checks.
+"""
+
+from __future__ import annotations
+
+import warnings
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import FormatError
+from ..model import SH_C0, PlyElementData, PlyProperty, PlySource, PointModel
+
+#: SH rest coefficients per colour channel for each degree
+SH_COEFFS = {0: 0, 1: 3, 2: 8, 3: 15}
+
+
+class LossyWriteWarning(UserWarning):
+    """A write into a quantised format: the message says which properties lose what."""
+
+
+@dataclass
+class SplatFields:
+    """One splat scene in PLY space.
+
+    positions: (N, 3) float64; scale_log: (N, 3) float32 (log standard deviations);
+    rotation: (N, 4) float32 quaternion w, x, y, z (normalised on write);
+    opacity: (N,) float32 logit; sh_dc: (N, 3) float32;
+    sh_rest: (N, 3, K) float32, channel-major as in PLY's f_rest_* (K = 0, 3, 8 or 15).
+    """
+
+    positions: np.ndarray
+    scale_log: np.ndarray
+    rotation: np.ndarray
+    opacity: np.ndarray
+    sh_dc: np.ndarray
+    sh_rest: np.ndarray
+
+    @property
+    def count(self) -> int:
+        return len(self.positions)
+
+    @property
+    def sh_degree(self) -> int:
+        return {k: d for d, k in SH_COEFFS.items()}[self.sh_rest.shape[2]]
+
+
+def sh_degree_of(n_rest: int) -> int | None:
+    """SH degree of a file with ``n_rest`` f_rest_* properties (None: not a 3DGS layout)."""
+    for degree, k in SH_COEFFS.items():
+        if n_rest == 3 * k:
+            return degree
+    return None
+
+
+def sigmoid(x: np.ndarray) -> np.ndarray:
+    return 1.0 / (1.0 + np.exp(-np.asarray(x, dtype=np.float64)))
+
+
+def logit(p: np.ndarray, eps: float) -> np.ndarray:
+    """Inverse sigmoid with ``p`` clamped to [eps, 1 - eps] (0 and 1 have no finite logit)."""
+    p = np.clip(np.asarray(p, dtype=np.float64), eps, 1 - eps)
+    return np.log(p / (1 - p))
+
+
+def dc_to_color(sh_dc: np.ndarray) -> np.ndarray:
+    return 0.5 + SH_C0 * np.asarray(sh_dc, dtype=np.float64)
+
+
+def color_to_dc(color: np.ndarray) -> np.ndarray:
+    return (np.asarray(color, dtype=np.float64) - 0.5) / SH_C0
+
+
+def normalised_quaternions(q: np.ndarray) -> np.ndarray:
+    """(N, 4) -> (N, 4) float64 unit quaternions (a zero one becomes the identity)."""
+    q = np.asarray(q, dtype=np.float64)
+    norm = np.linalg.norm(q, axis=1, keepdims=True)
+    out = np.where(norm > 0, q / np.where(norm > 0, norm, 1), 0.0)
+    out[norm[:, 0] == 0, 0] = 1.0
+    return out
+
+
+def fields_of(model: PointModel, path: str | Path, fmt: str) -> SplatFields:
+    """The splat fields a write of ``model`` to ``path`` (format name ``fmt``) encodes; raises
+    FormatError naming the file when the model is not a 3D Gaussian splat scene."""
+    g = model.gaussians
+    if g is None or g.opacity is None or g.sh_dc is None:
+        raise FormatError(f"{path}: {fmt} holds 3D Gaussian splats; this {model.kind} model has "
+                          "no scale_*/rot_*/opacity/f_dc_* fields (write .ply instead)")
+    n = model.n_points
+    rest = g.sh_rest if g.sh_rest is not None else np.zeros((n, 0), np.float32)
+    if sh_degree_of(rest.shape[1]) is None:
+        raise FormatError(f"{path}: {fmt} holds SH degrees 0-3 (0, 9, 24 or 45 f_rest_* "
+                          f"values); this model has {rest.shape[1]}")
+    return SplatFields(positions=np.asarray(model.positions, dtype=np.float64),
+                       scale_log=np.asarray(g.scale_log, dtype=np.float32),
+                       rotation=np.asarray(g.rotation, dtype=np.float32),
+                       opacity=np.asarray(g.opacity, dtype=np.float32),
+                       sh_dc=np.asarray(g.sh_dc, dtype=np.float32),
+                       sh_rest=rest.reshape(n, 3, -1).astype(np.float32, copy=False))
+
+
+def dropped_properties(model: PointModel) -> list[str]:
+    """Vertex properties of the model's source that no splat format holds (named in the
+    lossy-write note: normals, colours, custom fields ...)."""
+    if model.source is None or model.source.element("vertex") is None:
+        return []
+    names = model.source.element("vertex").data.dtype.names or ()
+    known = {"x", "y", "z", "opacity", *(f"scale_{i}" for i in range(3)),
+             *(f"rot_{i}" for i in range(4)), *(f"f_dc_{i}" for i in range(3))}
+    return [n for n in names if n not in known and not n.startswith("f_rest_")]
+
+
+def note_lossy(path: str | Path, fmt: str, losses: str | None, model: PointModel,
+               sh_kept: int | None = None) -> None:
+    """Say once for this write which properties the format quantises or drops (``losses``
+    None: a format that keeps float32 values says something only when it drops properties)."""
+    dropped = dropped_properties(model)
+    if losses is None:
+        if not dropped:
+            return
+        losses = "float32 values kept"
+    g = model.gaussians
+    n_rest = 0 if g is None or g.sh_rest is None else g.sh_rest.shape[1]
+    if sh_kept is not None and n_rest > sh_kept:
+        dropped.append(f"f_rest_{sh_kept}..f_rest_{n_rest - 1} (SH above what {fmt} holds)")
+    text = f"{path}: {fmt} is lossy: {losses}"
+    if dropped:
+        text += f"; not kept: {', '.join(dropped)}"
+    warnings.warn(text, LossyWriteWarning, stacklevel=3)
+
+
+def gaussian_source(fields: SplatFields, comments: list[str]) -> PlySource:
+    """The standard 3DGS PlySource (x y z f_dc_* f_rest_* opacity scale_* rot_*, float)."""
+    n = fields.count
+    rest = fields.sh_rest.reshape(n, -1)
+    names = [*"xyz", *(f"f_dc_{i}" for i in range(3)),
+             *(f"f_rest_{i}" for i in range(rest.shape[1])), "opacity",
+             *(f"scale_{i}" for i in range(3)), *(f"rot_{i}" for i in range(4))]
+    table = np.empty((n, len(names)), dtype="<f4")  # filled by contiguous blocks, then viewed
+    at = 0
+    for block in (fields.positions, fields.sh_dc, rest, fields.opacity[:, None],
+                  fields.scale_log, fields.rotation):
+        table[:, at:at + block.shape[1]] = block
+        at += block.shape[1]
+    data = table.view([(name, "<f4") for name in names]).reshape(n)
+    props = [PlyProperty(name, "f4", "float") for name in names]
+    return PlySource(elements=[PlyElementData("vertex", props, data)], comments=comments,
+                     text=False, byte_order="<")
+
+
+def to_model(fields: SplatFields, path: str | Path, comments: list[str], *,
+             drop_nonfinite: bool = False) -> PointModel:
+    """A PointModel (kind gaussians) whose PLY source is the standard 3DGS vertex element."""
+    from .ply import model_from_source  # ply imports playcanvas, which imports this module
+
+    if fields.count == 0:
+        raise FormatError(f"{path}: the file holds no splats")
+    return model_from_source(gaussian_source(fields, comments), path,
+                             drop_nonfinite=drop_nonfinite)
+
+
+def read_bytes(path: str | Path, limit: int = 1 << 34) -> bytes:
+    """The whole file (refusing one larger than ``limit`` bytes)."""
+    size = Path(path).stat().st_size
+    if size > limit:
+        raise FormatError(f"{path}: {size:,} bytes is larger than this reader's limit")
+    return Path(path).read_bytes()
