@@ -311,8 +311,26 @@ class Terminated(BaseException):
     """SIGTERM arrived: unwind like Ctrl-C (temporary files are removed on the way out)."""
 
 
+#: The signal that is ending this run (SIGINT / SIGTERM), once one arrived; see _run's fail
+_signalled: list[int] = []
+
+
 def _on_sigterm(signum, frame) -> None:
+    _signalled.append(signal.SIGTERM)
     raise Terminated()
+
+
+def _on_sigint(signum, frame) -> None:
+    _signalled.append(signal.SIGINT)
+    raise KeyboardInterrupt()
+
+
+def _signal_exit() -> int:
+    if _signalled[0] == signal.SIGINT:
+        print("splatdeform: interrupted", file=sys.stderr)
+        return 130
+    print("splatdeform: terminated", file=sys.stderr)
+    return 143
 
 
 # OS errors that mean "this path is wrong" (exit 2); the rest (disk full, I/O error) exit 1
@@ -340,18 +358,21 @@ def _stdout_gone() -> int:
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
     debug = "--debug" in argv
-    previous = None
+    previous = {}
+    _signalled.clear()
     with contextlib.suppress(ValueError):  # not in the main thread (tests calling main())
-        previous = signal.signal(signal.SIGTERM, _on_sigterm)
+        previous[signal.SIGTERM] = signal.signal(signal.SIGTERM, _on_sigterm)
+        if signal.getsignal(signal.SIGINT) is signal.default_int_handler:
+            previous[signal.SIGINT] = signal.signal(signal.SIGINT, _on_sigint)
     try:
         with warnings.catch_warnings():
             if not debug:  # numpy RuntimeWarnings must not turn one error line into several
                 warnings.simplefilter("ignore", RuntimeWarning)
             return _run(argv, debug)
     finally:  # callers in the same process (tests, the API) get their handler back
-        if previous is not None:
-            with contextlib.suppress(ValueError):
-                signal.signal(signal.SIGTERM, previous)
+        for sig, handler in previous.items():
+            with contextlib.suppress(ValueError, TypeError):
+                signal.signal(sig, handler)
 
 
 def _run(argv: list[str], debug: bool) -> int:
@@ -360,6 +381,8 @@ def _run(argv: list[str], debug: bool) -> int:
     def fail(line: str, code: int) -> int:
         if debug:
             traceback.print_exc()
+        if _signalled:  # whatever the unwinding raised (e.g. an import it cut short) was the signal
+            return _signal_exit()
         print(f"splatdeform: error: {line}", file=sys.stderr)
         return code
 
@@ -369,6 +392,8 @@ def _run(argv: list[str], debug: bool) -> int:
             raise InputError("render: expected one or two model files")
         code = int(args.func(args) or 0)
         sys.stdout.flush()
+        if _signalled:  # its exception was swallowed (raised inside a finalizer): still honour it
+            return _signal_exit()
         return code
     except SplatdeformError as exc:
         return fail(str(exc), exc.exit_code)
@@ -379,11 +404,11 @@ def _run(argv: list[str], debug: bool) -> int:
     except OSError as exc:
         return fail(*_os_error_line(exc))
     except KeyboardInterrupt:
-        print("splatdeform: interrupted", file=sys.stderr)
-        return 130
+        _signalled.insert(0, signal.SIGINT)
+        return _signal_exit()
     except Terminated:
-        print("splatdeform: terminated", file=sys.stderr)
-        return 143
+        _signalled.insert(0, signal.SIGTERM)
+        return _signal_exit()
     except RecursionError:
         return fail("input nested too deeply", 2)
     except Exception as exc:  # a bug: still one line; --debug shows where

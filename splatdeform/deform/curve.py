@@ -22,6 +22,7 @@ from scipy.spatial import cKDTree
 from splatdeform import deform as df
 from splatdeform.deform.metaphor import Metaphor
 from splatdeform.errors import ConfigError, RegionError
+from splatdeform.interrupts import knn_query
 from splatdeform.model import PointModel
 
 SAMPLES_PER_SPAN = 64
@@ -71,7 +72,7 @@ def capture(curve: SplineCurve, positions: np.ndarray, radius: float
     spans = curve.control_points.shape[0] - 1
     t = np.linspace(0, 1, SAMPLES_PER_SPAN * spans + 1)
     samples = curve.points(t)
-    dist, nearest = cKDTree(samples).query(positions, workers=-1)
+    dist, nearest = knn_query(cKDTree(samples), positions)
     idx = np.flatnonzero(dist <= radius)
     return idx, t[nearest[idx]]
 
