@@ -153,7 +153,7 @@ def cmd_edit(args: argparse.Namespace) -> int:
 
     if not 0 <= args.port <= 65535:
         raise InputError(f"--port: expected 0..65535, got {args.port}")
-    return run(args.path, host=args.host, port=args.port)
+    return run(args.path, host=args.host, port=args.port, save_dir=args.save_dir)
 
 
 def _frames(text: str) -> int:
@@ -298,7 +298,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("path", metavar="MODEL|EDIT.yaml", help="a model file or an edit YAML")
     p.add_argument("--port", type=int, default=8080, help="port (default 8080; next free one)")
     p.add_argument("--host", default="127.0.0.1",
-                   help="address to bind (default 127.0.0.1: this machine only)")
+                   help="address to bind (default 127.0.0.1: this machine only; any other "
+                        "prints a warning, and the URL's token is required all the same)")
+    p.add_argument("--save-dir", metavar="DIR",
+                   help="the one folder Save writes into, by file name (default: the folder "
+                        "of MODEL or EDIT.yaml)")
     p.set_defaults(func=cmd_edit)
 
     from .batch import register as register_batch
