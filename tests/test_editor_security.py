@@ -14,7 +14,7 @@ from pathlib import Path
 
 import pytest
 import viser
-from test_editor import FIXED, HANDLE, N, _start_editor
+from test_editor import FIXED, HANDLE, N, _cli, _start_editor
 from websockets.exceptions import InvalidStatus
 from websockets.sync.client import connect
 
@@ -69,6 +69,9 @@ def test_url_carries_a_token_and_http_without_it_is_refused(editor):
         with pytest.raises(urllib.error.HTTPError) as info:
             _get(bad)
         assert info.value.code == 403
+    with pytest.raises(urllib.error.HTTPError) as info:  # tokened, but sent by another site
+        _get(url, {"Origin": "http://evil.example"})
+    assert info.value.code == 403
     page = _get(url)
     assert page.status == 200 and b"<html" in page.read().lower()
     cookie = page.headers["Set-Cookie"]
@@ -119,7 +122,8 @@ def test_host_other_than_loopback_warns_and_still_wants_the_token(tree):
         assert _get(url).status == 200
     finally:
         proc.terminate()
-        out, _ = proc.communicate(timeout=30)
+        proc.wait(timeout=30)
+        out = proc.stdout.read()  # not communicate(): lines the URL search buffered count too
     assert "warning: listening on every network interface" in out and "token" in out
 
 
@@ -197,3 +201,16 @@ def test_save_folder_checks_names(tmp_path):
         folder.target("link.ply", "model")
     with pytest.raises(InputError, match="save-dir"):
         SaveFolder(tmp_path / "missing")
+
+
+def test_save_dir_chooses_the_folder(tree, tmp_path):
+    from splatdeform.editor.server import default_save_folder
+
+    ed = EditorController.open(tree / "work" / "bar.ply")
+    folder = default_save_folder(ed, tmp_path)
+    assert folder.root == tmp_path.resolve()
+    assert (tree / "work" / "bar.ply").resolve() in folder.inputs
+    run = _cli("edit", str(tree / "work" / "bar.ply"), "--port", "0", "--save-dir",
+               str(tmp_path / "missing"))
+    assert run.returncode == 2 and len(run.stderr.strip().splitlines()) == 1
+    assert "--save-dir" in run.stderr and "Traceback" not in run.stderr
