@@ -148,3 +148,36 @@ def test_deferred_signal_is_delivered_after_the_block() -> None:
         assert signal.getsignal(signal.SIGTERM) is raise_stop
     finally:
         signal.signal(signal.SIGTERM, previous)
+
+
+KNN_SCRIPT = """
+import os, signal, sys, threading, time
+import numpy as np
+from scipy.spatial import cKDTree
+from splatdeform.interrupts import knn_query
+
+class Stop(BaseException):
+    pass
+
+def stop(*_):
+    raise Stop
+
+signal.signal(signal.SIGTERM, stop)
+pts = np.random.default_rng(0).random((300_000, 3))
+tree = cKDTree(pts)
+threading.Thread(target=lambda: (time.sleep(0.2), os.kill(os.getpid(), signal.SIGTERM)),
+                 daemon=True).start()
+try:
+    knn_query(tree, pts, k=16)
+except Stop:
+    sys.exit(143)
+"""
+
+
+def test_sigterm_during_a_threaded_knn_query_does_not_crash() -> None:
+    """The crash itself, made certain: SIGTERM lands while the query's threads run; a raising
+    handler used to unwind the join and finalization freed the tree under them (exit -11)."""
+    for _ in range(2):
+        run = subprocess.run([sys.executable, "-c", KNN_SCRIPT], capture_output=True,
+                             text=True, timeout=TIMEOUT)
+        assert run.returncode == 143, (run.returncode, run.stderr[-2000:])
