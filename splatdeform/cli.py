@@ -168,7 +168,7 @@ def cmd_edit(args: argparse.Namespace) -> int:
 
     if not 0 <= args.port <= 65535:
         raise InputError(f"--port: expected 0..65535, got {args.port}")
-    return run(args.path, host=args.host, port=args.port)
+    return run(args.path, host=args.host, port=args.port, save_dir=args.save_dir)
 
 
 def _frames(text: str) -> int:
@@ -315,7 +315,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("path", metavar="MODEL|EDIT.yaml", help="a model file or an edit YAML")
     p.add_argument("--port", type=int, default=8080, help="port (default 8080; next free one)")
     p.add_argument("--host", default="127.0.0.1",
-                   help="address to bind (default 127.0.0.1: this machine only)")
+                   help="address to bind (default 127.0.0.1: this machine only; any other "
+                        "prints a warning, and the URL's token is required all the same)")
+    p.add_argument("--save-dir", metavar="DIR",
+                   help="the one folder Save writes into, by file name (default: the folder "
+                        "of MODEL or EDIT.yaml)")
     p.set_defaults(func=cmd_edit)
 
     from .batch import register as register_batch
@@ -328,8 +332,26 @@ class Terminated(BaseException):
     """SIGTERM arrived: unwind like Ctrl-C (temporary files are removed on the way out)."""
 
 
+#: The signal that is ending this run (SIGINT / SIGTERM), once one arrived; see _run's fail
+_signalled: list[int] = []
+
+
 def _on_sigterm(signum, frame) -> None:
+    _signalled.append(signal.SIGTERM)
     raise Terminated()
+
+
+def _on_sigint(signum, frame) -> None:
+    _signalled.append(signal.SIGINT)
+    raise KeyboardInterrupt()
+
+
+def _signal_exit() -> int:
+    if _signalled[0] == signal.SIGINT:
+        print("splatdeform: interrupted", file=sys.stderr)
+        return 130
+    print("splatdeform: terminated", file=sys.stderr)
+    return 143
 
 
 # OS errors that mean "this path is wrong" (exit 2); the rest (disk full, I/O error) exit 1
@@ -374,9 +396,12 @@ def _lossy_writes_as_lines() -> None:
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
     debug = "--debug" in argv
-    previous = None
+    previous = {}
+    _signalled.clear()
     with contextlib.suppress(ValueError):  # not in the main thread (tests calling main())
-        previous = signal.signal(signal.SIGTERM, _on_sigterm)
+        previous[signal.SIGTERM] = signal.signal(signal.SIGTERM, _on_sigterm)
+        if signal.getsignal(signal.SIGINT) is signal.default_int_handler:
+            previous[signal.SIGINT] = signal.signal(signal.SIGINT, _on_sigint)
     try:
         with warnings.catch_warnings():
             if not debug:  # numpy RuntimeWarnings must not turn one error line into several
@@ -384,9 +409,9 @@ def main(argv: list[str] | None = None) -> int:
             warnings.showwarning = _show_warning  # ours are one line each
             return _run(argv, debug)
     finally:  # callers in the same process (tests, the API) get their handler back
-        if previous is not None:
-            with contextlib.suppress(ValueError):
-                signal.signal(signal.SIGTERM, previous)
+        for sig, handler in previous.items():
+            with contextlib.suppress(ValueError, TypeError):
+                signal.signal(sig, handler)
 
 
 def _run(argv: list[str], debug: bool) -> int:
@@ -395,6 +420,8 @@ def _run(argv: list[str], debug: bool) -> int:
     def fail(line: str, code: int) -> int:
         if debug:
             traceback.print_exc()
+        if _signalled:  # whatever the unwinding raised (e.g. an import it cut short) was the signal
+            return _signal_exit()
         print(f"splatdeform: error: {line}", file=sys.stderr)
         return code
 
@@ -405,6 +432,8 @@ def _run(argv: list[str], debug: bool) -> int:
             raise InputError("render: expected one or two model files")
         code = int(args.func(args) or 0)
         sys.stdout.flush()
+        if _signalled:  # its exception was swallowed (raised inside a finalizer): still honour it
+            return _signal_exit()
         return code
     except SplatdeformError as exc:
         return fail(str(exc), exc.exit_code)
@@ -415,11 +444,11 @@ def _run(argv: list[str], debug: bool) -> int:
     except OSError as exc:
         return fail(*_os_error_line(exc))
     except KeyboardInterrupt:
-        print("splatdeform: interrupted", file=sys.stderr)
-        return 130
+        _signalled.insert(0, signal.SIGINT)
+        return _signal_exit()
     except Terminated:
-        print("splatdeform: terminated", file=sys.stderr)
-        return 143
+        _signalled.insert(0, signal.SIGTERM)
+        return _signal_exit()
     except RecursionError:
         return fail("input nested too deeply", 2)
     except Exception as exc:  # a bug: still one line; --debug shows where

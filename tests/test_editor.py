@@ -366,15 +366,17 @@ def test_app_shows_splats_and_meshes(viser_server, tmp_path):
 
 
 # ---- the edit verb in a subprocess -----------------------------------------------------
-def _start_editor(path: Path) -> tuple[subprocess.Popen, int]:
+def _start_editor(path: Path, *args: str) -> tuple[subprocess.Popen, int, str]:
+    """The running ``edit`` verb, its port and the URL it printed (with its token)."""
     proc = subprocess.Popen([sys.executable, "-m", "splatdeform.cli", "edit", str(path),
-                             "--port", "0"], stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
-                            text=True)
+                             "--port", "0", *args], stdout=subprocess.PIPE,
+                            stderr=subprocess.STDOUT, text=True)
     deadline = time.time() + 60
     for line in proc.stdout:
         if "splatdeform editor: http://" in line:
-            port = int(line.split("http://127.0.0.1:")[1].split("/")[0])
-            return proc, port
+            url = line.split("splatdeform editor: ")[1].split()[0]
+            port = int(url.split("http://127.0.0.1:")[1].split("/")[0])
+            return proc, port, url
         if time.time() > deadline:
             break
     proc.kill()
@@ -397,10 +399,10 @@ def _listening(port: int) -> list[str]:
 
 @pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT])
 def test_edit_verb_serves_on_loopback_and_stops_cleanly(bar_path, sig):
-    proc, port = _start_editor(bar_path)
+    proc, port, url = _start_editor(bar_path)
     try:
         opener = urllib.request.build_opener(urllib.request.ProxyHandler({}))
-        page = opener.open(f"http://127.0.0.1:{port}/", timeout=20).read()
+        page = opener.open(url, timeout=20).read()
         assert b"<html" in page.lower()
         assert _listening(port) == ["0100007F"]  # 127.0.0.1 only
         proc.send_signal(sig)
@@ -426,7 +428,7 @@ def test_chromium_shows_the_scene(bar_path, tmp_path):
 
     chromium = shutil.which("chromium")
     assert chromium, "chromium is missing: `make test` installs it (APT_PKGS in the Makefile)"
-    proc, port = _start_editor(bar_path)
+    proc, port, url = _start_editor(bar_path)
     drawn, text, run = 0.0, 0.0, None
     try:
         # A loaded machine can need longer than the page's virtual time for the websocket to
@@ -439,7 +441,7 @@ def test_chromium_shows_the_scene(bar_path, tmp_path):
                  "--disable-component-update", "--disable-sync", "--enable-unsafe-swiftshader",
                  f"--user-data-dir={tmp_path / 'profile'}", "--window-size=1200,800",
                  f"--virtual-time-budget={budget}", f"--screenshot={shot}",
-                 f"http://127.0.0.1:{port}/"], capture_output=True, text=True, timeout=180)
+                 url], capture_output=True, text=True, timeout=180)
             assert shot.is_file(), run.stderr[-2000:]
             image = np.asarray(Image.open(shot).convert("RGB")).astype(int)
             scene = image[200:750, 100:800]   # the 3D view, clear of the panel and toasts

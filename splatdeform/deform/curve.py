@@ -31,6 +31,7 @@ from scipy.spatial import cKDTree
 from splatdeform import deform as df
 from splatdeform.deform.metaphor import Metaphor
 from splatdeform.errors import ConfigError, RegionError
+from splatdeform.interrupts import knn_query
 from splatdeform.model import PointModel
 
 SAMPLES_PER_SPAN = 64
@@ -123,7 +124,7 @@ def nearest_parameters(curve: SplineCurve, positions: np.ndarray) -> tuple[np.nd
     """Curve parameter t (M,) of the nearest curve point of each position (M, 3) and the
     distance (M,) to it: best sample, then :func:`project` within its neighbours' bracket."""
     ts = _samples(curve)
-    _, nearest = cKDTree(curve.points(ts)).query(positions, workers=-1)
+    _, nearest = knn_query(cKDTree(curve.points(ts)), positions)
     nearest = np.atleast_1d(nearest)
     lo = ts[np.maximum(nearest - 1, 0)]
     hi = ts[np.minimum(nearest + 1, ts.size - 1)]
@@ -139,7 +140,7 @@ def capture(curve: SplineCurve, positions: np.ndarray, radius: float
     samples = curve.points(ts)
     gap = np.linalg.norm(np.diff(samples, axis=0), axis=1).max()
     # candidates: a sample within radius + the largest sample gap (covers every point in range)
-    dist, _ = cKDTree(samples).query(positions, distance_upper_bound=radius + gap, workers=-1)
+    dist, _ = knn_query(cKDTree(samples), positions, distance_upper_bound=radius + gap)
     cand = np.flatnonzero(np.isfinite(dist))
     t, d = nearest_parameters(curve, positions[cand])
     keep = d <= radius

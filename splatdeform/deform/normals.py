@@ -11,6 +11,7 @@ from __future__ import annotations
 import numpy as np
 
 from splatdeform.errors import InputError
+from splatdeform.interrupts import knn_query
 from splatdeform.model import PointModel, classify
 
 PCA_CHUNK = 200_000  # points per kNN query / covariance batch: bounded memory for large scans
@@ -37,7 +38,7 @@ def pca_normals(positions: np.ndarray, k: int = 12) -> np.ndarray:
     normals = np.empty_like(pts)
     for start in range(0, n, PCA_CHUNK):
         stop = min(start + PCA_CHUNK, n)
-        _, nbr = tree.query(pts[start:stop], k=kk, workers=-1)
+        _, nbr = knn_query(tree, pts[start:stop], k=kk)
         nb = pts[nbr]  # (chunk, k, 3)
         centred = nb - nb.mean(axis=1, keepdims=True)
         cov = np.einsum("nki,nkj->nij", centred, centred)

@@ -17,6 +17,7 @@ import scipy.sparse as sp
 from scipy.spatial import cKDTree
 
 from splatdeform.errors import RegionError
+from splatdeform.interrupts import knn_query
 from splatdeform.model import PointModel
 
 
@@ -29,7 +30,7 @@ def knn_edges(positions: np.ndarray, k: int, subset: np.ndarray | None = None) -
         return np.empty((0, 2), dtype=np.int64)
     tree = cKDTree(positions)
     query = positions if subset is None else positions[subset]
-    _, nbr = tree.query(query, k=k + 1, workers=-1)
+    _, nbr = knn_query(tree, query, k=k + 1)
     src = np.arange(n) if subset is None else np.asarray(subset)
     src = np.repeat(src, k + 1)
     dst = nbr.reshape(-1)
@@ -83,7 +84,7 @@ def knn_radius(positions: np.ndarray, tree: cKDTree, k: int, seed: int = 0) -> f
     rng = np.random.default_rng(seed)
     sample = positions if n <= _SPACING_SAMPLE else positions[
         rng.choice(n, _SPACING_SAMPLE, replace=False)]
-    dist, _ = tree.query(sample, k=min(k + 1, n), workers=-1)
+    dist, _ = knn_query(tree, sample, k=min(k + 1, n))
     return float(np.quantile(dist[:, -1], 0.999))
 
 
@@ -117,7 +118,7 @@ def border_knn_adjacency(positions: np.ndarray, labels: np.ndarray, neighbors: i
     for hop in range(depth + 2):
         if frontier.size == 0:
             break
-        _, nbr = tree.query(positions[frontier], k=k + 1, workers=-1)
+        _, nbr = knn_query(tree, positions[frontier], k=k + 1)
         queried[frontier] = True
         sources.append(np.repeat(frontier, k + 1))
         targets.append(nbr.reshape(-1))

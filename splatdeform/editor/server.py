@@ -9,9 +9,12 @@ fast drag never queues stale frames.
 
 from __future__ import annotations
 
+import contextlib
 import signal
+import sys
 import threading
 import time
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -21,6 +24,7 @@ from splatdeform.deform.gaussians import quaternion_to_matrix
 from ..errors import SplatdeformError
 from . import view
 from .controller import EditorController, Frame
+from .security import SaveFolder, exposure_warning, guarded_viser, new_token
 
 ROLE_COLORS = {"fixed": (50, 110, 255), "handle": (255, 120, 30)}
 
@@ -52,9 +56,11 @@ def pose_matrix(origin: np.ndarray, start: np.ndarray, position: np.ndarray,
 class EditorApp:
     """The viser scene and GUI over one controller."""
 
-    def __init__(self, controller: EditorController, server: Any) -> None:
+    def __init__(self, controller: EditorController, server: Any,
+                 save_folder: SaveFolder | None = None) -> None:
         self.ed = controller
         self.server = server
+        self.save_folder = save_folder or default_save_folder(controller)
         self.lock = threading.RLock()
         self.model = controller.model
         self.up = view.up_direction(self.model)
@@ -418,17 +424,37 @@ class EditorApp:
                 self._build_pose_gizmos()
 
     # ---- save --------------------------------------------------------------------------
-    def _save(self, *_: Any) -> None:
-        self.save_button.disabled = True
+    def save_names(self, model: str, edit_yaml: str, image: str, *,
+                   replace: bool = False) -> str:
+        """Save under the file names typed in the page, in the save folder. Existing files are
+        only replaced with ``replace`` (the user confirmed); inputs never. Returns the status
+        line (what was written, what needs confirming, or the error)."""
         try:
             with self.lock:
-                result = self.ed.save(self.out_model.value, self.out_yaml.value,
-                                      self.out_png.value)
-            self.status(f"wrote {result.model.name}, {result.config.name}, {result.image.name}")
+                paths = self.save_folder.targets([("model", model), ("edit YAML", edit_yaml),
+                                                  ("before/after", image)])
+                existing = self.save_folder.existing(paths)
+                if existing and not replace:
+                    self._confirm_pending = (model, edit_yaml, image)
+                    return ("exists already: " + ", ".join(p.name for p in existing)
+                            + "; press 'replace existing' to overwrite, or change the names")
+                self._confirm_pending = None
+                result = self.ed.save(*paths)
+            return f"wrote {result.model.name}, {result.config.name}, {result.image.name}"
         except SplatdeformError as exc:
-            self.status(str(exc))
+            self._confirm_pending = None
+            return str(exc)
+
+    def _save(self, *_: Any, replace: bool = False) -> None:
+        self.save_button.disabled = True
+        try:
+            names = (self.out_model.value, self.out_yaml.value, self.out_png.value)
+            if replace and self._confirm_pending != names:  # the names changed meanwhile
+                replace = False
+            self.status(self.save_names(*names, replace=replace))
         finally:
             self.save_button.disabled = False
+            self.replace_button.visible = self._confirm_pending is not None
 
     def status(self, text: str) -> None:
         self.status_md.content = text
@@ -460,11 +486,15 @@ class EditorApp:
             self.pose_md = gui.add_markdown("drag the handle gizmo after a fit")
         with gui.add_folder("Save"):
             model_p, yaml_p, png_p = self.ed.default_paths()
-            self.out_model = gui.add_text("model", str(model_p))
-            self.out_yaml = gui.add_text("edit YAML", str(yaml_p))
-            self.out_png = gui.add_text("before/after", str(png_p))
+            gui.add_markdown(f"into `{self.save_folder.root}` (file names only)")
+            self.out_model = gui.add_text("model", model_p.name)
+            self.out_yaml = gui.add_text("edit YAML", yaml_p.name)
+            self.out_png = gui.add_text("before/after", png_p.name)
             self.save_button = gui.add_button("Save")
             self.save_button.on_click(self._save)
+            self.replace_button = gui.add_button("replace existing", visible=False)
+            self.replace_button.on_click(lambda *_: self._save(replace=True))
+            self._confirm_pending = None
         self.status_md = gui.add_markdown("")
 
     def start(self) -> None:
@@ -476,25 +506,50 @@ class EditorApp:
         self._wake.set()
 
 
+def default_save_folder(controller: EditorController,
+                        save_dir: str | Path | None = None) -> SaveFolder:
+    """The save folder (``save_dir``, else the folder of the model or config opened) and the
+    edit's inputs, which saves never replace."""
+    from ..edit.config import input_paths
+
+    inputs = [controller.model_path, *([controller.config_path] if controller.config_path
+                                       else [])]
+    with contextlib.suppress(SplatdeformError, AttributeError, TypeError):
+        inputs += [p for _, p in input_paths(controller.settings, controller.base_dir)]
+    root = save_dir if save_dir is not None else (
+        controller.config_path or controller.model_path).parent
+    return SaveFolder(Path(root), inputs)
+
+
 def run(path: str, *, host: str = "127.0.0.1", port: int = 8080,
-        ready: threading.Event | None = None) -> int:
-    """Load MODEL or EDIT.yaml, serve the editor, print its URL, block until Ctrl-C / SIGTERM.
+        ready: threading.Event | None = None, save_dir: str | Path | None = None,
+        token: str | None = None) -> int:
+    """Load MODEL or EDIT.yaml, serve the editor, print its URL (with its access token), block
+    until Ctrl-C / SIGTERM. Saves go into ``save_dir`` (default: the opened file's folder).
     Returns 0 (clean shutdown)."""
     import viser
 
     controller = EditorController.open(path)
+    folder = default_save_folder(controller, save_dir)
+    token = token or new_token()
     stop = threading.Event()
     previous = {}
     for sig in (signal.SIGINT, signal.SIGTERM):
         previous[sig] = signal.signal(sig, lambda *_: stop.set())
-    server = viser.ViserServer(host=host, port=port, verbose=False)
+    with guarded_viser(token):
+        server = viser.ViserServer(host=host, port=port, verbose=False)
     app = None
     try:
-        app = EditorApp(controller, server)
+        app = EditorApp(controller, server, folder)
         app.start()
-        shown = "127.0.0.1" if host in ("0.0.0.0", "") else host
-        print(f"splatdeform editor: http://{shown}:{server.get_port()}/  "
-              f"({controller.model.n_points:,} points; Ctrl-C to stop)", flush=True)
+        shown = "127.0.0.1" if host in ("0.0.0.0", "", "::") else host
+        shown = f"[{shown}]" if ":" in shown else shown
+        print(f"splatdeform editor: http://{shown}:{server.get_port()}/?token={token}  "
+              f"({controller.model.n_points:,} points; saves into {folder.root}; "
+              "Ctrl-C to stop)", flush=True)
+        warning = exposure_warning(host, server.get_port())
+        if warning:
+            print(warning, file=sys.stderr, flush=True)
         if ready is not None:
             ready.set()
         while not stop.wait(0.25):
@@ -509,4 +564,4 @@ def run(path: str, *, host: str = "127.0.0.1", port: int = 8080,
     return 0
 
 
-__all__ = ["EditorApp", "pose_matrix", "run"]
+__all__ = ["EditorApp", "default_save_folder", "pose_matrix", "run"]

@@ -23,6 +23,7 @@ import numpy as np
 from splatdeform.deform.arrays import axes_to_radius, normalize_rows, radius_to_axes
 from splatdeform.deform.gaussians import dc_to_colors, quaternion_to_matrix
 from splatdeform.deform.normals import pca_normals  # the one estimator; also importable here
+from splatdeform.interrupts import knn_query
 from splatdeform.model import PointModel
 
 DEFAULT_COLOR = (190, 190, 190)
@@ -82,7 +83,7 @@ def knn_spacing(positions: np.ndarray, k: int = SPACING_NEIGHBORS) -> np.ndarray
     kk = min(k, pts.shape[0] - 1)
     if kk < 1:
         return np.ones(pts.shape[0])
-    dist, _ = cKDTree(pts).query(pts, k=kk + 1, workers=-1)
+    dist, _ = knn_query(cKDTree(pts), pts, k=kk + 1)
     spacing = dist[:, 1:].mean(axis=1)
     # isolated outliers would become huge discs: cap at a multiple of the median spacing
     return np.minimum(spacing, SPACING_CAP * np.median(spacing))

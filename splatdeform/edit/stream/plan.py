@@ -37,6 +37,7 @@ from splatdeform.edit.selectors.indices import index_mask
 from splatdeform.edit.stream.progress import Progress
 from splatdeform.edit.stream.sources import ChunkFile, as_chunk
 from splatdeform.errors import ProcessingError, RegionError
+from splatdeform.interrupts import knn_query
 from splatdeform.model import PointModel
 
 FREE, FIXED, HANDLE = 0, 1, 2
@@ -97,7 +98,7 @@ def initial_radius(sample: np.ndarray, n: int, neighbors: int, rings: int,
     diag = float(np.linalg.norm(hi - lo)) or 1.0
     if k < 1:
         return diag
-    dist, _ = cKDTree(sample).query(sample, k=k + 1, workers=-1)
+    dist, _ = knn_query(cKDTree(sample), sample, k=k + 1)
     r_sample = float(np.quantile(dist[:, -1], 0.95))
     r = r_sample * math.sqrt(m / max(n, 1))
     return min(max(3.5 * (rings + 1) * r, 1e-9 * diag), diag)
@@ -308,10 +309,10 @@ def gather_border(src: ChunkFile, labels: np.ndarray, lo: np.ndarray, hi: np.nda
     free = lab == FREE
     dist = np.full(idx.size, np.inf)
     if free.any() and (~free).any():
-        dist[~free] = cKDTree(pos[free]).query(pos[~free], k=1, distance_upper_bound=radius,
-                                               workers=-1)[0]
-        dist[free] = cKDTree(pos[~free]).query(pos[free], k=1, distance_upper_bound=radius,
-                                               workers=-1)[0]
+        dist[~free] = knn_query(cKDTree(pos[free]), pos[~free], k=1,
+                                distance_upper_bound=radius)[0]
+        dist[free] = knn_query(cKDTree(pos[~free]), pos[free], k=1,
+                               distance_upper_bound=radius)[0]
     keep = dist < radius
     return idx[keep], pos[keep], lab[keep], dist[keep]
 
@@ -322,7 +323,7 @@ def kth_distance(points: np.ndarray, k: int, block: int = 500_000) -> np.ndarray
     k = min(k, points.shape[0] - 1)
     out = np.empty(points.shape[0])
     for a in range(0, points.shape[0], block):
-        out[a:a + block] = tree.query(points[a:a + block], k=k + 1, workers=-1)[0][:, -1]
+        out[a:a + block] = knn_query(tree, points[a:a + block], k=k + 1)[0][:, -1]
     return out
 
 

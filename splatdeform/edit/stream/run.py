@@ -13,6 +13,7 @@ delta_c) is scattered once.
 from __future__ import annotations
 
 import contextlib
+import logging
 import os
 import shutil
 import tempfile
@@ -28,8 +29,9 @@ from splatdeform.edit.stream.plan import FIXED, FREE, HANDLE, Plan, build_plan, 
 from splatdeform.edit.stream.progress import Progress
 from splatdeform.edit.stream.sources import ChunkFile, LasChunks, PlyChunks, open_chunks
 from splatdeform.errors import InputError, ProcessingError
+from splatdeform.interrupts import deferred_signals
 from splatdeform.io import las as laslib
-from splatdeform.io.atomic import atomic_path, atomic_write
+from splatdeform.io.atomic import atomic_path
 
 
 @dataclass
@@ -92,13 +94,44 @@ def _part_name(parts: Path, start: int) -> Path:
 
 def dask_part(path: str, start: int, stop: int, labels: np.ndarray, shared: Shared,
               parts: str) -> str:
-    """A Dask task: deform one chunk and write it as a part (idempotent: tmp + rename)."""
+    """A Dask task: deform one chunk and write it as a part (idempotent: tmp + rename).
+
+    Returns "" without writing when the parts folder is gone: the run was stopped (Ctrl-C,
+    SIGTERM, an error) and removed it; a task still running then must not bring it back (which
+    is why this does not use :func:`atomic_write`, which creates missing folders)."""
+    folder = Path(parts)
+    if not folder.is_dir():
+        return ""
     src = open_chunks(path)
     rows, _ = deform_chunk(src, start, stop, labels, shared)
-    final = _part_name(Path(parts), start)
-    with atomic_write(final) as f:  # the tool's one atomic writer
-        np.save(f, rows, allow_pickle=False)
+    final = _part_name(folder, start)
+    try:
+        fd, tmp = tempfile.mkstemp(dir=folder, prefix=f".{final.stem}.", suffix=".tmp")
+    except FileNotFoundError:
+        return ""
+    try:
+        with os.fdopen(fd, "wb") as f:
+            np.save(f, rows, allow_pickle=False)
+        os.replace(tmp, final)
+    except FileNotFoundError:
+        return ""
+    finally:
+        with contextlib.suppress(OSError):
+            os.unlink(tmp)
     return str(final)
+
+
+def _remove_parts(parts: Path, futures) -> None:
+    """Cancel the part tasks and remove the parts folder; a task that was already running may
+    still be renaming its part in, so a few tries."""
+    with contextlib.suppress(Exception):
+        for fut in futures:
+            fut.cancel()
+    for _ in range(50):
+        shutil.rmtree(parts, ignore_errors=True)
+        if not parts.exists():
+            return
+        time.sleep(0.1)
 
 
 class _Writer:
@@ -157,9 +190,9 @@ def second_pass_dask(src: ChunkFile, plan: Plan, shared: Shared, out: Path, chun
 
     parts = Path(tempfile.mkdtemp(dir=out.parent, prefix=f".{out.stem}.parts."))
     progress = Progress("pass 5 on Dask (basis + apply + parts)", src.n_points, quiet=quiet)
+    futures = {}
     try:
         shared_f = client.scatter(shared, broadcast=True)
-        futures = {}
         for a, b in chunk_ranges(src.n_points, chunk):
             fut = client.submit(dask_part, str(src.path), a, b, plan.labels[a:b], shared_f,
                                 str(parts), key=f"splatdeform-part-{a}-{b}-{id(plan)}",
@@ -177,33 +210,58 @@ def second_pass_dask(src: ChunkFile, plan: Plan, shared: Shared, out: Path, chun
                 writer.write(np.load(_part_name(parts, a), allow_pickle=False), props)
             writer.close(props)
     finally:
-        shutil.rmtree(parts, ignore_errors=True)
+        with deferred_signals():  # a second Ctrl-C must not leave the folder behind
+            _remove_parts(parts, futures)
 
 
 @contextlib.contextmanager
 def dask_client(scheduler: str | None, workers: int | None):
-    """A Dask client on ``scheduler``, or on a new LocalCluster of ``workers`` processes."""
+    """A Dask client on ``scheduler``, or on a new LocalCluster of ``workers`` processes.
+
+    Ctrl-C / SIGTERM are held while the cluster starts and stops (a start cut short would leave
+    worker processes nobody closes) and act right after; when the run is stopped, Dask's own
+    complaints about the tasks and transfers cut short are silenced."""
     from distributed import Client, LocalCluster
 
     if scheduler:
         try:
-            client = Client(scheduler, timeout="20s")
+            with deferred_signals():
+                client = Client(scheduler, timeout="20s")
         except (OSError, TimeoutError) as exc:
             raise InputError(f"--scheduler: cannot reach the Dask scheduler at {scheduler}: "
                              f"{exc}") from exc
-        try:
+        with _closing(client.close):
             yield client
-        finally:
-            client.close()
         return
-    cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
-                           dashboard_address=None)
-    client = Client(cluster)
-    try:
+    with deferred_signals():
+        cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
+                               dashboard_address=None, silence_logs=logging.ERROR)
+        try:
+            client = Client(cluster)
+        except BaseException:
+            cluster.close()
+            raise
+    with _closing(client.close, cluster.close):
         yield client
+
+
+@contextlib.contextmanager
+def _closing(*close):
+    """Run ``close`` functions after the block, with Ctrl-C / SIGTERM held. When the block was
+    stopped (KeyboardInterrupt, SIGTERM's exception), Dask's and asyncio's loggers in this
+    process are silenced for good (the process is ending): the scheduler and client would report
+    every transfer and task cut short, some only when they are garbage-collected."""
+    try:
+        yield
+    except BaseException as exc:
+        if not isinstance(exc, Exception):
+            for name in ("distributed", "asyncio"):
+                logging.getLogger(name).setLevel(logging.CRITICAL + 1)
+        raise
     finally:
-        client.close()
-        cluster.close()
+        with deferred_signals():
+            for fn in close:
+                fn()
 
 
 def stream_deform(src: ChunkFile, cfg, base_dir: Path, out: Path, *, chunk: int,
