@@ -6,11 +6,12 @@ Every error is one :class:`ConfigError` line naming the file and the key path, e
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
 import yaml
-from pydantic import BaseModel, Field, ValidationError, model_validator
+from pydantic import BaseModel, Field, ValidationError, field_validator, model_validator
 
 from splatdeform.basis.names import BACKENDS
 from splatdeform.edit.schema import Strict, Vec3
@@ -30,9 +31,37 @@ class RegionsCfg(_Strict):
     handle: list[SelectorCfg] | None = None
 
 
+MAX_DEGREES = 1e6  # a rotation angle beyond this is a typo or an attack, not an edit
+MIN_SCALE, MAX_SCALE = 1e-6, 1e6  # a handle scale outside this (by magnitude) is degenerate
+MAX_VALUE = 1e15  # translations, pivots and matrix entries (the LAS coordinate bound)
+
+
 class RotateCfg(_Strict):
     axis: Vec3 = [0.0, 0.0, 1.0]
     degrees: float = 0.0
+
+    @field_validator("axis")
+    @classmethod
+    def _axis(cls, axis: list[float]) -> list[float]:
+        norm = math.hypot(*axis)
+        if not (1e-12 < norm <= MAX_VALUE):
+            raise ValueError(f"expected a non-zero rotation axis with components within "
+                             f"+-{MAX_VALUE:g}, got {axis}")
+        return axis
+
+    @field_validator("degrees")
+    @classmethod
+    def _degrees(cls, degrees: float) -> float:
+        if abs(degrees) > MAX_DEGREES:
+            raise ValueError(f"expected an angle within +-{MAX_DEGREES:g} degrees, got "
+                             f"{degrees}")
+        return degrees
+
+
+def _bounded(values: list[float], what: str) -> list[float]:
+    if any(abs(v) > MAX_VALUE for v in values):
+        raise ValueError(f"expected {what} within +-{MAX_VALUE:g}, got {values}")
+    return values
 
 
 class TransformCfg(_Strict):
@@ -40,6 +69,26 @@ class TransformCfg(_Strict):
     scale: float | Vec3 = 1.0
     rotate: RotateCfg = RotateCfg()
     translate: Vec3 = [0.0, 0.0, 0.0]
+
+    @field_validator("scale")
+    @classmethod
+    def _scale(cls, scale: float | list[float]) -> float | list[float]:
+        for s in scale if isinstance(scale, list) else [scale]:
+            if not MIN_SCALE <= abs(s) <= MAX_SCALE:
+                raise ValueError(f"expected scale factors between {MIN_SCALE:g} and "
+                                 f"{MAX_SCALE:g} in magnitude (a vanishing or huge scale is "
+                                 f"degenerate), got {scale}")
+        return scale
+
+    @field_validator("translate")
+    @classmethod
+    def _translate(cls, v: list[float]) -> list[float]:
+        return _bounded(v, "a translation")
+
+    @field_validator("pivot")
+    @classmethod
+    def _pivot(cls, v):
+        return v if isinstance(v, str) else _bounded(v, "a pivot")
 
 
 class HandleCfg(_Strict):
@@ -53,6 +102,8 @@ class HandleCfg(_Strict):
             raise ValueError("expected exactly one of transform, matrix")
         if self.matrix is not None and any(len(r) != 4 for r in self.matrix):
             raise ValueError("matrix: expected 4 rows of 4 numbers")
+        if self.matrix is not None:
+            _bounded([v for r in self.matrix for v in r], "matrix entries")
         return self
 
 
