@@ -17,6 +17,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from ..errors import FormatError
+from ..model import MAX_COORDINATE
 
 MIN_HEADER = 227
 HEADER_SIZES = {0: 227, 1: 227, 2: 227, 3: 235, 4: 375}  # by version minor
@@ -24,8 +25,6 @@ VLR_HEAD, EVLR_HEAD = 54, 60
 # standard record size of each point format (LAS 1.4 R15 table 7 ff.)
 RECORD_SIZES = {0: 20, 1: 28, 2: 26, 3: 34, 4: 57, 5: 63, 6: 30, 7: 36, 8: 38, 9: 59, 10: 67}
 EXTRA_TYPE_SIZES = [0, 1, 1, 2, 2, 4, 4, 8, 8, 4, 8]  # Extra Bytes data_type 1..10
-# coordinates are X * scale + offset with int32 X; beyond this they are no longer usable
-MAX_COORDINATE = 1e15
 # LAZ decodes at least this many points per compressed byte at most (generous: constant
 # records compress to a few bits each); more declared points than this is a corrupt count
 MAX_LAZ_POINTS_PER_BYTE = 64

@@ -62,6 +62,22 @@ def _triangles_from_strips(column: np.ndarray) -> np.ndarray:
     return np.concatenate(tris) if tris else np.empty((0, 3), dtype=np.int64)
 
 
+SPLAT_PREFIXES = ("scale_", "rot_", "f_dc_", "f_rest_")
+
+
+def _nonfinite_splat_rows(data: np.ndarray) -> np.ndarray | None:
+    """(N,) bool: rows whose 3DGS attributes (log-scales, rotation, opacity, SH) are NaN/Inf, or
+    None when the element holds no Gaussians. They follow --drop-nonfinite like positions."""
+    names = [n for n in data.dtype.names or ()
+             if (n.startswith(SPLAT_PREFIXES) or n == "opacity") and data.dtype[n].kind == "f"]
+    if not any(n.startswith("scale_") for n in names):
+        return None
+    bad = np.zeros(data.shape[0], dtype=bool)
+    for n in names:
+        bad |= ~np.isfinite(data[n])
+    return bad
+
+
 def model_from_source(source: PlySource, path: str | Path, *,
                       drop_nonfinite: bool = False) -> PointModel:
     """Build a PointModel from a verbatim PLY source (validates coordinates and indices)."""
@@ -80,10 +96,16 @@ def model_from_source(source: PlySource, path: str | Path, *,
     if vertex.count == 0:
         raise FormatError(f"{path}: the vertex element is empty")
     bad = ~np.isfinite(positions).all(axis=1)
+    what = "coordinates"
+    splat = _nonfinite_splat_rows(data)
+    if splat is not None and splat.any() and not bad.any():
+        what = "Gaussian attributes (scale_*, rot_*, opacity, f_dc_*, f_rest_*)"
+    if splat is not None:
+        bad |= splat
     if bad.any():
         if not drop_nonfinite:
             raise FormatError(
-                f"{path}: {int(bad.sum())} vertex(es) with NaN/Inf coordinates (first at index "
+                f"{path}: {int(bad.sum())} vertex(es) with NaN/Inf {what} (first at index "
                 f"{int(np.flatnonzero(bad)[0])}); fix the file or load with drop_nonfinite=True "
                 "(CLI: --drop-nonfinite)")
         source = _drop_vertices(source, path, bad)
