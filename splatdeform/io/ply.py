@@ -78,6 +78,13 @@ def _nonfinite_splat_rows(data: np.ndarray) -> np.ndarray | None:
     return bad
 
 
+def _require_list(path: str | Path, element: str, prop) -> None:
+    if not prop.is_list:
+        raise FormatError(f"{path}: element '{element}' property '{prop.name}' is a scalar "
+                          f"({prop.type_name}); "
+                          "expected a list (property list uchar int vertex_indices)")
+
+
 def model_from_source(source: PlySource, path: str | Path, *,
                       drop_nonfinite: bool = False) -> PointModel:
     """Build a PointModel from a verbatim PLY source (validates coordinates and indices)."""
@@ -117,9 +124,11 @@ def model_from_source(source: PlySource, path: str | Path, *,
         name = next((n for n in ("vertex_indices", "vertex_index")
                      if face_el.property(n) is not None), None)
         if name is not None:
+            _require_list(path, "face", face_el.property(name))
             faces = _triangles_from_faces(face_el.data[name])
     strips = source.element("tristrips")
     if strips is not None and strips.count > 0 and strips.property("vertex_indices"):
+        _require_list(path, "tristrips", strips.property("vertex_indices"))
         strip_tris = _triangles_from_strips(strips.data["vertex_indices"])
         faces = strip_tris if faces is None else np.concatenate([faces, strip_tris])
     if faces is not None and faces.size:

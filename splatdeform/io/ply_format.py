@@ -110,6 +110,9 @@ def parse_header(path: Path, raw: bytes) -> PlyHeader:
             if len(words[2].lstrip("0")) > MAX_COUNT_DIGITS:
                 raise FormatError(f"{where}: element count {words[2][:20]}... is too large")
             _check_previous_element(path, header, number)
+            if any(words[1] == el[0] for el in header.elements):
+                raise FormatError(f"{where}: a second element '{words[1]}'; element names must "
+                                  "be unique (readers would see only the first)")
             header.elements.append((words[1], int(words[2]), []))
             names = set()
         elif key == "property":
