@@ -379,3 +379,45 @@ def test_panic_exception_is_an_internal_error(capsys):
         cli.build_parser = parser
     err = capsys.readouterr().err
     assert code == 1 and err.count("\n") == 1 and "internal error: PanicException" in err
+
+
+# ---------------------------------------------------------------- memory of list-heavy PLYs
+
+def _list_ply(path: Path, kind: str) -> Path:
+    xyz = np.random.default_rng(0).random((10, 3)).astype("<f4").tobytes()
+    if kind in ("strip", "short_strips"):
+        n = 4_000_000
+        s = (np.arange(n) % 10).astype("<i4")
+        if kind == "short_strips":
+            s[::4] = -1   # a million strips of three vertices
+        body = np.array([n], "<i4").tobytes() + s.tobytes()
+        element = "element tristrips 1\nproperty list int int vertex_indices\n"
+    else:
+        m = 600_000
+        rows = np.zeros(m, dtype=[("n", "u1"), ("i", "<i4", (3,))])
+        rows["n"], rows["i"] = 3, np.random.default_rng(1).integers(0, 10, (m, 3))
+        body = rows.tobytes()
+        element = f"element face {m}\nproperty list uchar int vertex_indices\n"
+    path.write_bytes((PLY_HEAD + element + "end_header\n").encode() + xyz + body)
+    return path
+
+
+@pytest.mark.parametrize("kind", ["strip", "short_strips", "faces"])
+def test_list_heavy_ply_memory_bounded(kind, tmp_path):
+    """Tristrips and list-heavy faces: traced memory within 10x the file + 100 MB (the issue's
+    target is 10x + 300 MB for the whole process), and the triangles are right."""
+    import tracemalloc
+
+    path = _list_ply(tmp_path / "l.ply", kind)
+    tracemalloc.start()
+    try:
+        model = sd.load(path)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert peak <= 10 * path.stat().st_size + (100 << 20), peak
+    expected = {"strip": 4_000_000 - 2, "short_strips": 1_000_000, "faces": 600_000}[kind]
+    # consecutive indices mod 10 are never degenerate: every candidate is a triangle
+    assert model.faces.shape[0] == expected and model.faces.min() >= 0
+    if kind == "short_strips":   # strips (1,2,3), (5,6,7), ...: each one triangle
+        np.testing.assert_array_equal(model.faces[:2], [[1, 2, 3], [5, 6, 7]])
