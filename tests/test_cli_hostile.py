@@ -318,8 +318,8 @@ def test_huge_translate_writes_nothing(scans, tmp_path):
     cfg = base_config(scans)
     cfg["handle"]["transform"]["translate"] = [1e300, 0, 0]
     path = write_config(tmp_path, cfg)
-    res = run("deform", path, cwd=tmp_path)  # numpy overflow warnings must not add lines
-    one_error_line(res, 2, ["non-finite or out-of-range"])
+    res = run("deform", path, cwd=tmp_path)  # refused at load, before any numpy overflow
+    one_error_line(res, 2, ["handle.transform.translate", "1e+15"])
     assert not (tmp_path / "out").exists()
 
 

@@ -341,6 +341,8 @@ def read_yaml(path: str | Path) -> dict[str, Any]:
         mark = getattr(exc, "problem_mark", None)
         where = f" line {mark.line + 1}" if mark is not None else ""
         problem = " ".join(str(getattr(exc, "problem", None) or exc).split())
+        if "nesting depth" in problem:  # libyaml's words for what PyYAML hits as recursion
+            problem = "nested too deeply"
         raise ConfigError(f"{path}:{where} invalid YAML: {problem}") from exc
     except UnicodeDecodeError as exc:
         raise ConfigError(f"{path}: not a text file") from exc
