@@ -212,11 +212,21 @@ def read_model(path: str | Path, *, drop_nonfinite: bool = False) -> PointModel:
     with _open(path) as reader:
         header = reader.header
         evlrs = getattr(reader, "evlrs", None)
-        parts = list(_read_records(path, reader, 0, layout.point_count, DECODE_CHUNK))
-    if not parts:
+        chunks = _read_records(path, reader, 0, layout.point_count, DECODE_CHUNK)
+        if layout.compressed:   # the count is only bounded loosely: grow with what decodes
+            parts = list(chunks)
+            points = parts[0] if len(parts) == 1 else np.concatenate(parts) if parts else None
+            del parts
+        else:                   # the count was checked against the file: fill one array
+            points = None
+            at = 0
+            for part in chunks:
+                if points is None:
+                    points = np.empty(layout.point_count, dtype=part.dtype)
+                points[at:at + len(part)] = part
+                at += len(part)
+    if points is None or len(points) == 0:
         raise FormatError(f"{path}: the LAS file holds no points")
-    points = parts[0] if len(parts) == 1 else np.concatenate(parts)
-    del parts
     compressed = layout.compressed or path.suffix.lower() == ".laz"
     return model_from_las(header, points, path, evlrs=evlrs, compressed=compressed,
                           drop_nonfinite=drop_nonfinite)
