@@ -51,6 +51,7 @@ def cmd_deform(args: argparse.Namespace) -> int:
     from splatdeform.edit.config import load_edit
     from splatdeform.edit.run import format_report, run_edit
 
+    _check_workers(args)
     cfg = load_edit(args.config)
     if args.backend:
         cfg.backend = args.backend
@@ -93,6 +94,15 @@ def cmd_deform(args: argparse.Namespace) -> int:
         if render_out:
             print(f"rendered {image}")
     return 0
+
+
+def _check_workers(args: argparse.Namespace) -> None:
+    if args.workers is not None and args.workers < 1:
+        raise InputError(f"--workers: expected a number of worker processes >= 1, got "
+                         f"{args.workers}")
+    if args.workers is not None and args.scheduler:
+        raise InputError("--workers: not with --scheduler (the scheduler's cluster has its own "
+                         "workers); give one of them")
 
 
 def _check_deform_paths(args: argparse.Namespace, cfg, base, output, reuse, render_out) -> None:
@@ -422,7 +432,7 @@ def _run(argv: list[str], debug: bool) -> int:
             traceback.print_exc()
         if _signalled:  # whatever the unwinding raised (e.g. an import it cut short) was the signal
             return _signal_exit()
-        print(f"splatdeform: error: {line}", file=sys.stderr)
+        print(f"splatdeform: error: {one_line(line)}", file=sys.stderr)
         return code
 
     try:
@@ -452,9 +462,25 @@ def _run(argv: list[str], debug: bool) -> int:
     except RecursionError:
         return fail("input nested too deeply", 2)
     except Exception as exc:  # a bug: still one line; --debug shows where
-        msg = " ".join(str(exc).split())[:300] or type(exc).__name__
-        return fail(f"internal error: {type(exc).__name__}: {msg} (rerun with --debug for the "
-                    "traceback)", 1)
+        return fail(_internal(exc), 1)
+    except BaseException as exc:  # pyo3's PanicException (a Rust panic) is a BaseException
+        if type(exc).__name__ != "PanicException":
+            raise
+        return fail(_internal(exc), 1)
+
+
+def _internal(exc: BaseException) -> str:
+    msg = " ".join(str(exc).split())[:300] or type(exc).__name__
+    return (f"internal error: {type(exc).__name__}: {msg} (rerun with --debug for the "
+            "traceback)")
+
+
+def one_line(text: str) -> str:
+    """``text`` with line breaks and other control characters escaped (a path may hold a
+    newline; the error must stay one line)."""
+    if text.isprintable():
+        return text
+    return "".join(c if c.isprintable() else repr(c)[1:-1] for c in text)
 
 
 if __name__ == "__main__":

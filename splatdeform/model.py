@@ -14,6 +14,9 @@ import numpy as np
 
 from .errors import InputError
 
+# |coordinate| beyond which a model is refused for editing (the fit's r^3 terms and its
+# normalisation lose every digit; float32's 3.4e38 overflows) and a LAS header is corrupt
+MAX_COORDINATE = 1e15
 KINDS = ("mesh", "oriented_cloud", "cloud", "surfel_radius", "surfel_axes", "gaussians")
 
 

@@ -318,8 +318,8 @@ def test_huge_translate_writes_nothing(scans, tmp_path):
     cfg = base_config(scans)
     cfg["handle"]["transform"]["translate"] = [1e300, 0, 0]
     path = write_config(tmp_path, cfg)
-    res = run("deform", path, cwd=tmp_path)  # numpy overflow warnings must not add lines
-    one_error_line(res, 2, ["non-finite or out-of-range"])
+    res = run("deform", path, cwd=tmp_path)  # refused at load, before any numpy overflow
+    one_error_line(res, 2, ["handle.transform.translate", "1e+15"])
     assert not (tmp_path / "out").exists()
 
 
@@ -382,18 +382,57 @@ def test_stale_temps_removed_on_next_run(scans, tmp_path):
     out = tmp_path / "out"
     out.mkdir()
     dead = 2**22 + 12345  # above Linux's largest pid: no such process
-    stale = [out / f".bent.{dead}-k3j9x2ab.tmp.ply", out / ".bent.k3j9x2ab.tmp.ply",
+    stale = [out / f".bent.{dead}-k3j9x2ab.tmp.ply",
              out / f".bent.ply.deform.{dead}-q8w7e6r5.tmp.npz"]
     live = out / f".bent.{os.getpid()}-abcdefgh.tmp.ply"  # a writer that is still running
     other = out / f".other.{dead}-k3j9x2ab.tmp.ply"  # another output's: not ours to judge
-    for p in [*stale, live, other]:
+    # names that merely look temporary are a user's files: no pid, or not tempfile's random
+    users = [out / ".bent.k3j9x2ab.tmp.ply", out / f".bent.{dead}-K3J9X2AB.tmp.ply",
+             out / f".bent.{dead}-abc.tmp.ply", out / f".bent.{dead}-k3j9x2abc.tmp.ply"]
+    link_target = tmp_path / "precious.ply"
+    link_target.write_bytes(b"precious")
+    link = out / f".bent.{dead}-linkxxxx.tmp.ply"  # a link is never removed, nor its target
+    link.symlink_to(link_target)
+    for p in [*stale, live, other, *users]:
         p.write_bytes(b"partial")
     cfg = write_config(tmp_path, base_config(scans))
     res = run("deform", cfg, "--reuse", cwd=tmp_path)
     assert res.returncode == 0, res.stderr
     assert not any(p.exists() for p in stale)
-    assert live.exists() and other.exists()
+    assert live.exists() and other.exists() and all(p.read_bytes() == b"partial" for p in users)
+    assert link.is_symlink() and link_target.read_bytes() == b"precious"
     assert (out / "bent.ply").is_file() and (out / "bent.ply.deform.npz").is_file()
+
+
+def test_keep_file_beside_the_output_survives(scans, tmp_path):
+    """A user's ``.keep.abcdef12.tmp.ply`` beside the output ``keep.ply`` is not a temporary
+    file of ours (no pid): it is left alone."""
+    keep = tmp_path / ".keep.abcdef12.tmp.ply"
+    keep.write_bytes(b"mine")
+    res = run("deform", write_config(tmp_path, base_config(scans)), "-o", tmp_path / "keep.ply",
+              cwd=tmp_path)
+    assert res.returncode == 0, res.stderr
+    assert keep.read_bytes() == b"mine" and (tmp_path / "keep.ply").is_file()
+
+
+def test_output_links(scans, tmp_path):
+    """A dangling link named as the output is refused (the link stays); a link to a file is
+    written through (the link stays a link, its target gets the model)."""
+    work = tmp_path / "in"
+    work.mkdir()
+    dangling = work / "out.ply"
+    dangling.symlink_to(tmp_path / "nowhere" / "x.ply")
+    cfg = write_config(work, base_config(scans))
+    res = run("deform", cfg, "-o", dangling, cwd=tmp_path)
+    one_error_line(res, 2, ["out.ply", "symbolic link"])
+    assert dangling.is_symlink() and not (tmp_path / "nowhere").exists()
+    target = tmp_path / "target.ply"
+    target.write_bytes(b"old")
+    link = work / "via.ply"
+    link.symlink_to(target)
+    res = run("deform", cfg, "-o", link, cwd=tmp_path)
+    assert res.returncode == 0, res.stderr
+    assert link.is_symlink() and sd.load(target).n_points == N_BAR
 
 
 # ---------------------------------------------------------------- 5. select

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import zipfile
 from pathlib import Path
 
 import numpy as np
@@ -100,6 +101,28 @@ def save_deformation(path: str | Path, key: str, d: Deformation) -> Path:
     return path
 
 
+MAX_EXPANSION = 10  # np.savez stores members uncompressed: their sum is about the file size
+MAX_EXTRA_BYTES = 300 * 2**20
+
+
+def _check_archive(path: Path) -> None:
+    """Refuse, before numpy reads it, a file that is not a zip or whose members would expand
+    beyond 10x the file + 300 MB (a hostile or foreign cache)."""
+    size = path.stat().st_size
+    try:
+        with zipfile.ZipFile(path) as zf:
+            total = sum(max(info.file_size, 0) for info in zf.infolist())
+    except (zipfile.BadZipFile, zipfile.LargeZipFile, EOFError, ValueError) as exc:
+        raise InputError(f"{path}: not a splatdeform precomputed deformation (not a zip/.npz "
+                         f"file: {' '.join(str(exc).split())[:80]}); delete it or choose "
+                         "another --reuse-file") from None
+    if total > MAX_EXPANSION * size + MAX_EXTRA_BYTES:
+        raise InputError(f"{path}: not a splatdeform precomputed deformation (its members "
+                         f"declare {total} bytes, more than {MAX_EXPANSION}x the "
+                         f"{size}-byte file + {MAX_EXTRA_BYTES >> 20} MB); delete it or choose "
+                         "another --reuse-file")
+
+
 def load_deformation(path: str | Path, key: str, model: PointModel) -> Deformation | None:
     """The stored deformation if ``path`` exists and matches ``key`` and the model, else None."""
     path = Path(path)
@@ -108,6 +131,7 @@ def load_deformation(path: str | Path, key: str, model: PointModel) -> Deformati
                          "(.npz) or a path to create one")
     if not path.is_file():
         return None
+    _check_archive(path)
     try:
         z = np.load(path, allow_pickle=False)
         if str(z["key"]) != key or int(z["n_points"]) != model.n_points:
@@ -126,7 +150,7 @@ def load_deformation(path: str | Path, key: str, model: PointModel) -> Deformati
             control_points=z["control_points"], fit=fit,
             basis=Basis(z["values"], grads if grads.size else None),
             groups=_groups_from(z))
-    except (OSError, KeyError, ValueError, EOFError) as exc:
+    except (OSError, KeyError, ValueError, EOFError, zipfile.BadZipFile) as exc:
         reason = "missing " + str(exc) if isinstance(exc, KeyError) else \
             "not an .npz written by splatdeform" if "pickle" in str(exc) or not str(exc) else \
             " ".join(str(exc).split())[:120]

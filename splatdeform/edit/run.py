@@ -21,7 +21,7 @@ from splatdeform.edit.plain import control_displacement, metaphors, transform_ma
 from splatdeform.errors import InputError, ProcessingError
 from splatdeform.io import SUPPORTED, load, save
 from splatdeform.io.atomic import check_io_paths
-from splatdeform.model import PointModel
+from splatdeform.model import MAX_COORDINATE, PointModel
 from splatdeform.rbf import RbfFit
 
 
@@ -60,8 +60,20 @@ def prepare_model(cfg: EditConfig, base_dir: Path, timings: dict[str, float],
 
         model = estimate_normals(model, cfg.boundary.neighbors)
         model.path = str(base_dir / cfg.input)
+    check_fit_range(model.positions, base_dir / cfg.input)
     timings["load"] = time.perf_counter() - t0
     return model
+
+
+def check_fit_range(positions: np.ndarray, path: Path) -> None:
+    """Refuse coordinates (N, 3) the fit cannot work with (|x| > 1e15, e.g. float32's 3.4e38),
+    naming the first such point."""
+    far = np.abs(positions).max(axis=1) > MAX_COORDINATE if positions.size else None
+    if far is not None and far.any():
+        i = int(np.flatnonzero(far)[0])
+        raise InputError(f"{path}: point {i} at {positions[i].tolist()} is beyond "
+                         f"+-{MAX_COORDINATE:g}; the fit would overflow ({int(far.sum())} such "
+                         "point(s)); fix or crop the file")
 
 
 def precompute(cfg: EditConfig, model: PointModel, base_dir: Path) -> df.Deformation:

@@ -146,6 +146,9 @@ def load(path: str | Path, *, drop_nonfinite: bool = False) -> PointModel:
     """
     path = Path(path)
     if not path.exists():
+        if path.is_symlink():
+            raise InputError(f"{path}: is a symbolic link to nothing (dangling, or a loop); "
+                             "expected a model file")
         raise InputError(f"{path}: no such file")
     if path.is_dir():
         raise InputError(f"{path}: is a directory; expected a model file")

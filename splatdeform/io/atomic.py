@@ -7,7 +7,10 @@
   (``.NAME.<pid>-<random>.tmp.EXT``), then rename it over the target with the mode a normal
   write would leave (an existing file keeps its mode, a new one gets 0666 less the umask), for
   models, images, GIFs, reports, caches and camera files alike. Temporary files of this tool
-  for the same target whose writer is gone (killed) are removed first.
+  for the same target whose writer is gone (killed) are removed first: only names of exactly
+  that pattern (a pid that is not running and tempfile's random part), never a link.
+- An output that is a symbolic link is written where it points (the link stays); a dangling
+  link is refused, never replaced.
 """
 
 from __future__ import annotations
@@ -43,11 +46,18 @@ def _stat(path: Path) -> os.stat_result | None:
         raise
 
 
+def _resolve(path: Path) -> Path:
+    try:
+        return path.resolve()
+    except (RuntimeError, OSError):  # a symlink loop (RuntimeError before Python 3.13)
+        raise InputError(f"{path}: is a symbolic link loop; expected a file path") from None
+
+
 def _same(a: Path, b: Path) -> bool:
     sa, sb = _stat(a), _stat(b)
     if sa is not None and sb is not None:
         return (sa.st_dev, sa.st_ino) == (sb.st_dev, sb.st_ino)
-    return a.resolve() == b.resolve()
+    return _resolve(a) == _resolve(b)
 
 
 NAME_MAX = 255
@@ -88,6 +98,9 @@ def check_io_paths(inputs: Iterable[Named], outputs: Iterable[Named]) -> None:
     for what, p in ins + outs:
         _check_chars(what, p)
     for i, (what, out) in enumerate(outs):
+        if out.is_symlink() and _stat(out) is None:
+            raise InputError(f"{what} {out}: is a symbolic link to nothing (dangling, or a "
+                             "loop); refusing to replace the link, give the path to write")
         st = _stat(out)
         if st is not None and not stat.S_ISREG(st.st_mode):
             kind = ("a directory" if stat.S_ISDIR(st.st_mode) else
@@ -115,10 +128,16 @@ def check_output_path(out: PathLike, *inputs: PathLike | None) -> Path:
 
 # ------------------------------------------------------------------------ temporary files
 
+RANDOM_CHARS = "a-z0-9_"  # tempfile's alphabet and length for the random part of a name
+RANDOM_LEN = 8
+
+
 def _temp_pattern(out: Path) -> re.Pattern[str]:
-    """``.STEM.<pid>-<random>.tmp.EXT`` (and the older ``.STEM.<random>.tmp.EXT``)."""
-    return re.compile(rf"^\.{re.escape(out.stem)}\.(?:(\d+)-)?[A-Za-z0-9_]{{6,12}}"
-                      rf"\.tmp{re.escape(out.suffix)}$")
+    """``.STEM.<pid>-<random>.tmp.EXT``: exactly what :func:`atomic_path` creates (a pid and
+    tempfile's 8-character random part), so a user's file that merely looks temporary
+    (``.keep.abcdef12.tmp.ply``) never matches."""
+    return re.compile(rf"^\.{re.escape(out.stem)}\.([1-9]\d{{0,9}})-[{RANDOM_CHARS}]"
+                      rf"{{{RANDOM_LEN}}}\.tmp{re.escape(out.suffix)}$")
 
 
 def _alive(pid: int) -> bool:
@@ -134,8 +153,9 @@ def _alive(pid: int) -> bool:
 
 
 def remove_stale_temps(out: PathLike) -> list[Path]:
-    """Remove this tool's temporary files for ``out`` left by a killed writer (its pid is gone,
-    or the name predates pids). Returns the removed paths; never raises."""
+    """Remove this tool's temporary files for ``out`` left by a killed writer: the exact name
+    :func:`atomic_path` makes, whose pid is not running. Never a link, never anything else.
+    Returns the removed paths; never raises."""
     out = Path(out)
     pattern = _temp_pattern(out)
     removed = []
@@ -148,11 +168,11 @@ def remove_stale_temps(out: PathLike) -> list[Path]:
         if not (name.startswith(prefix) and name.endswith(suffix)):
             continue  # cheap filter first: output folders of a batch hold many files
         m = pattern.match(name)
-        if m is None or (m.group(1) is not None and _alive(int(m.group(1)))):
+        if m is None or _alive(int(m.group(1))):
             continue
         p = out.parent / name
         with contextlib.suppress(OSError):
-            if p.is_file() and not p.is_symlink():
+            if stat.S_ISREG(os.lstat(p).st_mode):
                 p.unlink()
                 removed.append(p)
     return removed
@@ -179,13 +199,25 @@ def normal_mode(out: Path) -> int:
     return 0o666 & ~current_umask()
 
 
+def _link_target(out: Path) -> Path:
+    """An output named by a symbolic link is written where the link points (the link stays);
+    a link to nothing is refused rather than replaced."""
+    if not out.is_symlink():
+        return out
+    try:
+        return out.resolve(strict=True)
+    except (OSError, RuntimeError):
+        raise InputError(f"output {out}: is a symbolic link to nothing (dangling, or a loop); "
+                         "refusing to replace the link, give the path to write") from None
+
+
 @contextlib.contextmanager
 def atomic_path(out: PathLike) -> Iterator[Path]:
     """Yield a temporary path beside ``out``; on success give it a normal write's mode
     (:func:`normal_mode`) and rename it to ``out``,
     else delete it. The temporary name keeps ``out``'s suffix (some writers pick the format by
     extension). Stale temporaries of ``out`` from killed runs are removed first."""
-    out = Path(out)
+    out = _link_target(Path(out))
     _check_chars("output", out)
     out.parent.mkdir(parents=True, exist_ok=True)
     remove_stale_temps(out)

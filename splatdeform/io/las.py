@@ -27,9 +27,11 @@ import numpy as np
 
 from ..errors import FormatError, ProcessingError
 from ..model import PlyElementData, PlyProperty, PlySource, PointModel, classify
+from .las_header import check_header
 from .ply_format import TYPE_NAMES
 
 EXTENSIONS = (".las", ".laz")
+DECODE_CHUNK = 50_000  # points per read (LAZ's default chunk): a corrupt body names this chunk
 INT32_MIN, INT32_MAX = -(2**31), 2**31 - 1
 NORMAL_NAMES = ("nx", "ny", "nz")
 
@@ -160,26 +162,74 @@ def model_from_las(header, points: np.ndarray, path: str | Path, *, evlrs=None,
                       colors=_colors(header, points), kind=kind, source=source, path=str(path))
 
 
-def _check_signature(path: Path) -> None:
-    with open(path, "rb") as f:
-        magic = f.read(4)
-    if magic != b"LASF":
-        raise FormatError(f"{path}: not a LAS/LAZ file (it does not start with 'LASF')")
+def _decode_failure(exc: BaseException) -> bool:
+    """A failure of the decoder on a corrupt body: laspy's and lazrs's errors, numpy/struct
+    complaints about short buffers, and pyo3's PanicException (a BaseException)."""
+    if isinstance(exc, MemoryError):
+        return False
+    return isinstance(exc, Exception) or type(exc).__name__ == "PanicException"
+
+
+def _read_records(path: Path, reader, start: int, stop: int, chunk: int) -> Iterator[np.ndarray]:
+    """Raw records [start, stop) from an open laspy reader, ``chunk`` at a time; a corrupt or
+    short body is one FormatError naming the file and the points of the chunk."""
+    pos = start
+    while pos < stop:
+        n = min(chunk, stop - pos)
+        try:
+            record = reader.read_points(n)
+            array = np.asarray(record.array)
+        except BaseException as exc:
+            if not _decode_failure(exc):
+                raise
+            msg = " ".join(str(exc).split())[:200] or type(exc).__name__
+            raise FormatError(f"{path}: corrupt LAS/LAZ point data in the chunk of points "
+                              f"{pos}..{pos + n - 1}: {type(exc).__name__}: {msg}") from None
+        if len(array) == 0:
+            raise FormatError(f"{path}: truncated LAS/LAZ point data at point {pos} (the header "
+                              f"declares {stop})")
+        pos += len(array)
+        yield array
+
+
+def _open(path: Path):
+    """laspy reader of a LAS/LAZ file whose header :func:`check_header` accepted."""
+    laspy = _laspy()
+    try:
+        return laspy.open(path)
+    except BaseException as exc:
+        if not _decode_failure(exc):
+            raise
+        raise FormatError(f"{path}: cannot read LAS/LAZ: {type(exc).__name__}: "
+                          f"{' '.join(str(exc).split())[:200]}") from None
 
 
 def read_model(path: str | Path, *, drop_nonfinite: bool = False) -> PointModel:
-    """Load a .las/.laz file as a PointModel (raises FormatError naming the file)."""
+    """Load a .las/.laz file as a PointModel (raises FormatError naming the file; the header
+    is checked against the file size first, the points are decoded chunk by chunk)."""
     path = Path(path)
-    _check_signature(path)
-    laspy = _laspy()
-    try:
-        las = laspy.read(path)
-    except laspy.errors.LaspyException as exc:
-        raise FormatError(f"{path}: cannot read LAS/LAZ: {exc}") from exc
-    points = np.asarray(las.points.array)
-    compressed = bool(las.header.are_points_compressed) or path.suffix.lower() == ".laz"
-    return model_from_las(las.header, points, path, evlrs=getattr(las, "evlrs", None),
-                          compressed=compressed, drop_nonfinite=drop_nonfinite)
+    layout = check_header(path)
+    with _open(path) as reader:
+        header = reader.header
+        evlrs = getattr(reader, "evlrs", None)
+        chunks = _read_records(path, reader, 0, layout.point_count, DECODE_CHUNK)
+        if layout.compressed:   # the count is only bounded loosely: grow with what decodes
+            parts = list(chunks)
+            points = parts[0] if len(parts) == 1 else np.concatenate(parts) if parts else None
+            del parts
+        else:                   # the count was checked against the file: fill one array
+            points = None
+            at = 0
+            for part in chunks:
+                if points is None:
+                    points = np.empty(layout.point_count, dtype=part.dtype)
+                points[at:at + len(part)] = part
+                at += len(part)
+    if points is None or len(points) == 0:
+        raise FormatError(f"{path}: the LAS file holds no points")
+    compressed = layout.compressed or path.suffix.lower() == ".laz"
+    return model_from_las(header, points, path, evlrs=evlrs, compressed=compressed,
+                          drop_nonfinite=drop_nonfinite)
 
 
 # ---- writing ---------------------------------------------------------------------------------
@@ -365,36 +415,28 @@ def ply_source_from_las(source: LasSource) -> PlySource:
 def read_header(path: str | Path):
     """(header, compressed, evlrs) of a LAS/LAZ file without reading its points."""
     path = Path(path)
-    _check_signature(path)
-    laspy = _laspy()
-    try:
-        with laspy.open(path) as reader:
-            evlrs = getattr(reader, "evlrs", None)
-            return reader.header, bool(reader.header.are_points_compressed), evlrs
-    except laspy.errors.LaspyException as exc:
-        raise FormatError(f"{path}: cannot read LAS/LAZ: {exc}") from exc
+    layout = check_header(path)
+    with _open(path) as reader:
+        evlrs = getattr(reader, "evlrs", None)
+        return reader.header, layout.compressed, evlrs
 
 
 def iter_chunks(path: str | Path, chunk: int, start: int = 0,
                 stop: int | None = None) -> Iterator[np.ndarray]:
     """Raw point records of points [start, stop) in chunks of at most ``chunk`` rows."""
-    laspy = _laspy()
-    try:
-        with laspy.open(path) as reader:
-            total = reader.header.point_count
-            stop = total if stop is None else min(stop, total)
-            if start:
+    path = Path(path)
+    layout = check_header(path)
+    stop = layout.point_count if stop is None else min(stop, layout.point_count)
+    with _open(path) as reader:
+        if start:
+            try:
                 reader.seek(start)
-            pos = start
-            while pos < stop:
-                n = min(chunk, stop - pos)
-                record = reader.read_points(n)
-                if len(record) == 0:
-                    raise FormatError(f"{path}: truncated LAS point data at point {pos}")
-                pos += len(record)
-                yield np.asarray(record.array)
-    except (laspy.errors.LaspyException, ValueError, OSError, RuntimeError) as exc:
-        raise FormatError(f"{path}: cannot read LAS/LAZ points: {exc}") from exc
+            except BaseException as exc:
+                if not _decode_failure(exc):
+                    raise
+                raise FormatError(f"{path}: corrupt LAS/LAZ point data: cannot seek to point "
+                                  f"{start}: {type(exc).__name__}") from None
+        yield from _read_records(path, reader, start, stop, chunk)
 
 
 class LasWriter:

@@ -39,33 +39,92 @@ def _triangles_from_faces(column: np.ndarray) -> np.ndarray:
     if len(column) == 0:
         return np.empty((0, 3), dtype=np.int64)
     lengths = np.fromiter((len(f) for f in column), dtype=np.int64, count=len(column))
-    if (lengths == 3).all():
-        return np.stack(column).astype(np.int64).reshape(-1, 3)
-    # fan triangulation of every polygon at once: face f gives (f0, fi, fi+1), i = 1..len-2
-    flat = np.concatenate([np.asarray(f, dtype=np.int64) for f in column]) if lengths.sum() \
+    # one concatenation of the rows as they are (np.stack would make a new view per row, and
+    # a per-row int64 conversion a new array per row: hundreds of MB for millions of faces)
+    flat = np.concatenate(column.tolist()).astype(np.int64) if lengths.sum() \
         else np.empty(0, dtype=np.int64)
+    if (lengths == 3).all():
+        return flat.reshape(-1, 3)
+    # fan triangulation of every polygon at once: face f gives (f0, fi, fi+1), i = 1..len-2
+    # (temporaries one at a time: a few (T,) int64 arrays, not a dozen)
     first = np.cumsum(lengths) - lengths
     fans = np.maximum(lengths - 2, 0)
-    owner = np.repeat(np.arange(len(column)), fans)
-    step = np.arange(int(fans.sum())) - np.repeat(np.cumsum(fans) - fans, fans) + 1
-    start = first[owner]
-    return np.stack([flat[start], flat[start + step], flat[start + step + 1]], axis=1)
+    start = np.repeat(first, fans)              # each triangle's polygon's first index
+    step = np.arange(int(fans.sum()), dtype=np.int64)
+    step -= np.repeat(np.cumsum(fans) - fans, fans)
+    tris = np.empty((len(start), 3), dtype=np.int64)
+    tris[:, 0] = flat[start]
+    start += step
+    del step
+    start += 1
+    tris[:, 1] = flat[start]
+    start += 1
+    tris[:, 2] = flat[start]
+    return tris
+
+
+STRIP_BLOCK = 1 << 20  # strip positions converted at a time (bounded temporaries)
+
+
+def _strip_block(s: np.ndarray, k: int, e: int, carry: int) -> tuple[np.ndarray, np.ndarray, int]:
+    """Candidate triangles at strip positions [k, e) of the strip list ``s`` (-1 separates
+    strips): (T, 3) int64 triangles and (T,) bool keep (no separator, not degenerate), and the
+    start of the strip that is open at ``e``. ``carry``: the start of the strip open at ``k``."""
+    a, b, c = s[k:e], s[k + 1:e + 1], s[k + 2:e + 2]
+    pos = np.arange(k, e, dtype=np.int64)
+    starts = np.where(a < 0, pos + 1, carry)
+    np.maximum.accumulate(starts, out=starts)
+    odd = ((pos - starts) & 1).astype(bool)   # every other triangle of a strip is flipped
+    t = np.stack([a, np.where(odd, c, b), np.where(odd, b, c)], axis=1).astype(np.int64)
+    keep = (t >= 0).all(axis=1) & (t[:, 0] != t[:, 1]) & (t[:, 1] != t[:, 2]) \
+        & (t[:, 0] != t[:, 2])
+    return t, keep, int(starts[-1]) if len(starts) else carry
 
 
 def _triangles_from_strips(column: np.ndarray) -> np.ndarray:
-    tris = []
-    for strip_list in column:
-        strip_list = np.asarray(strip_list, dtype=np.int64)
-        for strip in np.split(strip_list, np.flatnonzero(strip_list < 0)):
-            strip = strip[strip >= 0]
-            if len(strip) < 3:
-                continue
-            a, b, c = strip[:-2], strip[1:-1], strip[2:]
-            odd = (np.arange(len(a)) % 2) == 1
-            t = np.stack([a, np.where(odd, c, b), np.where(odd, b, c)], axis=1)
-            keep = (t[:, 0] != t[:, 1]) & (t[:, 1] != t[:, 2]) & (t[:, 0] != t[:, 2])
-            tris.append(t[keep])
-    return np.concatenate(tris) if tris else np.empty((0, 3), dtype=np.int64)
+    """Triangles (T, 3) int64 of every strip list in ``column``, vectorised in blocks of
+    positions (a list of millions of short strips is no Python loop; temporaries stay a few
+    block sizes; the result is allocated once, after a counting pass)."""
+    lists = [np.asarray(v) for v in column]
+    blocks = [(i, k, min(k + STRIP_BLOCK, len(s) - 2))
+              for i, s in enumerate(lists) for k in range(0, max(len(s) - 2, 0), STRIP_BLOCK)]
+    counts, carries, carry, last = [], [], 0, -1
+    for i, k, e in blocks:   # pass 1: how many triangles each block keeps
+        carry = 0 if i != last else carry
+        carries.append(carry)
+        _, keep, carry = _strip_block(lists[i], k, e, carry)
+        counts.append(int(keep.sum()))
+        last = i
+    out = np.empty((sum(counts), 3), dtype=np.int64)
+    at = 0
+    for (i, k, e), carry, n in zip(blocks, carries, counts, strict=True):  # pass 2: fill
+        t, keep, _ = _strip_block(lists[i], k, e, carry)
+        out[at:at + n] = t[keep]
+        at += n
+    return out
+
+
+SPLAT_PREFIXES = ("scale_", "rot_", "f_dc_", "f_rest_")
+
+
+def _nonfinite_splat_rows(data: np.ndarray) -> np.ndarray | None:
+    """(N,) bool: rows whose 3DGS attributes (log-scales, rotation, opacity, SH) are NaN/Inf, or
+    None when the element holds no Gaussians. They follow --drop-nonfinite like positions."""
+    names = [n for n in data.dtype.names or ()
+             if (n.startswith(SPLAT_PREFIXES) or n == "opacity") and data.dtype[n].kind == "f"]
+    if not any(n.startswith("scale_") for n in names):
+        return None
+    bad = np.zeros(data.shape[0], dtype=bool)
+    for n in names:
+        bad |= ~np.isfinite(data[n])
+    return bad
+
+
+def _require_list(path: str | Path, element: str, prop) -> None:
+    if not prop.is_list:
+        raise FormatError(f"{path}: element '{element}' property '{prop.name}' is a scalar "
+                          f"({prop.type_name}); "
+                          "expected a list (property list uchar int vertex_indices)")
 
 
 def model_from_source(source: PlySource, path: str | Path, *,
@@ -86,10 +145,16 @@ def model_from_source(source: PlySource, path: str | Path, *,
     if vertex.count == 0:
         raise FormatError(f"{path}: the vertex element is empty")
     bad = ~np.isfinite(positions).all(axis=1)
+    what = "coordinates"
+    splat = _nonfinite_splat_rows(data)
+    if splat is not None and splat.any() and not bad.any():
+        what = "Gaussian attributes (scale_*, rot_*, opacity, f_dc_*, f_rest_*)"
+    if splat is not None:
+        bad |= splat
     if bad.any():
         if not drop_nonfinite:
             raise FormatError(
-                f"{path}: {int(bad.sum())} vertex(es) with NaN/Inf coordinates (first at index "
+                f"{path}: {int(bad.sum())} vertex(es) with NaN/Inf {what} (first at index "
                 f"{int(np.flatnonzero(bad)[0])}); fix the file or load with drop_nonfinite=True "
                 "(CLI: --drop-nonfinite)")
         source = _drop_vertices(source, path, bad)
@@ -101,9 +166,11 @@ def model_from_source(source: PlySource, path: str | Path, *,
         name = next((n for n in ("vertex_indices", "vertex_index")
                      if face_el.property(n) is not None), None)
         if name is not None:
+            _require_list(path, "face", face_el.property(name))
             faces = _triangles_from_faces(face_el.data[name])
     strips = source.element("tristrips")
     if strips is not None and strips.count > 0 and strips.property("vertex_indices"):
+        _require_list(path, "tristrips", strips.property("vertex_indices"))
         strip_tris = _triangles_from_strips(strips.data["vertex_indices"])
         faces = strip_tris if faces is None else np.concatenate([faces, strip_tris])
     if faces is not None and faces.size:

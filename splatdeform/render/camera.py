@@ -16,6 +16,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import stat
 from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
@@ -295,17 +296,35 @@ def parse_camera(data: Any, where: str) -> tuple[Camera, tuple[int, int]]:
     return Camera(position, target, up, fov=fov, near=near, far=far), (size[0], size[1])
 
 
+MAX_CAMERA_BYTES = 1 << 20  # a camera file is a few hundred bytes
+
+
 def load_camera(path: str | os.PathLike[str]) -> tuple[Camera, tuple[int, int]]:
     """Read a camera file (the ``OUT.camera.json`` a render wrote) -> (Camera, (W, H) of one
     panel). Raises InputError naming the file."""
     try:
-        text = Path(path).read_text()
+        st = os.stat(path)
+        if not stat.S_ISREG(st.st_mode):
+            raise InputError(f"{path}: the camera file is not a regular file (a device, FIFO "
+                             "or folder); expected a .camera.json file")
+        if st.st_size > MAX_CAMERA_BYTES:
+            raise InputError(f"{path}: the camera file has {st.st_size} bytes, more than "
+                             f"{MAX_CAMERA_BYTES >> 10} KB; expected a .camera.json file")
+        with open(path, "rb") as f:
+            raw = f.read(MAX_CAMERA_BYTES + 1)
     except OSError as exc:
         raise InputError(f"{path}: cannot read the camera file ({exc.strerror})") from None
+    if len(raw) > MAX_CAMERA_BYTES:
+        raise InputError(f"{path}: the camera file is larger than {MAX_CAMERA_BYTES >> 10} KB")
     try:
-        data = json.loads(text)
-    except ValueError as exc:
-        raise InputError(f"{path}: not valid JSON ({exc})") from None
+        data = json.loads(raw.decode("utf-8"))
+    except UnicodeDecodeError:
+        raise InputError(f"{path}: the camera file is not text (binary data); expected a "
+                         ".camera.json file") from None
+    except (ValueError, RecursionError) as exc:
+        msg = " ".join(str(exc).split())[:120] if not isinstance(exc, RecursionError) else \
+            "nested too deeply"
+        raise InputError(f"{path}: not valid JSON ({msg})") from None
     return parse_camera(data, str(path))
 
 

@@ -3,12 +3,13 @@ whitespace-separated integers, or a .npy integer array; relative to the config's
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Annotated, Literal
 
 import numpy as np
-from pydantic import Field
+from pydantic import Field, field_validator
 
 from splatdeform.edit.schema import MAX_INDEX, Strict
 from splatdeform.edit.units import Frame, check_units
@@ -16,6 +17,8 @@ from splatdeform.errors import InputError
 from splatdeform.model import PointModel
 
 NAME = "indices"
+MAX_LITERAL_INDICES = 100_000  # longer selections belong in a file (indices: {file: ...})
+MAX_FILE_BYTES = 256 * 2**20  # an indices file (text or .npy)
 
 
 @dataclass(frozen=True)
@@ -69,6 +72,12 @@ def load_indices(sel: Indices, base_dir: Path | None) -> np.ndarray:
     if not path.is_file():
         what = "is not a regular file" if path.exists() else "indices file not found"
         raise InputError(f"{path}: {what}")
+    size = path.stat().st_size
+    if size > MAX_FILE_BYTES:
+        raise InputError(f"{path}: the indices file has {size} bytes, more than "
+                         f"{MAX_FILE_BYTES >> 20} MB")
+    if size == 0:
+        raise InputError(f"{path}: the indices file is empty; expected integer point indices")
     try:
         if path.suffix == ".npy":
             raw = np.load(path, allow_pickle=False)
@@ -77,7 +86,12 @@ def load_indices(sel: Indices, base_dir: Path | None) -> np.ndarray:
             if raw.size and raw.dtype.kind == "u" and raw.max() > np.iinfo(np.int64).max:
                 raise OverflowError("index too large")
             return raw.astype(np.int64).ravel()
-        return np.loadtxt(path, dtype=np.int64, ndmin=1).ravel()
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")  # "input contained no data" becomes the error below
+            return np.loadtxt(path, dtype=np.int64, ndmin=1).ravel()
+    except UserWarning:
+        raise InputError(f"{path}: holds no indices (only blanks or comments); expected integer "
+                         "point indices") from None
     except (ValueError, OverflowError) as exc:
         raise InputError(f"{path}: expected integer point indices: {exc}") from exc
     except OSError as exc:
@@ -86,6 +100,15 @@ def load_indices(sel: Indices, base_dir: Path | None) -> np.ndarray:
 
 class Entry(Strict):
     indices: list[Annotated[int, Field(ge=0, le=MAX_INDEX)]] | dict[Literal["file"], str]
+
+    @field_validator("indices", mode="before")
+    @classmethod
+    def _not_too_many(cls, value):
+        if isinstance(value, list) and len(value) > MAX_LITERAL_INDICES:
+            raise ValueError(f"{len(value):,} literal indices, more than "
+                             f"{MAX_LITERAL_INDICES:,}; put them in a file and write "
+                             "indices: {file: picked.txt} (or a .npy)")
+        return value
 
     def to_selector(self) -> Indices:
         if isinstance(self.indices, dict):

@@ -23,7 +23,7 @@ from splatdeform.io import STREAMABLE, extension_of
 from splatdeform.io import las as laslib
 from splatdeform.io import ply as plylib
 from splatdeform.io import ply_format as plyfmt
-from splatdeform.model import PlyElementData, PlySource, PointModel
+from splatdeform.model import MAX_COORDINATE, PlyElementData, PlySource, PointModel
 
 __all__ = ["STREAMABLE", "open_chunks"]  # STREAMABLE: the io format table's streamable list
 
@@ -114,6 +114,12 @@ class PlyChunks(ChunkFile):
             bad = int(np.flatnonzero(~np.isfinite(out).all(axis=1))[0]) + start
             raise FormatError(f"{self.path}: vertex {bad} has NaN/Inf coordinates (streaming "
                               "cannot drop them; fix the file)")
+        far = np.abs(out).max(axis=1) > MAX_COORDINATE if out.size else None
+        if far is not None and far.any():
+            bad = int(np.flatnonzero(far)[0]) + start
+            raise FormatError(f"{self.path}: point {bad} at {out[bad - start].tolist()} is beyond "
+                              f"+-{MAX_COORDINATE:g}; the fit would overflow; fix or crop the "
+                              "file")
         return out
 
     def read(self, start: int, stop: int) -> PointModel:
