@@ -158,11 +158,16 @@ def input_paths(cfg: EditConfig, base_dir: str | Path) -> list[tuple[str, Path]]
     groups = [("regions.fixed", cfg.regions.fixed), ("regions.handle", cfg.regions.handle or [])]
     for i, h in enumerate(getattr(cfg, "handles", None) or []):
         groups.append((f"handles[{i}].region", getattr(h, "region", None) or []))
+    from splatdeform.edit.selectors import leaves
+
     for key, selectors in groups:
         for j, sel in enumerate(selectors):
-            file = getattr(sel.to_selector(), "file", None)  # selectors that read a file
-            if file is not None:
-                found.append((f"{key}[{j}].{_selector_name(sel)}.file", base_dir / file))
+            plain = sel.to_selector()
+            for leaf in leaves(plain):   # nested in all / not too
+                file = getattr(leaf, "file", None)  # selectors that read a file
+                if file is not None:
+                    name = _selector_name(sel) if leaf is plain else "indices"
+                    found.append((f"{key}[{j}].{name}.file", base_dir / file))
     return found
 
 
@@ -176,7 +181,7 @@ def _config_fields(roots: tuple[type[BaseModel], ...]) -> frozenset[str]:
     names, todo = set(), list(roots)
     while todo:
         cls = todo.pop()
-        names.update(cls.model_fields)
+        names.update(f.alias or n for n, f in cls.model_fields.items())  # 'in', 'not'
         todo.extend(cls.__subclasses__())
     return frozenset(names)
 
