@@ -201,8 +201,17 @@ def _add_camera_args(p: argparse.ArgumentParser) -> None:
                         "azimuth/elevation/fov/size")
 
 
+def _add_budget_args(p: argparse.ArgumentParser, what: str) -> None:
+    from .render.colors import COLOR_MODES
+
+    p.add_argument("--memory-budget", metavar="SIZE",
+                   help=f"{what} (e.g. 512MB, 2GB; config memory_budget; default half the RAM)")
+    p.add_argument("--color", choices=COLOR_MODES, metavar="MODE",
+                   help="colour by " + " | ".join(COLOR_MODES) + " (config render.color; "
+                        "default: the file's colours, else elevation for LiDAR)")
+
+
 def cmd_render(args: argparse.Namespace) -> int:
-    from .io import load
     from .io.atomic import check_io_paths
     from .render import render_comparison
 
@@ -223,7 +232,9 @@ def cmd_render(args: argparse.Namespace) -> int:
                    [("-o/--output", f) for f in with_camera_file(Path(args.output),
                                                                  [Path(args.output)])])
     view = _camera_args(args)
-    models = [load(p, drop_nonfinite=args.drop_nonfinite) for p in args.models]
+    inputs = _render_inputs(args.models, _budget(args.memory_budget), args.drop_nonfinite)
+    models = [_colored(r.model, args.color, view.get("up"), [i.model for i in inputs])
+              for r in inputs]
     after = models[1] if len(models) > 1 else None
     labels = tuple(args.labels.split(",")) if args.labels else (
         (models[0].path, models[1].path) if after is not None else (models[0].path,))
@@ -231,8 +242,39 @@ def cmd_render(args: argparse.Namespace) -> int:
     per = view.pop("size", per)
     render_comparison(models[0], after, args.output, size=per, azimuth=args.azimuth,
                       elevation=args.elevation, fov=args.fov, labels=labels, **view)
+    for r in inputs:
+        if r.sampled:
+            print(f"{r.model.path}: {r.line()}")
     print(f"wrote {args.output}")
     return 0
+
+
+def _budget(text: str | None, config_value=None) -> int:
+    """--memory-budget (else the config's memory_budget, else half the RAM) in bytes."""
+    from splatdeform.edit.stream import default_budget, parse_size
+
+    if text is not None:
+        return parse_size(text)
+    if config_value is not None:
+        return parse_size(config_value, "memory_budget")
+    return default_budget()
+
+
+def _render_inputs(paths, budget: int, drop_nonfinite: bool = False) -> list:
+    """Each model whole, or a streamed sample when it does not fit its share of ``budget``."""
+    from splatdeform.edit.stream.sample import load_for_render
+
+    return [load_for_render(p, budget, drop_nonfinite=drop_nonfinite, share=1 / len(paths))
+            for p in paths]
+
+
+def _colored(model, mode: str | None, up: str | None, models: list):
+    """``model`` coloured by ``mode`` (None: the file's colours, else elevation for LiDAR)
+    along the view's up axis (None: the files' convention)."""
+    from .render.camera import default_up
+    from .render.colors import colored
+
+    return colored(model, mode, up or default_up(models))
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -282,6 +324,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--fov", type=float, default=35.0)
     p.add_argument("--labels", help="comma-separated labels (default: the file names)")
     p.add_argument("--drop-nonfinite", action="store_true")
+    _add_budget_args(p, "render a view-independent sample of a model bigger than SIZE")
     _add_camera_args(p)
     p.set_defaults(func=cmd_render)
 

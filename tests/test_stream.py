@@ -17,10 +17,11 @@ import yaml
 from conftest import ROOT, shared_file
 
 from data_tools.synth import bumpy_bar
+from splatdeform import memory
 from splatdeform.cli import main
 from splatdeform.edit.config import load_edit
 from splatdeform.edit.run import run_edit
-from splatdeform.edit.stream import estimate_in_memory_peak, parse_size, run_stream
+from splatdeform.edit.stream import parse_size, run_stream
 from splatdeform.io import save
 from splatdeform.io.ply_format import read_ply
 
@@ -107,7 +108,7 @@ def test_stream_equals_in_memory_ply(bar: Path, tmp_path: Path) -> None:
 def test_cli_streams_above_budget_with_progress(bar: Path, tmp_path: Path, capsys) -> None:
     big = tmp_path / "big.ply"
     save(bumpy_bar(120_000, seed=5), big)
-    assert estimate_in_memory_peak(big) > parse_size("64MB")
+    assert memory.deform_bytes(memory.file_cost(big)) > parse_size("64MB")
     cfg = write_edit(tmp_path, big, "out.ply")
     assert main(["deform", str(cfg), "--memory-budget", "64MB"]) == 0
     captured = capsys.readouterr()
