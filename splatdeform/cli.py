@@ -75,13 +75,12 @@ def cmd_deform(args: argparse.Namespace) -> int:
         if exc.key is not None:
             raise exc.in_file(args.config) from None
         raise
-    if render_out and result.model is None:
-        raise InputError("--render/render: not available when deform streams (the model is "
-                         "never whole in memory); render the output file instead")
     if render_out:
         from splatdeform.edit.images import render_result
 
-        render_result(result, cfg, render_out, frames=args.frames, view=view)
+        budget = _budget(args.memory_budget, cfg.memory_budget)
+        render_result(result, cfg, render_out, frames=args.frames, view=view, budget=budget,
+                      color=args.color, input_path=base / cfg.input)
     print(format_report(result))
     return 0
 
@@ -122,12 +121,25 @@ def cmd_select(args: argparse.Namespace) -> int:
                    [("-o/--output", f) for f in with_camera_file(Path(args.output),
                                                                  [Path(args.output)])]
                    if args.output is not None else [])
-    model = prepare_model(cfg, base, {}, args.drop_nonfinite)
+    from splatdeform.edit.stream import should_stream
+
+    budget = _budget(args.memory_budget, cfg.memory_budget)
+    streamed = should_stream(cfg, base / cfg.input, budget) and not args.drop_nonfinite
     try:
-        sel = select_regions(cfg, model, base)
+        if streamed:   # bigger than the budget: regions streamed, a sampled preview
+            from splatdeform.edit.stream.select import stream_select
+
+            counts, sample, sel = stream_select(cfg, base, budget,
+                                                preview=args.output is not None)
+            model = None if sample is None else sample.model
+        else:
+            model = prepare_model(cfg, base, {}, args.drop_nonfinite)
+            sel = select_regions(cfg, model, base)
+            counts = sel.counts()
     except InputError as exc:
         raise exc.in_file(args.config) from None
-    print(format_counts(sel.counts()))
+    print(format_counts(counts) + ("  (streamed within the memory budget; rings: see "
+                                   "deform)" if streamed else ""))
     if args.output is not None:
         from .render import render_comparison
 
@@ -141,9 +153,17 @@ def cmd_select(args: argparse.Namespace) -> int:
             args.camera = args.camera or (str(base / opts.camera) if opts.camera else None)
         view.update(_camera_args(args))
         size = view.pop("size", size)
-        render_comparison(preview_model(model, sel), None, args.output, size=size,
-                          labels=(f"fixed (blue) / {sel.moving_name} (orange) / free (grey); "
-                                  "rings lighter",), **view)
+        color = args.color or (opts.color if opts else None) or "region"
+        if color == "region":
+            shown = preview_model(model, sel)
+            label = (f"fixed (blue) / {counts.moving_name} (orange) / free (grey)"
+                     + ("" if streamed else "; rings lighter"))
+        else:
+            shown = _colored(model, color, view.get("up"), [model])
+            label = f"{cfg.input} ({color})"
+        render_comparison(shown, None, args.output, size=size, labels=(label,), **view)
+        if streamed and counts.points > shown.n_points:
+            print(f"rendered {shown.n_points:,} of {counts.points:,} points (memory budget)")
         print(f"wrote {args.output}")
     return 0
 
@@ -202,10 +222,14 @@ def _add_camera_args(p: argparse.ArgumentParser) -> None:
 
 
 def _add_budget_args(p: argparse.ArgumentParser, what: str) -> None:
-    from .render.colors import COLOR_MODES
-
     p.add_argument("--memory-budget", metavar="SIZE",
                    help=f"{what} (e.g. 512MB, 2GB; config memory_budget; default half the RAM)")
+    _add_color_arg(p)
+
+
+def _add_color_arg(p: argparse.ArgumentParser) -> None:
+    from .render.colors import COLOR_MODES
+
     p.add_argument("--color", choices=COLOR_MODES, metavar="MODE",
                    help="colour by " + " | ".join(COLOR_MODES) + " (config render.color; "
                         "default: the file's colours, else elevation for LiDAR)")
@@ -312,6 +336,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--workers", type=int, metavar="N",
                    help="split the scan over N local Dask worker processes")
     p.add_argument("--quiet", action="store_true", help="no progress lines")
+    _add_color_arg(p)
     _add_camera_args(p)
     p.set_defaults(func=cmd_deform)
 
@@ -334,6 +359,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("-o", "--output", help="preview PNG (the model coloured by region)")
     p.add_argument("--drop-nonfinite", action="store_true",
                    help="drop vertices with NaN/Inf coordinates instead of failing")
+    _add_budget_args(p, "stream the regions and preview a sample of a scan bigger than SIZE")
     _add_camera_args(p)
     p.set_defaults(func=cmd_select)
 

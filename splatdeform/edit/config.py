@@ -98,6 +98,8 @@ class RenderCfg(_Strict):
     up: Literal["+x", "+y", "+z", "-x", "-y", "-z"] | None = None  # None: the file's convention
     roll: float = Field(default=0.0, ge=-360, le=360)
     camera: str | None = None   # a camera file (OUT.camera.json), relative to the config file
+    # None: the file's colours, else elevation for LiDAR (splatdeform.render.colors)
+    color: Literal["rgb", "elevation", "intensity", "classification", "region"] | None = None
 
     @model_validator(mode="after")
     def _output_kind(self) -> RenderCfg:

@@ -172,7 +172,7 @@ __all__ = ["Progress", "default_budget", "parse_size", "run_stream", "should_str
 def maybe_stream(cfg, base_dir: Path, out_path: Path, *, budget: int | str | None = None,
                  scheduler: str | None = None, workers: int | None = None,
                  quiet: bool = False, reuse=None, drop_nonfinite: bool = False, log=None,
-                 check_fit=None, render: bool = False):
+                 check_fit=None, render: bool = False):  # render: both files, sampled
     """The streaming result when this edit should stream (budget exceeded, or a Dask
     scheduler/workers asked for), else None (run in memory). ``budget``: bytes or a size
     string (else ``cfg.memory_budget``, else half the RAM)."""
@@ -189,8 +189,5 @@ def maybe_stream(cfg, base_dir: Path, out_path: Path, *, budget: int | str | Non
             raise ConfigError("--scheduler/--workers: cannot be combined with --reuse or "
                               "--drop-nonfinite")
         return None
-    if render:
-        raise ConfigError("--render/render: not available when deform streams (the model is "
-                          "never whole in memory); render the output file instead")
     return run_stream(cfg, base_dir, output=out_path, budget=budget, scheduler=scheduler,
                       workers=workers, quiet=quiet, log=log, check_fit=check_fit)

@@ -26,6 +26,7 @@ class RenderInput:
 
     model: PointModel
     total: int
+    index: np.ndarray | None = None   # (M,) int64 rows of the file the sample holds
 
     @property
     def sampled(self) -> bool:
@@ -67,12 +68,14 @@ def sample_file(path: str | Path, keep: int, seed: int = SEED) -> RenderInput:
     p = min(keep / max(n, 1), 1.0)
     row_bytes = src.dtype.itemsize if hasattr(src, "dtype") else src.header.point_format.size
     chunk = max(CHUNK_BYTES // max(row_bytes, 1), 10_000)
-    parts = []
+    parts, index = [], []
     for a in range(0, n, chunk):
         b = min(a + chunk, n)
         rows = src.rows(a, b)
-        parts.append(rows[rng.random(b - a) < p].copy())   # not a view: frees the chunk
+        kept = np.flatnonzero(rng.random(b - a) < p)
+        parts.append(rows[kept].copy())   # not a view: frees the chunk
+        index.append(kept + a)
         del rows
     rows = np.concatenate(parts)
     del parts
-    return RenderInput(src.model_of(rows), n)
+    return RenderInput(src.model_of(rows), n, np.concatenate(index))
