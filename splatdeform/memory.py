@@ -26,9 +26,10 @@ KNN_BYTES_PER_NEIGHBOR = 16
 # Per point of an in-memory render beyond its decoded record: float64 positions and their
 # float32 copy, normals, splat axes, colours, the kNN spacing query (k + 1 distances and
 # indices) and the GL buffers' client copies. Measured (tests/test_render_budget.py checks
-# it stays an upper bound): ~330 bytes a point all in (load included) for clouds needing
-# normals, ~220 beyond LARGE_CLOUD points (flat discs), above a 255 MB interpreter + EGL base.
-RENDER_BYTES_PER_POINT = 256
+# it stays an upper bound): 530-880 bytes a point all in (load included; malloc arenas vary
+# with load) for a 300k LAS cloud needing PCA normals, ~220 beyond LARGE_CLOUD points (flat
+# discs, no per-point kNN), above a ~255 MB interpreter + EGL base.
+RENDER_BYTES_PER_POINT = 768
 
 
 @dataclass(frozen=True)

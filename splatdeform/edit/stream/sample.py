@@ -16,7 +16,8 @@ from splatdeform.edit.stream.sources import STREAMABLE, open_chunks
 from splatdeform.model import PointModel
 
 SEED = 20240524
-CHUNK_BYTES = 64 * 2**20   # raw records read per chunk
+CHUNK_BYTES = 64 * 2**20   # raw records read per chunk (at most; an eighth of the budget)
+MIN_SAMPLE = 10_000        # a picture needs some points whatever the budget
 
 
 @dataclass
@@ -51,14 +52,16 @@ def load_for_render(path: str | Path, budget: int, *, drop_nonfinite: bool = Fal
         model = load(path, drop_nonfinite=drop_nonfinite)
         return RenderInput(model, model.n_points)
     cost = memory.file_cost(path)
-    keep = memory.render_points(limit, cost, reserve=2 * CHUNK_BYTES)
+    chunk_bytes = min(CHUNK_BYTES, limit // 8)
+    keep = memory.render_points(limit, cost, reserve=2 * chunk_bytes)
     if keep >= cost.points:
         model = load(path, drop_nonfinite=drop_nonfinite)
         return RenderInput(model, model.n_points)
-    return sample_file(path, keep)
+    return sample_file(path, max(keep, MIN_SAMPLE), chunk_bytes=chunk_bytes)
 
 
-def sample_file(path: str | Path, keep: int, seed: int = SEED) -> RenderInput:
+def sample_file(path: str | Path, keep: int, seed: int = SEED,
+                chunk_bytes: int = CHUNK_BYTES) -> RenderInput:
     """About ``keep`` points of ``path``, each kept with probability keep / N (seeded: the
     same sample every time, whatever the camera), read chunk by chunk; the model keeps every
     property of the kept points."""
@@ -67,7 +70,7 @@ def sample_file(path: str | Path, keep: int, seed: int = SEED) -> RenderInput:
     rng = np.random.default_rng(seed)
     p = min(keep / max(n, 1), 1.0)
     row_bytes = src.dtype.itemsize if hasattr(src, "dtype") else src.header.point_format.size
-    chunk = max(CHUNK_BYTES // max(row_bytes, 1), 10_000)
+    chunk = max(chunk_bytes // max(row_bytes, 1), 10_000)
     parts, index = [], []
     for a in range(0, n, chunk):
         b = min(a + chunk, n)
