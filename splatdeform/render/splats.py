@@ -24,6 +24,7 @@ from splatdeform.deform.arrays import axes_to_radius, normalize_rows, radius_to_
 from splatdeform.deform.gaussians import dc_to_colors, quaternion_to_matrix
 from splatdeform.deform.normals import pca_normals  # the one estimator; also importable here
 from splatdeform.model import PointModel
+from splatdeform.render.colors import is_lidar
 
 DEFAULT_COLOR = (190, 190, 190)
 GAUSSIAN_EXTENT = 1.5  # ellipse semi-axes in standard deviations
@@ -33,7 +34,8 @@ SPACING_CAP = 4.0  # outliers: spacing capped at this multiple of the median spa
 PCA_NEIGHBORS = 12  # kNN for missing normals (pca_normals)
 # Beyond this many points (big scans, budget samples) per-point kNN costs ~35 us a point, so
 # the spacing comes from a seeded subsample (scaled to the full density) and clouds without
-# normals get flat discs in their best-fit plane (shaded flat; eye-dome lighting gives depth).
+# normals get flat discs in their best-fit plane (shaded flat; eye-dome lighting gives depth);
+# LiDAR (LAS/LAZ) without normals always does, as LiDAR viewers draw it.
 LARGE_CLOUD = 1_000_000
 SPACING_SAMPLE = 100_000
 
@@ -122,7 +124,7 @@ def splat_geometry(model: PointModel, *, fill_holes: bool = True) -> SplatGeomet
         return SplatGeometry(_f32(normals), _f32(axes), colors)
     normals = model.normals
     large = model.n_points > LARGE_CLOUD
-    if (normals is None or not np.any(normals)) and large:
+    if (normals is None or not np.any(normals)) and (large or is_lidar(model)):
         return _flat_discs(model, colors)
     if normals is None or not np.any(normals):
         normals = pca_normals(model.positions, PCA_NEIGHBORS)
@@ -158,14 +160,14 @@ def sampled_spacing(positions: np.ndarray, sample: int = SPACING_SAMPLE) -> np.n
 
 
 def _flat_discs(model: PointModel, colors: np.ndarray) -> SplatGeometry:
-    """A large cloud without normals: discs in the cloud's best-fit plane (the two largest
-    principal directions; terrain: horizontal), of the subsample spacing, shaded flat (zero
-    normals) so eye-dome lighting or the colour carries the shape."""
+    """A large or LiDAR cloud without normals: discs in the cloud's best-fit plane (the two
+    largest principal directions; terrain: horizontal), of the (subsample) spacing, shaded
+    flat (zero normals) so eye-dome lighting or the colour carries the shape."""
     pts = np.asarray(model.positions, dtype=np.float64)
     centred = pts[:: max(1, pts.shape[0] // SPACING_SAMPLE)]
     centred = centred - centred.mean(axis=0)
     _, _, vt = np.linalg.svd(centred, full_matrices=False)
-    radius = SPACING_FACTOR * float(sampled_spacing(pts)[0])
+    radius = SPACING_FACTOR * sampled_spacing(pts)[:, None]   # (N, 1)
     axes = np.empty((pts.shape[0], 2, 3), dtype=np.float32)
     axes[:, 0] = vt[0] * radius
     axes[:, 1] = vt[1] * radius
