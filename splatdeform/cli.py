@@ -64,6 +64,7 @@ def cmd_deform(args: argparse.Namespace) -> int:
             args.camera = str(base / cfg.render.camera)   # relative to the config file
     view = _camera_args(args) if render_out else {}
     _check_deform_paths(args, cfg, base, output, reuse, render_out)
+    _check_streamed_frames(args, cfg, base, render_out)
     try:
         result = run_edit(cfg, base, output=output, drop_nonfinite=args.drop_nonfinite,
                           reuse=reuse, log=print, warn=_warn,
@@ -83,6 +84,19 @@ def cmd_deform(args: argparse.Namespace) -> int:
                       color=args.color, input_path=base / cfg.input)
     print(format_report(result))
     return 0
+
+
+def _check_streamed_frames(args: argparse.Namespace, cfg, base, render_out) -> None:
+    """Frames need the model in memory: refused before any work when the edit will stream."""
+    from splatdeform.edit.images import render_frames_count
+    from splatdeform.edit.stream import should_stream
+
+    if not render_out or render_frames_count(cfg, args.frames) < 2:
+        return
+    budget = _budget(args.memory_budget, cfg.memory_budget)
+    if args.scheduler or args.workers or should_stream(cfg, base / cfg.input, budget):
+        raise InputError("--frames/render.frames: an animation needs the model in memory; this "
+                         "edit is streamed (raise --memory-budget, or render one image)")
 
 
 def _check_deform_paths(args: argparse.Namespace, cfg, base, output, reuse, render_out) -> None:

@@ -139,14 +139,16 @@ def test_bad_budget_is_one_line(bar: Path, tmp_path: Path, capsys, bad: str) -> 
     assert not (tmp_path / "o.ply").exists()
 
 
-def test_render_refused_when_streaming(tmp_path: Path, capsys) -> None:
+def test_animation_refused_when_streaming(tmp_path: Path, capsys) -> None:
+    """A streamed edit renders one before/after image (tests/test_render_budget.py); frames
+    need the model in memory: refused before any work, nothing written."""
     big = tmp_path / "big.ply"
     save(bumpy_bar(150_000, seed=6), big)
     cfg = write_edit(tmp_path, big, "o.ply")
     assert main(["deform", str(cfg), "--memory-budget", "64MB", "--quiet",
-                 "--render", str(tmp_path / "x.png")]) == 2
-    assert "streams" in capsys.readouterr().err
-    assert not (tmp_path / "o.ply").exists()
+                 "--render", str(tmp_path / "x.gif"), "--frames", "3"]) == 2
+    assert "streamed" in capsys.readouterr().err
+    assert not (tmp_path / "o.ply").exists() and not (tmp_path / "x.gif").exists()
 
 
 def test_stream_las_equals_in_memory(tmp_path: Path) -> None:

@@ -12,7 +12,7 @@ from dataclasses import replace
 import numpy as np
 
 from splatdeform.errors import InputError
-from splatdeform.model import PointModel
+from splatdeform.model import PointModel, vertex_column
 
 COLOR_MODES = ("rgb", "elevation", "intensity", "classification", "region")
 LIDAR_SUFFIXES = (".las", ".laz")
@@ -50,16 +50,6 @@ def ramp(values: np.ndarray) -> np.ndarray:
     return out.astype(np.uint8)
 
 
-def _column(model: PointModel, name: str, mode: str) -> np.ndarray:
-    vertex = None if model.source is None else model.source.element("vertex")
-    names = () if vertex is None else vertex.data.dtype.names or ()
-    if name not in names:
-        where = f"{model.path}: " if model.path else ""
-        raise InputError(f"{where}--color/render.color {mode}: no vertex property {name!r} "
-                         f"(the file has {', '.join(names) or 'none'})")
-    return vertex.data[name]
-
-
 def point_colors(model: PointModel, mode: str, up: str = "+z") -> np.ndarray | None:
     """(N, 3) uint8 colours of ``mode`` (None for ``rgb``: the file's own)."""
     if mode not in COLOR_MODES:
@@ -78,9 +68,11 @@ def point_colors(model: PointModel, mode: str, up: str = "+z") -> np.ndarray | N
         sign = -1.0 if up[0] == "-" else 1.0
         return ramp(sign * model.positions[:, axis])
     if mode == "intensity":
-        grey = 40 + 215 * _unit(_column(model, "intensity", mode))
+        key = f"--color/render.color {mode}"
+        grey = 40 + 215 * _unit(vertex_column(model, "intensity", key))
         return np.repeat(grey[:, None], 3, axis=1).astype(np.uint8)
-    classes = np.asarray(_column(model, "classification", mode)).astype(np.int64)
+    key = f"--color/render.color {mode}"
+    classes = np.asarray(vertex_column(model, "classification", key)).astype(np.int64)
     table = np.array([_CLASSES.get(c, ((c * 97) % 256, (c * 57) % 256, (c * 29) % 256))
                       for c in range(256)], dtype=np.uint8)
     return table[np.clip(classes, 0, 255)]

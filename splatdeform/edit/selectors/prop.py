@@ -14,8 +14,7 @@ from pydantic import Field, model_validator
 
 from splatdeform.edit.schema import Strict
 from splatdeform.edit.units import Frame, check_units
-from splatdeform.errors import InputError
-from splatdeform.model import PointModel
+from splatdeform.model import PointModel, vertex_column
 
 NAME = "property"
 
@@ -33,7 +32,7 @@ class Property:
 
     def mask(self, model: PointModel, base_dir: Path | None = None) -> np.ndarray:
         """(N,) bool."""
-        column = property_column(model, self.name)
+        column = vertex_column(model, self.name, NAME)
         mask = np.ones(column.shape[0], dtype=bool)
         if self.equals is not None:
             mask &= column == self.equals
@@ -59,21 +58,6 @@ class Property:
             if getattr(self, key) is not None:
                 out[key] = float(getattr(self, key))
         return {NAME: out}
-
-
-def property_column(model: PointModel, name: str) -> np.ndarray:
-    """(N,) the vertex property ``name`` of ``model``; InputError naming the file and the
-    properties it has otherwise."""
-    vertex = None if model.source is None else model.source.element("vertex")
-    names = () if vertex is None else vertex.data.dtype.names or ()
-    if name not in names:
-        where = f"{model.path}: " if model.path else ""
-        raise InputError(f"{where}property: no vertex property {name!r} (the file has "
-                         f"{', '.join(names) or 'none'})")
-    column = vertex.data[name]
-    if column.ndim != 1:
-        raise InputError(f"property: {name!r} is not a scalar property")
-    return column
 
 
 class PropertyCfg(Strict):
