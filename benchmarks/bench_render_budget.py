@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import shutil
 import subprocess
 import sys
 import tempfile
@@ -58,6 +59,14 @@ def main() -> None:
 
     folder = args.keep or Path(tempfile.mkdtemp(prefix="bench_render_"))
     folder.mkdir(parents=True, exist_ok=True)
+    try:
+        run(args, folder, write_lidar)
+    finally:
+        if args.keep is None:   # the scans are big: never leave them behind
+            shutil.rmtree(folder, ignore_errors=True)
+
+
+def run(args, folder: Path, write_lidar) -> None:
     rows = []
     for millions in args.sizes:
         n = int(millions * 1e6)

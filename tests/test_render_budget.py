@@ -192,3 +192,17 @@ def test_streamed_deform_renders_before_after(tmp_path: Path, capsys) -> None:
     end = slice(int(0.7 * left.shape[1]), None)
     top = [np.flatnonzero(m[:, end].any(axis=1))[0] for m in (left, right)]
     assert top[1] < top[0] - 10, top
+
+
+def test_point_size_adapts_to_the_sampled_density() -> None:
+    """Splat radii follow the density drawn: a quarter of the points of a plane get discs about
+    twice as wide (surface density), from a subsample's spacing alone."""
+    from splatdeform.render.splats import knn_spacing, sampled_spacing
+
+    pts = np.random.default_rng(0).uniform(0, 1, (400_000, 3)) * (1, 1, 0)
+    full = sampled_spacing(pts, sample=50_000)
+    quarter = sampled_spacing(pts[::4], sample=50_000)
+    assert np.ptp(full) == 0 and full.shape == (400_000,)
+    assert 1.8 < quarter[0] / full[0] < 2.2
+    exact = float(np.median(knn_spacing(pts[::8])))   # the per-point estimate agrees
+    assert 0.85 < sampled_spacing(pts[::8], sample=20_000)[0] / exact < 1.15
