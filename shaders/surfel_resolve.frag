@@ -2,7 +2,8 @@
 // Screen-space hole filling (as in point rendering): a pixel that no splat reached, or whose
 // surface lies clearly behind (> HOLE_DEPTH relative) at least 6 of its 8 neighbours -- a
 // one-pixel hole in the front surface, seen through -- takes the mean of those neighbours.
-// Pixels left empty keep the background and alpha 0.
+// Pixels left empty keep the background and alpha 0. Pixels of splats without normals (large
+// clouds drawn as flat discs) get eye-dome lighting (edl.glsl, appended by the host).
 // The host prepends "#version 330 core" and shading.glsl.
 
 uniform sampler2D u_color;    // (sum w colour, sum w)
@@ -16,6 +17,8 @@ uniform vec3 u_background;
 out vec4 f_color;
 
 const float HOLE_DEPTH = 0.02;
+
+float eye_dome(ivec2 pixel, float depth);   // edl.glsl
 
 float view_depth(ivec2 p) {
     float d = texelFetch(u_depth, p, 0).r;
@@ -65,5 +68,6 @@ void main() {
     }
     vec2 ndc = gl_FragCoord.xy / u_viewport * 2.0 - 1.0;
     vec3 ray = vec3(ndc / u_proj_scale, -1.0);   // view-space direction through this pixel
-    f_color = vec4(headlight(color, normal, ray), 1.0);
+    float edl = (dot(normal, normal) == 0.0 && acc.a > 0.0) ? eye_dome(pixel, mine) : 1.0;
+    f_color = vec4(headlight(color, normal, ray) * edl, 1.0);
 }

@@ -71,6 +71,7 @@ def cmd_deform(args: argparse.Namespace) -> int:
             args.camera = str(base / cfg.render.camera)   # relative to the config file
     view = _camera_args(args) if render_out else {}
     _check_deform_paths(args, cfg, base, output, reuse, render_out)
+    _check_streamed_frames(args, cfg, base, render_out)
     try:
         result = run_edit(cfg, base, output=output, drop_nonfinite=args.drop_nonfinite,
                           reuse=reuse, log=None if args.quiet else print, warn=_warn,
@@ -82,13 +83,12 @@ def cmd_deform(args: argparse.Namespace) -> int:
         if exc.key is not None:
             raise exc.in_file(args.config) from None
         raise
-    if render_out and result.model is None:
-        raise InputError("--render/render: not available when deform streams (the model is "
-                         "never whole in memory); render the output file instead")
     if render_out:
         from splatdeform.edit.images import render_result
 
-        image = render_result(result, cfg, render_out, frames=args.frames, view=view)
+        budget = _budget(args.memory_budget, cfg.memory_budget)
+        image = render_result(result, cfg, render_out, frames=args.frames, view=view,
+                              budget=budget, color=args.color, input_path=base / cfg.input)
     if not args.quiet:   # --quiet: no progress lines, no summary (warnings still on stderr)
         print(format_report(result))
         if render_out:
@@ -103,6 +103,19 @@ def _check_workers(args: argparse.Namespace) -> None:
     if args.workers is not None and args.scheduler:
         raise InputError("--workers: not with --scheduler (the scheduler's cluster has its own "
                          "workers); give one of them")
+
+
+def _check_streamed_frames(args: argparse.Namespace, cfg, base, render_out) -> None:
+    """Frames need the model in memory: refused before any work when the edit will stream."""
+    from splatdeform.edit.images import render_frames_count
+    from splatdeform.edit.stream import should_stream
+
+    if not render_out or render_frames_count(cfg, args.frames) < 2:
+        return
+    budget = _budget(args.memory_budget, cfg.memory_budget)
+    if args.scheduler or args.workers or should_stream(cfg, base / cfg.input, budget):
+        raise InputError("--frames/render.frames: an animation needs the model in memory; this "
+                         "edit is streamed (raise --memory-budget, or render one image)")
 
 
 def _check_deform_paths(args: argparse.Namespace, cfg, base, output, reuse, render_out) -> None:
@@ -146,12 +159,25 @@ def cmd_select(args: argparse.Namespace) -> int:
                    [("-o/--output", f) for f in with_camera_file(Path(args.output),
                                                                  [Path(args.output)])]
                    if args.output is not None else [])
-    model = prepare_model(cfg, base, {}, args.drop_nonfinite)
+    from splatdeform.edit.stream import should_stream
+
+    budget = _budget(args.memory_budget, cfg.memory_budget)
+    streamed = should_stream(cfg, base / cfg.input, budget) and not args.drop_nonfinite
     try:
-        sel = select_regions(cfg, model, base)
+        if streamed:   # bigger than the budget: regions streamed, a sampled preview
+            from splatdeform.edit.stream.select import stream_select
+
+            counts, sample, sel = stream_select(cfg, base, budget,
+                                                preview=args.output is not None)
+            model = None if sample is None else sample.model
+        else:
+            model = prepare_model(cfg, base, {}, args.drop_nonfinite)
+            sel = select_regions(cfg, model, base)
+            counts = sel.counts()
     except InputError as exc:
         raise exc.in_file(args.config) from None
-    print(format_counts(sel.counts()))
+    print(format_counts(counts) + ("  (streamed within the memory budget; rings: see "
+                                   "deform)" if streamed else ""))
     if args.output is not None:
         from .render import render_comparison
 
@@ -166,9 +192,18 @@ def cmd_select(args: argparse.Namespace) -> int:
         view.update(_camera_args(args))
         size = view.pop("size", size)
         overlays, legend = curve_overlays(cfg, model, base)
-        render_comparison(preview_model(model, sel), None, args.output, size=size,
-                          labels=(f"fixed (blue) / {sel.moving_name} (orange) / free (grey); "
-                                  f"rings lighter{legend}",), overlays=overlays, **view)
+        color = args.color or (opts.color if opts else None) or "region"
+        if color == "region":
+            shown = preview_model(model, sel)
+            label = (f"fixed (blue) / {counts.moving_name} (orange) / free (grey)"
+                     + ("" if streamed else "; rings lighter") + legend)
+        else:
+            shown = _colored(model, color, view.get("up"), [model])
+            label = f"{cfg.input} ({color})"
+        render_comparison(shown, None, args.output, size=size, labels=(label,),
+                          overlays=overlays, **view)
+        if streamed and counts.points > shown.n_points:
+            print(f"rendered {shown.n_points:,} of {counts.points:,} points (memory budget)")
         print(f"wrote {args.output}")
     return 0
 
@@ -226,8 +261,21 @@ def _add_camera_args(p: argparse.ArgumentParser) -> None:
                         "azimuth/elevation/fov/size")
 
 
+def _add_budget_args(p: argparse.ArgumentParser, what: str) -> None:
+    p.add_argument("--memory-budget", metavar="SIZE",
+                   help=f"{what} (e.g. 512MB, 2GB; config memory_budget; default half the RAM)")
+    _add_color_arg(p)
+
+
+def _add_color_arg(p: argparse.ArgumentParser) -> None:
+    from .render.colors import COLOR_MODES
+
+    p.add_argument("--color", choices=COLOR_MODES, metavar="MODE",
+                   help="colour by " + " | ".join(COLOR_MODES) + " (config render.color; "
+                        "default: the file's colours, else elevation for LiDAR)")
+
+
 def cmd_render(args: argparse.Namespace) -> int:
-    from .io import load
     from .io.atomic import check_io_paths
     from .render import render_comparison
 
@@ -248,7 +296,9 @@ def cmd_render(args: argparse.Namespace) -> int:
                    [("-o/--output", f) for f in with_camera_file(Path(args.output),
                                                                  [Path(args.output)])])
     view = _camera_args(args)
-    models = [load(p, drop_nonfinite=args.drop_nonfinite) for p in args.models]
+    inputs = _render_inputs(args.models, _budget(args.memory_budget), args.drop_nonfinite)
+    models = [_colored(r.model, args.color, view.get("up"), [i.model for i in inputs])
+              for r in inputs]
     after = models[1] if len(models) > 1 else None
     labels = tuple(args.labels.split(",")) if args.labels else (
         (models[0].path, models[1].path) if after is not None else (models[0].path,))
@@ -256,8 +306,39 @@ def cmd_render(args: argparse.Namespace) -> int:
     per = view.pop("size", per)
     render_comparison(models[0], after, args.output, size=per, azimuth=args.azimuth,
                       elevation=args.elevation, fov=args.fov, labels=labels, **view)
+    for r in inputs:
+        if r.sampled:
+            print(f"{r.model.path}: {r.line()}")
     print(f"wrote {args.output}")
     return 0
+
+
+def _budget(text: str | None, config_value=None) -> int:
+    """--memory-budget (else the config's memory_budget, else half the RAM) in bytes."""
+    from splatdeform.edit.stream import default_budget, parse_size
+
+    if text is not None:
+        return parse_size(text)
+    if config_value is not None:
+        return parse_size(config_value, "memory_budget")
+    return default_budget()
+
+
+def _render_inputs(paths, budget: int, drop_nonfinite: bool = False) -> list:
+    """Each model whole, or a streamed sample when it does not fit its share of ``budget``."""
+    from splatdeform.edit.stream.sample import load_for_render
+
+    return [load_for_render(p, budget, drop_nonfinite=drop_nonfinite, share=1 / len(paths))
+            for p in paths]
+
+
+def _colored(model, mode: str | None, up: str | None, models: list):
+    """``model`` coloured by ``mode`` (None: the file's colours, else elevation for LiDAR)
+    along the view's up axis (None: the files' convention)."""
+    from .render.camera import default_up
+    from .render.colors import colored
+
+    return colored(model, mode, up or default_up(models))
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -297,6 +378,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--quiet", action="store_true",
                    help="no progress lines and no summary on stdout (warnings and errors "
                         "still go to stderr)")
+    _add_color_arg(p)
     _add_camera_args(p)
     p.set_defaults(func=cmd_deform)
 
@@ -309,6 +391,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--fov", type=float, default=35.0)
     p.add_argument("--labels", help="comma-separated labels (default: the file names)")
     p.add_argument("--drop-nonfinite", action="store_true")
+    _add_budget_args(p, "render a view-independent sample of a model bigger than SIZE")
     _add_camera_args(p)
     p.set_defaults(func=cmd_render)
 
@@ -318,6 +401,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("-o", "--output", help="preview PNG (the model coloured by region)")
     p.add_argument("--drop-nonfinite", action="store_true",
                    help="drop vertices with NaN/Inf coordinates instead of failing")
+    _add_budget_args(p, "stream the regions and preview a sample of a scan bigger than SIZE")
     _add_camera_args(p)
     p.set_defaults(func=cmd_select)
 

@@ -23,8 +23,13 @@ BASE_BYTES = 150 * 2**20   # interpreter + numpy + scipy + pyopencl resident (me
 DEFORM_BYTES_PER_POINT = 300
 KNN_BYTES_PER_NEIGHBOR = 16
 
-# Per point of an in-memory render: float32 vertex attributes, basis rows, the depth-sort keys.
-RENDER_BYTES_PER_POINT = 256
+# Per point of an in-memory render beyond its decoded record: float64 positions and their
+# float32 copy, normals, splat axes, colours, the kNN spacing query (k + 1 distances and
+# indices) and the GL buffers' client copies. Measured (tests/test_render_budget.py checks
+# it stays an upper bound): 530-880 bytes a point all in (load included; malloc arenas vary
+# with load) for a 300k LAS cloud needing PCA normals, ~220 beyond LARGE_CLOUD points (flat
+# discs, no per-point kNN), above a ~255 MB interpreter + EGL base.
+RENDER_BYTES_PER_POINT = 768
 
 
 @dataclass(frozen=True)
@@ -99,3 +104,15 @@ def deform_bytes(cost: FileCost, neighbors: int = 10) -> int:
 def render_bytes(points: int, record_bytes: int = 64) -> int:
     """Peak bytes of rendering ``points`` points in memory (above BASE_BYTES)."""
     return points * (RENDER_BYTES_PER_POINT + record_bytes)
+
+
+def render_points(budget: int, cost: FileCost, reserve: int = 0) -> int:
+    """How many of the file's points a render can hold within ``budget`` bytes (all of them
+    when the whole file fits; else a sample size, at least 1). The budget is for the data: the
+    interpreter and GL context come on top (a render's peak is about budget + 300 MB).
+    ``reserve``: bytes the caller needs besides (e.g. the streamed reader's chunk)."""
+    left = budget - reserve
+    if left >= cost.load_bytes + render_bytes(cost.points, cost.record_bytes):
+        return cost.points
+    # a sample is held as raw records (record_bytes) plus the render's own arrays
+    return int(max(left, 0) // (render_bytes(1, cost.record_bytes) + cost.record_bytes)) or 1

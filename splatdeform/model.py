@@ -229,3 +229,19 @@ def classify(
     if has_normals:
         return "oriented_cloud"
     return "cloud"
+
+
+def vertex_column(model: PointModel, name: str, what: str = "property") -> np.ndarray:
+    """(N,) the scalar vertex property ``name`` of ``model`` (a PLY property or a decoded LAS
+    dimension); InputError naming ``what`` (the config key or option), the file and the
+    properties it has otherwise."""
+    vertex = None if model.source is None else model.source.element("vertex")
+    names = () if vertex is None else vertex.data.dtype.names or ()
+    if name not in names:
+        where = f"{model.path}: " if model.path else ""
+        raise InputError(f"{where}{what}: no vertex property {name!r} (the file has "
+                         f"{', '.join(names) or 'none'})")
+    column = vertex.data[name]
+    if column.ndim != 1:
+        raise InputError(f"{what}: {name!r} is not a scalar property")
+    return column

@@ -23,6 +23,9 @@ EXAMPLES = {
     "plane": {"plane": {"point": [3.5, 0.0, 0.0], "normal": [1.0, 0.0, 0.0]}},
     "indices": {"indices": [0, 5, 7]},
     "property": {"property": {"name": "x", "equals": 0.0}},
+    "all": {"all": [{"box": {"min": [0.0, -1.0, -1.0], "max": [0.5, 1.0, 1.0]}},
+                    {"not": {"property": {"name": "x", "in": [0.0, 1.0], "max": 2.0}}}]},
+    "not": {"not": {"sphere": {"center": [4.0, 0.0, 0.0], "radius": 0.4}}},
 }
 
 
@@ -50,7 +53,7 @@ def test_registry_is_the_union():
 @pytest.mark.parametrize(("selector", "key", "words"), [
     ({"box": {"min": [0, 0, 0], "max": [1, 1, 1]}, "sphere": {"center": [0, 0, 0],
                                                                "radius": 1}},
-     "regions.fixed[0]", "expected exactly one of box, sphere, plane, indices, property"),
+     "regions.fixed[0]", "expected exactly one of box, sphere, plane, indices, property, all, not"),
     ({"cube": {"size": 1}}, "regions.fixed[0]", "expected exactly one of box"),
     ({}, "regions.fixed[0]", "expected exactly one of box"),
     ({"box": {"min": [0, 0, 0]}}, "regions.fixed[0].box.max", "required key is missing"),

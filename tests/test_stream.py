@@ -17,10 +17,11 @@ import yaml
 from conftest import ROOT, shared_file
 
 from data_tools.synth import bumpy_bar
+from splatdeform import memory
 from splatdeform.cli import main
 from splatdeform.edit.config import load_edit
 from splatdeform.edit.run import run_edit
-from splatdeform.edit.stream import estimate_in_memory_peak, parse_size, run_stream
+from splatdeform.edit.stream import parse_size, run_stream
 from splatdeform.io import save
 from splatdeform.io.ply_format import read_ply
 
@@ -107,7 +108,7 @@ def test_stream_equals_in_memory_ply(bar: Path, tmp_path: Path) -> None:
 def test_cli_streams_above_budget_with_progress(bar: Path, tmp_path: Path, capsys) -> None:
     big = tmp_path / "big.ply"
     save(bumpy_bar(120_000, seed=5), big)
-    assert estimate_in_memory_peak(big) > parse_size("64MB")
+    assert memory.deform_bytes(memory.file_cost(big)) > parse_size("64MB")
     cfg = write_edit(tmp_path, big, "out.ply")
     assert main(["deform", str(cfg), "--memory-budget", "64MB"]) == 0
     captured = capsys.readouterr()
@@ -138,14 +139,16 @@ def test_bad_budget_is_one_line(bar: Path, tmp_path: Path, capsys, bad: str) -> 
     assert not (tmp_path / "o.ply").exists()
 
 
-def test_render_refused_when_streaming(tmp_path: Path, capsys) -> None:
+def test_animation_refused_when_streaming(tmp_path: Path, capsys) -> None:
+    """A streamed edit renders one before/after image (tests/test_render_budget.py); frames
+    need the model in memory: refused before any work, nothing written."""
     big = tmp_path / "big.ply"
     save(bumpy_bar(150_000, seed=6), big)
     cfg = write_edit(tmp_path, big, "o.ply")
     assert main(["deform", str(cfg), "--memory-budget", "64MB", "--quiet",
-                 "--render", str(tmp_path / "x.png")]) == 2
-    assert "streams" in capsys.readouterr().err
-    assert not (tmp_path / "o.ply").exists()
+                 "--render", str(tmp_path / "x.gif"), "--frames", "3"]) == 2
+    assert "streamed" in capsys.readouterr().err
+    assert not (tmp_path / "o.ply").exists() and not (tmp_path / "x.gif").exists()
 
 
 def test_stream_las_equals_in_memory(tmp_path: Path) -> None:

@@ -37,7 +37,8 @@ class _Strict(BaseModel):
 
 class OverrideCfg(_Strict):
     match: str = Field(min_length=1)
-    edit: dict[str, Any]
+    edit: dict[str, Any] = {}
+    render: dict[str, Any] | None = None   # BatchRenderCfg keys, merged into the batch's own
 
 
 class BatchRenderCfg(_Strict):
@@ -48,6 +49,8 @@ class BatchRenderCfg(_Strict):
     up: Literal["+x", "+y", "+z", "-x", "-y", "-z"] | None = None  # None: the file's convention
     roll: float = Field(default=0.0, ge=-360, le=360)
     camera: str | None = None   # a camera file (OUT.camera.json), relative to the batch file
+    # None: the file's colours, else elevation for LiDAR (splatdeform.render.colors)
+    color: Literal["rgb", "elevation", "intensity", "classification"] | None = None
 
 
 class BatchConfig(_Strict):
@@ -166,13 +169,13 @@ def load_batch(path: str | Path) -> Batch:
     scans = find_scans(patterns, base, exclude=output_dir, source=src)
     _check_output_dir(patterns, base, output_dir, scans, src)
 
-    render = cfg.render.model_dump() if cfg.render else None
-    if render and render.get("camera"):   # relative to the batch file; read, never written
-        render["camera"] = str((base / render["camera"]).resolve())
-        reads.append(("render.camera", Path(render["camera"])))
-        from ..render.camera import load_camera
-
-        load_camera(render["camera"])   # a bad camera file fails the batch up front, named
+    render = _render_options(cfg.render.model_dump() if cfg.render else None, base, reads,
+                             "render", src)
+    override_renders = [
+        None if ov.render is None else _render_options(
+            {**(cfg.render.model_dump(exclude_unset=True) if cfg.render else {}), **ov.render},
+            base, reads, f"overrides[{i}].render", src)
+        for i, ov in enumerate(cfg.overrides)]
     jobs: list[Job] = []
     by_output: dict[str, Scan] = {}
     for scan in scans:
@@ -180,22 +183,43 @@ def load_batch(path: str | Path) -> Batch:
             jobs.append(Job(scan, edit, str(edit_base), "", None, None,
                             _hash({"problem": scan.name})))
             continue
-        merged = edit
-        for ov in cfg.overrides:
+        merged, scan_render = edit, render
+        for ov, ov_render in zip(cfg.overrides, override_renders, strict=True):
             if fnmatch.fnmatch(scan.filename, ov.match) or fnmatch.fnmatch(scan.name, ov.match):
                 merged = deep_merge(merged, _strip_io(ov.edit))
+                scan_render = ov_render if ov_render is not None else scan_render
         out = output_dir / f"{scan.stem}_deformed{scan.suffix}"
         if str(out) in by_output:
             raise ConfigError(f"{src}: scans: {scan.name} and {by_output[str(out)].name} would "
                               f"both write {out.name}; rename one")
         by_output[str(out)] = scan
-        png = str(output_dir / f"{scan.stem}.png") if render else None
-        digest = _hash({"edit": merged, "render": render, "source": scan.identity,
+        png = str(output_dir / f"{scan.stem}.png") if scan_render else None
+        digest = _hash({"edit": merged, "render": scan_render, "source": scan.identity,
                         "version": __version__})
-        jobs.append(Job(scan, merged, str(edit_base), str(out), png, render, digest))
+        jobs.append(Job(scan, merged, str(edit_base), str(out), png, scan_render, digest))
     _check_paths(src, output_dir, reads + [("scan", Path(s.path)) for s in scans], jobs)
     return Batch(path, output_dir, jobs, cfg.workers, cfg.scheduler, cfg.memory_per_worker_mb,
                  cfg.scan_timeout_s, cfg.model_dump())
+
+
+def _render_options(render: dict[str, Any] | None, base: Path, reads: list, key: str,
+                   src: str) -> dict[str, Any] | None:
+    """Validated render options (an override's: the batch's keys with its own on top) with
+    the camera file resolved against the batch file and read up front (a bad one fails the
+    batch, named)."""
+    if render is None:
+        return None
+    try:
+        render = BatchRenderCfg.model_validate(render).model_dump()
+    except ValidationError as exc:
+        raise validation_error(src, exc, prefix=key, roots=(_Strict,)) from None
+    if render.get("camera"):   # relative to the batch file; read, never written
+        render["camera"] = str((base / render["camera"]).resolve())
+        reads.append((f"{key}.camera", Path(render["camera"])))
+        from ..render.camera import load_camera
+
+        load_camera(render["camera"])
+    return render
 
 
 REPORT_FILES = ("report.json", "report.csv", "index.html")

@@ -91,8 +91,10 @@ def process_scan(job: Job) -> dict[str, Any]:
                     cfg.render = RenderCfg(output=job.png, size=[2 * r["size"][0], r["size"][1]],
                                            azimuth=r["azimuth"], elevation=r["elevation"],
                                            fov=r["fov"], up=r.get("up"),
-                                           roll=r.get("roll", 0.0), camera=r.get("camera"))
-                    render_result(result, cfg, job.png)   # written atomically
+                                           roll=r.get("roll", 0.0), camera=r.get("camera"),
+                                           color=r.get("color"))
+                    render_result(result, cfg, job.png, input_path=local,   # atomically
+                                  budget=int(job.memory_budget) if job.memory_budget else None)
                 except Exception as exc:  # a thumbnail must not fail the scan
                     warning = f"thumbnail not rendered: {_one_line(exc)}"
     except SplatdeformError as exc:

@@ -155,6 +155,8 @@ class RenderCfg(_Strict):
     up: Literal["+x", "+y", "+z", "-x", "-y", "-z"] | None = None  # None: the file's convention
     roll: float = Field(default=0.0, ge=-360, le=360)
     camera: str | None = None   # a camera file (OUT.camera.json), relative to the config file
+    # None: the file's colours, else elevation for LiDAR (splatdeform.render.colors)
+    color: Literal["rgb", "elevation", "intensity", "classification", "region"] | None = None
 
     @model_validator(mode="after")
     def _output_kind(self) -> RenderCfg:
@@ -217,11 +219,16 @@ def input_paths(cfg: EditConfig, base_dir: str | Path) -> list[tuple[str, Path]]
     groups = [("regions.fixed", cfg.regions.fixed), ("regions.handle", cfg.regions.handle or [])]
     for i, h in enumerate(getattr(cfg, "handles", None) or []):
         groups.append((f"handles[{i}].region", getattr(h, "region", None) or []))
+    from splatdeform.edit.selectors import leaves
+
     for key, selectors in groups:
         for j, sel in enumerate(selectors):
-            file = getattr(sel.to_selector(), "file", None)  # selectors that read a file
-            if file is not None:
-                found.append((f"{key}[{j}].{_selector_name(sel)}.file", base_dir / file))
+            plain = sel.to_selector()
+            for leaf in leaves(plain):   # nested in all / not too
+                file = getattr(leaf, "file", None)  # selectors that read a file
+                if file is not None:
+                    name = _selector_name(sel) if leaf is plain else "indices"
+                    found.append((f"{key}[{j}].{name}.file", base_dir / file))
     return found
 
 
@@ -235,7 +242,7 @@ def _config_fields(roots: tuple[type[BaseModel], ...]) -> frozenset[str]:
     names, todo = set(), list(roots)
     while todo:
         cls = todo.pop()
-        names.update(cls.model_fields)
+        names.update(f.alias or n for n, f in cls.model_fields.items())  # 'in', 'not'
         todo.extend(cls.__subclasses__())
     return frozenset(names)
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import time
+from dataclasses import replace
 from pathlib import Path
 
 from splatdeform.deform import full_basis
@@ -48,21 +49,23 @@ def render_frames_count(cfg: EditConfig, frames: int = 0) -> int:
 
 
 def render_result(result: EditResult, cfg: EditConfig, out: str | Path, *,
-                  frames: int = 0, view: dict | None = None) -> Path:
+                  frames: int = 0, view: dict | None = None, budget: int | None = None,
+                  color: str | None = None, input_path: Path | None = None) -> Path:
     """Write the before/after PNG (or, with frames >= 2, a GIF/PNG sequence of the handle
     moving from identity to the target). The vertex shader deforms, for any number of control
     DOFs k (k > 4, e.g. curves, reads the basis from a storage buffer); one basis upload.
     Each panel is half of ``render.size``'s width (plus an 18 px label strip on top of the
     before/after image). ``view``: the render functions' up / roll / camera / size keywords
     (:func:`splatdeform.render.camera.camera_options`); default from ``render.up``,
-    ``render.roll`` and ``render.camera`` (a camera file wins over the other view keys)."""
+    ``render.roll`` and ``render.camera`` (a camera file wins over the other view keys).
+    ``color``: ``--color`` (else ``render.color``). A streamed result (no model in memory)
+    renders ``input_path`` beside the output file, sampled within ``budget`` bytes."""
     from splatdeform.render import render_deformation_comparison, render_frames
 
     frames = render_frames_count(cfg, frames)
     opts = cfg.render or RenderCfg(frames=frames)
     covariance = cfg.gaussians.covariance
     target, _ = render_target(out, frames)
-    values, gradients = full_basis(result.deformation)
     t0 = time.perf_counter()
     if view is None:
         from splatdeform.render.camera import camera_options
@@ -71,11 +74,49 @@ def render_result(result: EditResult, cfg: EditConfig, out: str | Path, *,
     view = dict(view)
     size = view.pop("size", (opts.size[0] // 2, opts.size[1]))
     view.update(azimuth=opts.azimuth, elevation=opts.elevation, fov=opts.fov)
+    if result.model is None:   # streamed: the model was never whole; render the two files
+        render_streamed(result, input_path or Path(cfg.input), target, frames, budget, size,
+                        color or opts.color, view)
+        result.timings["render"] = time.perf_counter() - t0
+        return target
+    from splatdeform.render.camera import default_up
+    from splatdeform.render.colors import colored
+
+    model = colored(result.model, color or opts.color, view.get("up") or
+                    default_up([result.model]))
+    values, gradients = full_basis(result.deformation)
     if frames >= 2:
-        render_frames(result.model, values, gradients, result.delta_c, frames, target,
+        render_frames(model, values, gradients, result.delta_c, frames, target,
                       size=size, covariance=covariance, **view)
     else:
-        render_deformation_comparison(result.model, values, gradients, result.delta_c, target,
+        render_deformation_comparison(model, values, gradients, result.delta_c, target,
                                       size=size, covariance=covariance, **view)
     result.timings["render"] = time.perf_counter() - t0
     return target
+
+
+def render_streamed(result: EditResult, input_path: Path, target: Path, frames: int,
+                    budget: int | None, size, color: str | None, view: dict) -> None:
+    """Before/after of a streamed edit from its input and output files, each a sample within
+    half the budget when it does not fit (the same seeded rows of both: same count, same
+    order); prints the 'rendered N of M points' line."""
+    from splatdeform.edit.stream import default_budget
+    from splatdeform.edit.stream.sample import load_for_render
+    from splatdeform.render import render_comparison
+    from splatdeform.render.camera import default_up
+    from splatdeform.render.colors import colored
+
+    if frames >= 2:
+        raise InputError("--frames/render.frames: an animation needs the model in memory; this "
+                         "edit streamed (raise --memory-budget, or render one image)")
+    budget = budget or default_budget()
+    inputs = [load_for_render(p, budget, share=0.5)
+              for p in (input_path, result.output)]
+    models = [r.model for r in inputs]
+    up = view.get("up") or default_up(models)
+    before, after = (colored(m, color, up) for m in models)
+    if before.n_points == after.n_points and before.colors is not None:
+        after = replace(after, colors=before.colors)   # one colour scale: the input's
+    render_comparison(before, after, target, size=size, labels=("before", "after"), **view)
+    if inputs[0].sampled:
+        print(inputs[0].line())

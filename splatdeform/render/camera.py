@@ -203,8 +203,13 @@ def frame_points(
 
 def default_up(models: Iterable[Any]) -> str:
     """The up axis of the models' file convention: ``-y`` for 3D Gaussian splat scenes (3DGS
-    files are stored y-down), else ``+y``."""
-    return "-y" if any(getattr(m, "gaussians", None) is not None for m in models) else "+y"
+    files are stored y-down), ``+z`` for LiDAR (LAS/LAZ are z-up), else ``+y``."""
+    from splatdeform.render.colors import is_lidar
+
+    models = list(models)
+    if any(getattr(m, "gaussians", None) is not None for m in models):
+        return "-y"
+    return "+z" if models and all(is_lidar(m) for m in models) else "+y"
 
 
 def gl_bytes(matrix: np.ndarray) -> bytes:

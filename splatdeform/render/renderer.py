@@ -123,7 +123,8 @@ def program(name: str, k: int = 0, sh: tuple[int, int] = (0, 0),
             )
         if kind == "resolve":
             prog = ctx.program(vertex_shader=_source("surfel_resolve.vert"),
-                               fragment_shader=_source("surfel_resolve.frag", shading=True))
+                               fragment_shader=_source("surfel_resolve.frag", shading=True)
+                               + _shader("edl.glsl"))   # eye-dome lighting, declared there
             _programs[key] = prog
             return prog
         if kind == "gauss":

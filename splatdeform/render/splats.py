@@ -25,6 +25,7 @@ from splatdeform.deform.gaussians import dc_to_colors, quaternion_to_matrix
 from splatdeform.deform.normals import pca_normals  # the one estimator; also importable here
 from splatdeform.interrupts import knn_query
 from splatdeform.model import PointModel
+from splatdeform.render.colors import is_lidar
 
 DEFAULT_COLOR = (190, 190, 190)
 GAUSSIAN_EXTENT = 1.5  # ellipse semi-axes in standard deviations
@@ -32,6 +33,12 @@ SPACING_NEIGHBORS = 8  # kNN used to estimate the sampling spacing
 SPACING_FACTOR = 1.0  # splat radius = factor * mean distance to the SPACING_NEIGHBORS nearest
 SPACING_CAP = 4.0  # outliers: spacing capped at this multiple of the median spacing
 PCA_NEIGHBORS = 12  # kNN for missing normals (pca_normals)
+# Beyond this many points (big scans, budget samples) per-point kNN costs ~35 us a point, so
+# the spacing comes from a seeded subsample (scaled to the full density) and clouds without
+# normals get flat discs in their best-fit plane (shaded flat; eye-dome lighting gives depth);
+# LiDAR (LAS/LAZ) without normals always does, as LiDAR viewers draw it.
+LARGE_CLOUD = 1_000_000
+SPACING_SAMPLE = 100_000
 
 
 @dataclass
@@ -117,10 +124,14 @@ def splat_geometry(model: PointModel, *, fill_holes: bool = True) -> SplatGeomet
         axes, normals = gaussian_axes(model.gaussians.scale_log, model.gaussians.rotation)
         return SplatGeometry(_f32(normals), _f32(axes), colors)
     normals = model.normals
+    large = model.n_points > LARGE_CLOUD
+    if (normals is None or not np.any(normals)) and (large or is_lidar(model)):
+        return _flat_discs(model, colors)
     if normals is None or not np.any(normals):
         normals = pca_normals(model.positions, PCA_NEIGHBORS)
     normals = normalize_rows(np.asarray(normals, dtype=np.float64))
-    cover = SPACING_FACTOR * knn_spacing(model.positions) if fill_holes else None
+    spacing = sampled_spacing if large else knn_spacing
+    cover = SPACING_FACTOR * spacing(model.positions) if fill_holes else None
     if model.axes is not None:
         axes = np.asarray(model.axes, dtype=np.float64)
         if cover is not None:  # scale each ellipse up (shape kept) to the covering radius
@@ -132,8 +143,36 @@ def splat_geometry(model: PointModel, *, fill_holes: bool = True) -> SplatGeomet
         if cover is not None:
             radius = np.maximum(radius, cover)
     else:
-        radius = SPACING_FACTOR * knn_spacing(model.positions) if cover is None else cover
+        radius = SPACING_FACTOR * spacing(model.positions) if cover is None else cover
     return SplatGeometry(_f32(normals), _f32(radius_to_axes(normals, radius)), colors)
+
+
+def sampled_spacing(positions: np.ndarray, sample: int = SPACING_SAMPLE) -> np.ndarray:
+    """(N,) one spacing for all points: the median kNN spacing of a seeded subsample of
+    ``sample`` points, scaled to the full density as a surface (sqrt(sample / N)). O(N) time
+    beyond the subsample's kNN: the point size adapts to the density of what is drawn."""
+    pts = np.asarray(positions)
+    n = pts.shape[0]
+    if n <= sample:
+        return knn_spacing(pts)
+    pick = np.random.default_rng(0).choice(n, size=sample, replace=False)
+    value = float(np.median(knn_spacing(pts[pick]))) * np.sqrt(sample / n)
+    return np.full(n, value)
+
+
+def _flat_discs(model: PointModel, colors: np.ndarray) -> SplatGeometry:
+    """A large or LiDAR cloud without normals: discs in the cloud's best-fit plane (the two
+    largest principal directions; terrain: horizontal), of the (subsample) spacing, shaded
+    flat (zero normals) so eye-dome lighting or the colour carries the shape."""
+    pts = np.asarray(model.positions, dtype=np.float64)
+    centred = pts[:: max(1, pts.shape[0] // SPACING_SAMPLE)]
+    centred = centred - centred.mean(axis=0)
+    _, _, vt = np.linalg.svd(centred, full_matrices=False)
+    radius = SPACING_FACTOR * sampled_spacing(pts)[:, None]   # (N, 1)
+    axes = np.empty((pts.shape[0], 2, 3), dtype=np.float32)
+    axes[:, 0] = vt[0] * radius
+    axes[:, 1] = vt[1] * radius
+    return SplatGeometry(np.zeros((pts.shape[0], 3), dtype=np.float32), axes, colors)
 
 
 def _f32(a: np.ndarray) -> np.ndarray:

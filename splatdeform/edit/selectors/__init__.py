@@ -1,6 +1,10 @@
 """Region selectors: a registry of config entries that build model-unit selectors, and their
 union as a mask.
 
+``all`` (intersection) and ``not`` (complement) take selectors themselves, nested to any depth;
+:func:`leaves` and :func:`map_leaves` walk such a tree (the streaming path swaps its index
+leaves for per-chunk masks).
+
 A region is a list of selectors; the config spells each one as a single-key mapping
 (``{box: {min, max}}``). Each selector is one module here holding its config entry (pydantic),
 its plain selector (a frozen dataclass with ``mask(model, base_dir)``, ``in_units(units,
@@ -17,17 +21,19 @@ from typing import Annotated, Any, Union
 import numpy as np
 from pydantic import Discriminator, Tag
 
-from splatdeform.edit.selectors import box, indices, plane, prop, sphere
+from splatdeform.edit.selectors import all_of, box, indices, not_, plane, prop, sphere
+from splatdeform.edit.selectors.all_of import All
 from splatdeform.edit.selectors.box import Box
 from splatdeform.edit.selectors.indices import Indices
+from splatdeform.edit.selectors.not_ import Not
 from splatdeform.edit.selectors.plane import Plane
 from splatdeform.edit.selectors.prop import Property
 from splatdeform.edit.selectors.sphere import Sphere
 from splatdeform.model import PointModel
 
-REGISTRY = {m.NAME: m for m in (box, sphere, plane, indices, prop)}  # one line per selector
+REGISTRY = {m.NAME: m for m in (box, sphere, plane, indices, prop, all_of, not_)}  # one per line
 
-Selector = Box | Sphere | Plane | Indices | Property
+Selector = Box | Sphere | Plane | Indices | Property | All | Not
 _TAG = " selector"  # tags are not config keys, so error paths leave them out
 
 
@@ -46,6 +52,26 @@ SelectorCfg = Annotated[
     Discriminator(_which, custom_error_type="selector",
                   custom_error_message="expected exactly one of " + ", ".join(REGISTRY)),
 ]
+for _m in (all_of, not_):  # the combining selectors hold selectors: resolve the recursion
+    _m.Entry.model_rebuild(_types_namespace={"SelectorCfg": SelectorCfg})
+
+
+def leaves(sel) -> list:
+    """The plain (non-combining) selectors of ``sel``, depth first."""
+    if isinstance(sel, All):
+        return [leaf for part in sel.parts for leaf in leaves(part)]
+    if isinstance(sel, Not):
+        return leaves(sel.part)
+    return [sel]
+
+
+def map_leaves(sel, fn):
+    """``sel`` with every plain selector replaced by ``fn(leaf)`` (the tree kept)."""
+    if isinstance(sel, All):
+        return All(tuple(map_leaves(p, fn) for p in sel.parts))
+    if isinstance(sel, Not):
+        return Not(map_leaves(sel.part, fn))
+    return fn(sel)
 
 
 def select(model: PointModel, selectors: list, units: str = "model",
@@ -66,5 +92,5 @@ def select(model: PointModel, selectors: list, units: str = "model",
     return mask
 
 
-__all__ = ["REGISTRY", "Box", "Indices", "Plane", "Property", "Selector", "SelectorCfg",
-           "Sphere", "select"]
+__all__ = ["REGISTRY", "All", "Box", "Indices", "Not", "Plane", "Property", "Selector",
+           "SelectorCfg", "Sphere", "leaves", "map_leaves", "select"]

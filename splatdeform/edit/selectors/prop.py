@@ -1,5 +1,8 @@
-"""``{property: {name, equals}}``: the points whose vertex property equals a value (e.g. a LiDAR
-classification); no units."""
+"""``{property: {name, equals | in | min | max}}``: the points whose vertex property matches
+(e.g. a LiDAR classification, an intensity range, a GPS time window); no units.
+
+``equals: v`` and ``in: [v, ...]`` test membership; ``min``/``max`` bound the value (inclusive,
+either or both); every condition given must hold."""
 
 from __future__ import annotations
 
@@ -7,46 +10,75 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+from pydantic import Field, model_validator
 
 from splatdeform.edit.schema import Strict
 from splatdeform.edit.units import Frame, check_units
-from splatdeform.errors import InputError
-from splatdeform.model import PointModel
+from splatdeform.model import PointModel, vertex_column
 
 NAME = "property"
 
 
 @dataclass(frozen=True)
 class Property:
-    """Points whose vertex property ``name`` equals ``equals``."""
+    """Points whose vertex property ``name`` equals ``equals``, is one of ``values``, and lies
+    in [``min``, ``max``] (each condition only when given)."""
 
     name: str
-    equals: float
+    equals: float | None = None
+    values: tuple[float, ...] | None = None
+    min: float | None = None
+    max: float | None = None
 
     def mask(self, model: PointModel, base_dir: Path | None = None) -> np.ndarray:
         """(N,) bool."""
-        vertex = None if model.source is None else model.source.element("vertex")
-        names = () if vertex is None else vertex.data.dtype.names
-        if self.name not in names:
-            raise InputError(f"property: the model has no vertex property {self.name!r} "
-                             f"(it has {', '.join(names) or 'none'})")
-        return vertex.data[self.name] == self.equals
+        column = vertex_column(model, self.name, NAME)
+        mask = np.ones(column.shape[0], dtype=bool)
+        if self.equals is not None:
+            mask &= column == self.equals
+        if self.values is not None:
+            mask &= np.isin(column, np.asarray(self.values, dtype=np.float64))
+        if self.min is not None:
+            mask &= column >= self.min
+        if self.max is not None:
+            mask &= column <= self.max
+        return mask
 
     def in_units(self, units: str, frame: Frame) -> Property:
         check_units(units)
         return self
 
     def to_config(self, base_dir: Path | None = None) -> dict:
-        return {NAME: {"name": self.name, "equals": float(self.equals)}}
+        out: dict = {"name": self.name}
+        if self.equals is not None:
+            out["equals"] = float(self.equals)
+        if self.values is not None:
+            out["in"] = [float(v) for v in self.values]
+        for key in ("min", "max"):
+            if getattr(self, key) is not None:
+                out[key] = float(getattr(self, key))
+        return {NAME: out}
 
 
 class PropertyCfg(Strict):
     name: str
-    equals: float
+    equals: float | None = None
+    in_: list[float] | None = Field(default=None, alias="in", min_length=1)
+    min: float | None = None
+    max: float | None = None
+
+    @model_validator(mode="after")
+    def _some_condition(self) -> PropertyCfg:
+        if self.equals is None and self.in_ is None and self.min is None and self.max is None:
+            raise ValueError("expected at least one of equals, in, min, max")
+        if self.min is not None and self.max is not None and self.min > self.max:
+            raise ValueError(f"min {self.min} exceeds max {self.max}")
+        return self
 
 
 class Entry(Strict):
     property: PropertyCfg
 
     def to_selector(self) -> Property:
-        return Property(self.property.name, self.property.equals)
+        p = self.property
+        return Property(p.name, p.equals, None if p.in_ is None else tuple(p.in_), p.min, p.max)

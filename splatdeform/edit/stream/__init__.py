@@ -22,11 +22,10 @@ from pathlib import Path
 import numpy as np
 
 from splatdeform.edit.stream.progress import Progress
-from splatdeform.edit.stream.sources import STREAMABLE, open_chunks
+from splatdeform.edit.stream.sources import STREAMABLE
 from splatdeform.errors import ConfigError
 from splatdeform.io import extension_of
 
-BASE_RSS = 150 * 2**20  # measured: Python + numpy + scipy + pyopencl (+ PoCL) resident
 _UNITS = {"": 1, "b": 1, "k": 2**10, "kb": 2**10, "kib": 2**10, "m": 2**20, "mb": 2**20,
           "mib": 2**20, "g": 2**30, "gb": 2**30, "gib": 2**30, "t": 2**40, "tb": 2**40,
           "tib": 2**40}
@@ -59,27 +58,6 @@ def default_budget() -> int:
     return machine_memory() // 2
 
 
-def estimate_in_memory_peak(path: str | Path, neighbors: int = 10) -> int | None:
-    """Estimated peak bytes of the in-memory ``deform`` of ``path`` (None: not estimable).
-
-    Measured shape of the in-memory path: the file read whole and parsed (about 2x the file),
-    float64 geometry and its deformed copy, the kNN graph (~(k+1)·16·3 bytes per point) and the
-    basis and Jacobians of the free points (~600 bytes per point)."""
-    path = Path(path)
-    if not path.is_file():
-        return None
-    size = path.stat().st_size
-    try:
-        src = open_chunks(path)
-        n = src.n_points
-        record = size / max(n, 1)
-        if path.suffix.lower() == ".laz":
-            record = src.header.point_format.size
-    except Exception:  # noqa: BLE001 - not streamable: the in-memory path decides
-        return None
-    return int(3 * n * record + n * (300 + 16 * (neighbors + 1)))
-
-
 def chunk_for_budget(budget: int, record_bytes: int, fixed_bytes: int) -> int:
     """Points per chunk so that a chunk's working set (~4 copies of a record + ~900 bytes of
     float64 geometry, basis and Jacobians per point) takes a quarter of what is left."""
@@ -89,11 +67,19 @@ def chunk_for_budget(budget: int, record_bytes: int, fixed_bytes: int) -> int:
 
 
 def should_stream(cfg, in_path: Path, budget: int | None) -> bool:
-    """True when the input is streamable and its in-memory estimate exceeds the budget."""
-    if extension_of(in_path) not in STREAMABLE:
+    """True when the input is streamable and its in-memory peak (the one estimator,
+    :mod:`splatdeform.memory`) exceeds the budget."""
+    from splatdeform import memory
+    from splatdeform.errors import SplatdeformError
+
+    if extension_of(in_path) not in STREAMABLE or not Path(in_path).is_file():
         return False
-    peak = estimate_in_memory_peak(in_path, cfg.boundary.neighbors)
-    return peak is not None and peak > (budget or default_budget())
+    try:
+        cost = memory.file_cost(in_path)
+    except SplatdeformError:   # an unreadable header: the in-memory loader says why
+        return False
+    peak = memory.BASE_BYTES + memory.deform_bytes(cost, cfg.boundary.neighbors)
+    return peak > (budget or default_budget())
 
 
 def run_stream(cfg, base_dir: str | Path = ".", *, output: str | Path | None = None,
@@ -121,7 +107,9 @@ def run_stream(cfg, base_dir: str | Path = ".", *, output: str | Path | None = N
     src = check_streamable(cfg, in_path, out_path)
     n = src.n_points
     record = src.dtype.itemsize if hasattr(src, "dtype") else src.header.point_format.size
-    base = BASE_RSS + 2 * n  # interpreter and libraries, labels
+    from splatdeform.memory import BASE_BYTES
+
+    base = BASE_BYTES + 2 * n  # interpreter and libraries, labels
     chunk = chunk or chunk_for_budget(budget, record, fixed_bytes=base)
     max_border = int(max(budget - base, budget // 2) // 500)
     # handle points kept whole (24 bytes each, ~4 copies in the frame's SVD) up to a quarter
@@ -179,14 +167,13 @@ def run_stream(cfg, base_dir: str | Path = ".", *, output: str | Path | None = N
     return EditResult(None, None, border, plan.delta_c, plan.matrix, out_path, stats, timings)
 
 
-__all__ = ["Progress", "default_budget", "estimate_in_memory_peak", "parse_size", "run_stream",
-           "should_stream"]
+__all__ = ["Progress", "default_budget", "parse_size", "run_stream", "should_stream"]
 
 
 def maybe_stream(cfg, base_dir: Path, out_path: Path, *, budget: int | str | None = None,
                  scheduler: str | None = None, workers: int | None = None,
                  quiet: bool = False, reuse=None, drop_nonfinite: bool = False, log=None,
-                 check_fit=None, render: bool = False):
+                 check_fit=None, render: bool = False):  # render: both files, sampled
     """The streaming result when this edit should stream (budget exceeded, or a Dask
     scheduler/workers asked for), else None (run in memory). ``budget``: bytes or a size
     string (else ``cfg.memory_budget``, else half the RAM)."""
@@ -203,8 +190,5 @@ def maybe_stream(cfg, base_dir: Path, out_path: Path, *, budget: int | str | Non
             raise ConfigError("--scheduler/--workers: cannot be combined with --reuse or "
                               "--drop-nonfinite")
         return None
-    if render:
-        raise ConfigError("--render/render: not available when deform streams (the model is "
-                          "never whole in memory); render the output file instead")
     return run_stream(cfg, base_dir, output=out_path, budget=budget, scheduler=scheduler,
                       workers=workers, quiet=quiet, log=log, check_fit=check_fit)

@@ -32,7 +32,7 @@ from splatdeform import deform as df
 from splatdeform.basis.result import Basis
 from splatdeform.deform.handle import AffineFrame, delta_for_transform, handle_frame
 from splatdeform.edit.config import EditConfig
-from splatdeform.edit.selectors import Indices, Property, select
+from splatdeform.edit.selectors import Indices, Property, leaves, map_leaves, select
 from splatdeform.edit.selectors.indices import index_mask
 from splatdeform.edit.stream.progress import Progress
 from splatdeform.edit.stream.sources import ChunkFile, as_chunk
@@ -117,6 +117,38 @@ def _index_mask(selectors, n: int, base_dir: Path) -> np.ndarray | None:
     for sel in selectors:
         mask |= index_mask(sel.load(base_dir), n)
     return mask
+
+
+@dataclass(frozen=True)
+class _Rows:
+    """A leaf standing in for an indices selector nested in all / not: its whole-file mask
+    (N,) bool, sliced to the chunk's rows [start, start + chunk size)."""
+
+    whole: np.ndarray
+    start: int
+
+    def mask(self, model: PointModel, base_dir: Path | None = None) -> np.ndarray:
+        return self.whole[self.start:self.start + model.n_points]
+
+    def in_units(self, units: str, frame) -> _Rows:
+        return self
+
+
+def _nested_indices(selectors, n: int, base_dir: Path) -> list:
+    """``selectors`` with each indices leaf inside all / not turned into its whole-file mask
+    (loaded once; a chunk model only knows its own rows)."""
+    def whole(leaf):
+        return _Rows(index_mask(leaf.load(base_dir), n), 0) if isinstance(leaf, Indices) \
+            else leaf
+    return [map_leaves(s, whole) for s in selectors]
+
+
+def _at_rows(selectors, start: int) -> list:
+    """``selectors`` with their index masks positioned at the chunk starting at ``start``."""
+    if not any(isinstance(leaf, _Rows) for s in selectors for leaf in leaves(s)):
+        return selectors
+    return [map_leaves(s, lambda leaf: _Rows(leaf.whole, start) if isinstance(leaf, _Rows)
+                       else leaf) for s in selectors]
 
 
 def _voxel_keys(pos: np.ndarray, lo: np.ndarray, h: float, dims: np.ndarray) -> np.ndarray:
@@ -223,7 +255,10 @@ def labels_pass(src: ChunkFile, cfg: EditConfig, base_dir: Path, lo: np.ndarray,
                                                  for s in cfg.regions.handle or []])
     fixed_imask = _index_mask(fixed_idx, n, base_dir)
     handle_imask = _index_mask(handle_idx, n, base_dir)
-    need_model = any(isinstance(s, Property) for s in fixed_plain + handle_plain)
+    fixed_plain = _nested_indices(fixed_plain, n, base_dir)
+    handle_plain = _nested_indices(handle_plain, n, base_dir)
+    need_model = any(isinstance(leaf, Property) for s in fixed_plain + handle_plain
+                     for leaf in leaves(s))
     units = cfg.regions.units
     labels = np.zeros(n, dtype=np.uint8)
     handle_pos: list | None = []
@@ -235,8 +270,8 @@ def labels_pass(src: ChunkFile, cfg: EditConfig, base_dir: Path, lo: np.ndarray,
     for a, b in chunk_ranges(n, chunk):
         model = src.read(a, b) if need_model else PointModel(positions=src.positions(a, b))
         cm = as_chunk(model, lo, hi)
-        fixed = select(cm, fixed_plain, units, base_dir)
-        handle = select(cm, handle_plain, units, base_dir)
+        fixed = select(cm, _at_rows(fixed_plain, a), units, base_dir)
+        handle = select(cm, _at_rows(handle_plain, a), units, base_dir)
         if fixed_imask is not None:
             fixed |= fixed_imask[a:b]
         if handle_imask is not None:

@@ -61,6 +61,14 @@ class ChunkFile:
         """The output rows (structured array) for a deformed chunk model."""
         raise NotImplementedError
 
+    def rows(self, start: int, stop: int) -> np.ndarray:
+        """The raw records of points [start, stop) (structured array)."""
+        raise NotImplementedError
+
+    def model_of(self, rows: np.ndarray) -> PointModel:
+        """A model of raw records (any subset of the file's, e.g. a sample)."""
+        raise NotImplementedError
+
 
 class PlyChunks(ChunkFile):
     """Binary PLY, vertex element first, scalar properties only."""
@@ -122,8 +130,13 @@ class PlyChunks(ChunkFile):
                               "file")
         return out
 
+    def rows(self, start: int, stop: int) -> np.ndarray:
+        return self._rows(start, stop)
+
     def read(self, start: int, stop: int) -> PointModel:
-        rows = self._rows(start, stop)
+        return self.model_of(self._rows(start, stop))
+
+    def model_of(self, rows: np.ndarray) -> PointModel:
         source = PlySource([PlyElementData("vertex", self.props, rows)],
                            self.header.comments, self.header.obj_info, False, self.byte_order)
         return plylib.model_from_source(source, self.path)
@@ -167,9 +180,14 @@ class LasChunks(ChunkFile):
     def positions(self, start: int, stop: int) -> np.ndarray:
         return laslib.positions_of(self.header, self._records(start, stop))
 
+    def rows(self, start: int, stop: int) -> np.ndarray:
+        return self._records(start, stop)
+
     def read(self, start: int, stop: int) -> PointModel:
-        rec = self._records(start, stop)
-        return laslib.model_from_las(self.header, rec, self.path, compressed=self.compressed)
+        return self.model_of(self._records(start, stop))
+
+    def model_of(self, rows: np.ndarray) -> PointModel:
+        return laslib.model_from_las(self.header, rows, self.path, compressed=self.compressed)
 
     def encode(self, model: PointModel) -> np.ndarray:
         src = model.source

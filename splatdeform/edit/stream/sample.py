@@ -1,0 +1,84 @@
+"""Models bigger than the memory budget, for rendering: a view-independent sample streamed
+from the file in chunks (a seeded uniform choice of points, the same for every camera), so
+``render``, ``select -o``, ``deform --render`` (streamed edits included) and batch thumbnails
+look at any scan within the budget. The choice of how many points fit is
+:func:`splatdeform.memory.render_points` (the one memory estimator)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from splatdeform import memory
+from splatdeform.edit.stream.sources import STREAMABLE, open_chunks
+from splatdeform.model import PointModel
+
+SEED = 20240524
+CHUNK_BYTES = 64 * 2**20   # raw records read per chunk (at most; an eighth of the budget)
+MIN_SAMPLE = 10_000        # a picture needs some points whatever the budget
+
+
+@dataclass
+class RenderInput:
+    """A model to render and how many points the file holds (``model.n_points`` < ``total``
+    when it is a sample)."""
+
+    model: PointModel
+    total: int
+    index: np.ndarray | None = None   # (M,) int64 rows of the file the sample holds
+
+    @property
+    def sampled(self) -> bool:
+        return self.model.n_points < self.total
+
+    def line(self) -> str:
+        """'rendered 4,000,000 of 25,900,000 points' for a sample, else ''."""
+        if not self.sampled:
+            return ""
+        return f"rendered {self.model.n_points:,} of {self.total:,} points (memory budget)"
+
+
+def load_for_render(path: str | Path, budget: int, *, drop_nonfinite: bool = False,
+                    share: float = 1.0) -> RenderInput:
+    """The whole model when it fits ``budget`` bytes (times ``share``: two models side by side
+    take half each), else a streamed uniform sample of as many points as fit."""
+    from splatdeform.io import load
+
+    path = Path(path)
+    limit = int(budget * share) if share < 1 else budget
+    if path.suffix.lower() not in STREAMABLE:
+        model = load(path, drop_nonfinite=drop_nonfinite)
+        return RenderInput(model, model.n_points)
+    cost = memory.file_cost(path)
+    chunk_bytes = min(CHUNK_BYTES, limit // 8)
+    keep = memory.render_points(limit, cost, reserve=2 * chunk_bytes)
+    if keep >= cost.points:
+        model = load(path, drop_nonfinite=drop_nonfinite)
+        return RenderInput(model, model.n_points)
+    return sample_file(path, max(keep, MIN_SAMPLE), chunk_bytes=chunk_bytes)
+
+
+def sample_file(path: str | Path, keep: int, seed: int = SEED,
+                chunk_bytes: int = CHUNK_BYTES) -> RenderInput:
+    """About ``keep`` points of ``path``, each kept with probability keep / N (seeded: the
+    same sample every time, whatever the camera), read chunk by chunk; the model keeps every
+    property of the kept points."""
+    src = open_chunks(path)
+    n = src.n_points
+    rng = np.random.default_rng(seed)
+    p = min(keep / max(n, 1), 1.0)
+    row_bytes = src.dtype.itemsize if hasattr(src, "dtype") else src.header.point_format.size
+    chunk = max(chunk_bytes // max(row_bytes, 1), 10_000)
+    parts, index = [], []
+    for a in range(0, n, chunk):
+        b = min(a + chunk, n)
+        rows = src.rows(a, b)
+        kept = np.flatnonzero(rng.random(b - a) < p)
+        parts.append(rows[kept].copy())   # not a view: frees the chunk
+        index.append(kept + a)
+        del rows
+    rows = np.concatenate(parts)
+    del parts
+    return RenderInput(src.model_of(rows), n, np.concatenate(index))
