@@ -5,3 +5,9 @@ own so the config layer reads them without importing the fitter (scipy.linalg)."
 
 DEFAULT_TOLERANCE = 1.5e-4
 DEFAULT_MAX_CENTERS = 2000
+
+#: ``fit.method``: ``auto`` picks the cheaper of the incremental fit and the exact solve.
+DEFAULT_METHOD = "auto"
+#: ``fit.thinning``: voxel cell of each ring's thinning, in units of the ring's width
+#: (:mod:`splatdeform.deform.thin`); 0 keeps every ring point.
+DEFAULT_THINNING = 0.75
