@@ -8,11 +8,9 @@ their prescribed values exactly (they never go through the field).
 Per ring, from its own points only (so the in-memory and the streaming path, which find the same
 rings, keep the same subset):
 
-- local spacing s_i: distance of ring point i to its nearest other ring point;
-- kNN radius d_i: distance to its k-th nearest other ring point (k = ``boundary.neighbors``);
-- ring width W: a band of width W and spacing s holds k points within d of a point when
-  k = 2 d W / s^2, so W = median(k s_i^2 / (2 d_i)) (a one-point-wide ring: W = s; a shell
-  wider than d: W of the order of d), never below the median spacing.
+- local spacing s: the median distance of a ring point to its nearest other ring point;
+- ring width W: the median spread across the ring of each point's 2k nearest ring points
+  (k = ``boundary.neighbors``; second principal axis, :func:`ring_width`), never below s.
 
 The ring is then voxel-thinned at cell size ``factor * W``: in each occupied cell the point
 nearest the cell's centre is kept (ties: the lowest index). A mesh ring one vertex wide has W
@@ -31,15 +29,22 @@ MIN_RING = 32
 
 
 def ring_width(points: np.ndarray, neighbors: int) -> tuple[float, float]:
-    """(width W, median spacing s) of one ring's points (M, 3) float64, M >= 2."""
-    k = int(min(max(neighbors, 2), points.shape[0] - 1))
-    dist, _ = cKDTree(points).query(points, k=k + 1)
-    near, kth = dist[:, 1], dist[:, -1]
-    ok = kth > 0
-    spacing = float(np.median(near)) if near.size else 0.0
-    if not ok.any():
-        return spacing, spacing
-    width = float(np.median(k * near[ok] ** 2 / (2.0 * kth[ok])))
+    """(width W, median spacing s) of one ring's points (M, 3) float64, M >= 2.
+
+    Around each ring point, the covariance of its 2k nearest ring points has the ring's
+    direction as its largest axis; the second is across the ring (a uniform spread of width w
+    has variance w^2 / 12), so W = median sqrt(12 lambda_2), never below the spacing s (the
+    median distance to the nearest other ring point). A ring one point wide has lambda_2 about
+    0 and W = s; a thick shell has W of the order of its kNN neighbourhood.
+    """
+    k = int(min(max(2 * neighbors, 4), points.shape[0] - 1))
+    dist, nbr = cKDTree(points).query(points, k=k + 1)
+    spacing = float(np.median(dist[:, 1]))
+    local = points[nbr]                                  # (M, k + 1, 3)
+    local = local - local.mean(axis=1, keepdims=True)
+    cov = np.einsum("mki,mkj->mij", local, local) / (k + 1)
+    lam = np.linalg.eigvalsh(cov)                        # ascending
+    width = float(np.median(np.sqrt(12.0 * np.maximum(lam[:, 1], 0.0))))
     return max(width, spacing), spacing
 
 

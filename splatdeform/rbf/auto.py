@@ -14,7 +14,10 @@ per-block overheads. So ``auto``
    for (log-linear extrapolation of the largest |r| over the last blocks down to the tolerance)
    predict a remaining cost above the dense cost;
 3. also switches when the incremental fit stops at ``max_centers`` above the tolerance, so every
-   scene the dense solve can take converges.
+   scene the dense solve can take converges;
+4. and when the incremental fit met the tolerance on the kept constraints but misses a dropped
+   ring point by more than :data:`BOUNDARY_FACTOR` times the tolerance (|r| over every ring
+   point, one cheap evaluation): thinning is only used where it keeps the boundary.
 
 The constants are from ``benchmarks/fit_table.py`` (README: "Fit benchmark"); they are costs
 in seconds on one core of the development machine, only their ratios matter. Decisions use
@@ -49,6 +52,9 @@ INCREMENTAL_BLOCK = 2e-3
 FIRST_CENTERS = 112
 #: Centers before the extrapolated heading is trusted.
 HEADING_AFTER = 128
+#: Largest |r| over every ring point (kept or dropped) that ``auto`` accepts from a thinned
+#: incremental fit, in tolerances; above it the dense solve runs (README: "Fit benchmark").
+BOUNDARY_FACTOR = 10.0
 
 
 def dense_seconds(m: int, threads: int) -> float:
@@ -142,6 +148,25 @@ def fit_auto(points: np.ndarray, rhs: np.ndarray, *, kept: np.ndarray | None = N
 
     fit = fit_incremental(sub_p, sub_b, tolerance=tolerance, max_centers=max_centers,
                           normalization=normalization, selection=selection, stop=stop)
-    if fit.converged or math.isinf(choice.dense):
+    if math.isinf(choice.dense):
+        return fit
+    if fit.converged and (kept is None or all_errors(fit, pts, b) <= BOUNDARY_FACTOR
+                          * float(tolerance)):
         return fit
     return fit_exact(pts, b, normalization=normalization, threads=n_threads)
+
+
+def all_errors(fit: RbfFit, points: np.ndarray, rhs: np.ndarray, chunk: int = 4096) -> float:
+    """Largest |rhs - b(points)| of ``fit`` over ``points`` (m, 3) model units, rhs (m, k)."""
+    from scipy.spatial.distance import cdist
+
+    x = fit.normalization.apply(points)
+    worst = 0.0
+    for a in range(0, x.shape[0], chunk):
+        xa = x[a:a + chunk]
+        val = fit.weights[0] + xa @ fit.weights[1:4]
+        if fit.n_centers:
+            val = val + (cdist(xa, fit.centers) ** 3) @ fit.weights[4:]
+        worst = max(worst, float(np.abs(np.asarray(rhs[a:a + chunk], dtype=np.float64)
+                                        - val).max()))
+    return worst
