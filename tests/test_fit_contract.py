@@ -141,7 +141,8 @@ def test_reuse_key_ignores_on_not_converged(bar_dir):
 
 
 def test_batch_report_flags_unconverged_scans(bar_dir):
-    edit = yaml.safe_load((write_edit(bar_dir, "b", tolerance=1e-9, max_centers=5, method="incremental")).read_text())
+    edit = yaml.safe_load(write_edit(bar_dir, "b", tolerance=1e-9, max_centers=5,
+                                     method="incremental").read_text())
     for key in ("input", "output"):
         edit.pop(key)
     batch = bar_dir / "batch.yaml"

@@ -254,6 +254,8 @@ def test_big_handle_frame_from_streamed_moments(bar: Path, tmp_path: Path) -> No
     pos_a = np.stack([a[c] for c in "xyz"], axis=1)
     pos_b = np.stack([b[c] for c in "xyz"], axis=1)
     assert np.array_equal(pos_a[fixed], pos_b[fixed])
-    assert np.abs(pos_a - pos_b).max() <= 1e-9 * float(np.linalg.norm(np.ptp(pos_a, axis=0)))
+    # rounding of the streamed frame goes through the dense solve (condition ~1e7 on this
+    # scene, fit.method auto), so "to rounding" is 1e-8 of the diagonal here
+    assert np.abs(pos_a - pos_b).max() <= 1e-8 * float(np.linalg.norm(np.ptp(pos_a, axis=0)))
     for c in ("nx", "ny", "nz"):
         assert np.allclose(a[c], b[c], atol=1e-6, rtol=0)

@@ -21,8 +21,8 @@ from splatdeform.basis.result import Basis
 from splatdeform.deform.handle import AffineFrame
 from splatdeform.deform.metaphor import Metaphor, handle_metaphor
 from splatdeform.deform.regions import Group, check_regions, layout
-from splatdeform.model import PointModel
 from splatdeform.deform.thin import thin_rings
+from splatdeform.model import PointModel
 from splatdeform.rbf.defaults import (
     DEFAULT_MAX_CENTERS,
     DEFAULT_METHOD,
