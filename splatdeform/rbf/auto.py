@@ -31,6 +31,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from splatdeform.errors import InputError
 from splatdeform.rbf.defaults import DEFAULT_MAX_CENTERS, DEFAULT_TOLERANCE
 from splatdeform.rbf.exact import EXACT_MAX_CONSTRAINTS, dense_threads, fit_exact
 from splatdeform.rbf.fit import fit_incremental
@@ -146,8 +147,14 @@ def fit_auto(points: np.ndarray, rhs: np.ndarray, *, kept: np.ndarray | None = N
         return heading is not None and \
             incremental_seconds(m_kept, min(heading, 1e9)) - spent > choice.dense
 
-    fit = fit_incremental(sub_p, sub_b, tolerance=tolerance, max_centers=max_centers,
-                          normalization=normalization, selection=selection, stop=stop)
+    try:
+        fit = fit_incremental(sub_p, sub_b, tolerance=tolerance, max_centers=max_centers,
+                              normalization=normalization, selection=selection, stop=stop)
+    except InputError:
+        if kept is None or math.isinf(choice.dense):
+            raise
+        # the kept subset alone is degenerate (e.g. flat): the dense solve takes every point
+        return fit_exact(pts, b, normalization=normalization, threads=n_threads)
     if math.isinf(choice.dense):
         return fit
     if fit.converged and (kept is None or all_errors(fit, pts, b) <= BOUNDARY_FACTOR
