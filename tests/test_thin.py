@@ -261,3 +261,14 @@ def test_report_counts_kept_and_errors_equal_independent_evaluation(shell, tmp_p
     shown = float(re.search(r"over all [\d,]+ ring points: max ([\d.e+-]+)", text).group(1))
     assert shown == pytest.approx(dist.max(), rel=2e-3)  # printed to 3 significant digits
     assert result.stats["constraint_error"] == pytest.approx(dist.max(), rel=1e-9)
+
+
+def test_reuse_cache_stores_the_kept_subset(shell, shell_def, tmp_path):
+    from splatdeform.edit.cache import FORMAT_VERSION, load_deformation, save_deformation
+
+    assert FORMAT_VERSION >= 6
+    path = save_deformation(tmp_path / "d.npz", "key", shell_def)
+    back = load_deformation(path, "key", shell)
+    assert np.array_equal(back.kept, shell_def.kept) and back.n_kept == shell_def.n_kept
+    assert back.ring_sizes == shell_def.ring_sizes
+    assert back.fit.method == shell_def.fit.method
