@@ -11,8 +11,8 @@ per-block overheads. So ``auto``
    more than the whole dense solve (small scenes);
 2. else runs the incremental fit and, after each block, stops and switches to the dense solve
    once its predicted cost so far has passed the dense cost, or once the centers it is heading
-   for (log-linear extrapolation of the largest |r| over the last blocks down to the tolerance)
-   predict a remaining cost above the dense cost;
+   for (log-linear extrapolation of the largest |r| from half its centers to now, down to the
+   tolerance) predict a remaining cost above the dense cost at two checks in a row;
 3. also switches when the incremental fit stops at ``max_centers`` above the tolerance, so every
    scene the dense solve can take converges;
 4. and when the incremental fit met the tolerance on the kept constraints but misses a dropped
@@ -102,11 +102,16 @@ def choose_method(m_all: int, m_kept: int, threads: int) -> Choice:
 
 
 def heading_for(history: list[tuple[int, float]], tolerance: float) -> float | None:
-    """Centers the fit is heading for: log-linear extrapolation of (centers, largest |r|) over
-    the last two checkpoints down to ``tolerance`` (None: no progress to extrapolate)."""
+    """Centers the fit is heading for: log-linear extrapolation of (centers, largest |r|) from
+    the checkpoint at about half the current centers to the last one, down to ``tolerance``
+    (a window that grows with the fit, so a plateau of a block or two does not swing it).
+    None: no progress to extrapolate."""
     if len(history) < 2 or tolerance <= 0:
         return None
-    (n0, e0), (n1, e1) = history[-2], history[-1]
+    n1, e1 = history[-1]
+    n0, e0 = next((h for h in history if h[0] >= n1 // 2), history[-2])
+    if n0 >= n1:
+        n0, e0 = history[-2]
     if not (n1 > n0 and e0 > 0 and e1 > 0 and e1 < e0):
         return None
     if e1 <= tolerance:
@@ -138,14 +143,18 @@ def fit_auto(points: np.ndarray, rhs: np.ndarray, *, kept: np.ndarray | None = N
     history: list[tuple[int, float]] = []
     m_kept = int(sub_p.shape[0])
 
+    over = [False]  # the heading passed the dense cost at the previous check
+
     def stop(n: int, err: float) -> bool:
         history.append((n, err))
         spent = incremental_seconds(m_kept, n)
         if spent >= choice.dense:
             return True
         heading = heading_for(history, float(tolerance)) if n >= HEADING_AFTER else None
-        return heading is not None and \
+        passed = heading is not None and \
             incremental_seconds(m_kept, min(heading, 1e9)) - spent > choice.dense
+        give_up, over[0] = passed and over[0], passed  # twice in a row: not one plateau
+        return give_up
 
     try:
         fit = fit_incremental(sub_p, sub_b, tolerance=tolerance, max_centers=max_centers,
