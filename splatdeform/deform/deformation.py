@@ -216,7 +216,8 @@ def prepare_metaphors(model: PointModel, fixed: np.ndarray, metaphors: list[Meta
     rhs = np.zeros((constraint_idx.size, k))
     rhs[fixed_c.size:] = coords_all[lookup[moving_c]]
 
-    thinning = float(getattr(fit_fn, "thinning", 0.0))
+    thinning = fit_fn.thinning if isinstance(fit_fn, FitSettings) and \
+        fit_fn.method != "exact" else 0.0
     t0 = time.perf_counter()
     kept = thin_rings(model.positions, list(fixed_rings) + list(moving_rings), neighbors,
                       thinning) if thinning > 0 else None
