@@ -1,17 +1,22 @@
-"""The measured table behind the default ``fit.tolerance`` and ``fit.max_centers``.
+"""The measured table behind the default ``fit.method``, ``fit.tolerance``, ``fit.thinning``.
 
-For every PLY scan and splat file in ``../shared/data`` and the generated benchmark scenes, a
-typical handle edit (fixed: the first 30% of the bounding box along its longest axis; handle: the
-last 20%; the handle rotated 30 degrees about an axis across the model and moved 10% of the
-diagonal), with C2 rings, at several tolerances:
+For every PLY scan and splat file in ``../shared/data`` and the generated benchmark scenes
+(a clean bumpy bar and sphere, noisy splat shells: positions jittered normal to the surface by a
+fraction of the point spacing, and the paper's thin-band scene), a typical handle edit (fixed:
+the first 30% of the bounding box along its longest axis; handle: the last 20%; the handle
+rotated 30 degrees about an axis across the model and moved 10% of the diagonal), with C2 rings:
 
-- centers, fit time, max and RMS constraint error |r| (dimensionless, in the coordinates of M);
-- the free-region deviation from the exact interpolant (scipy ``RBFInterpolator`` cubic, degree
-  1, through all constraints) as a fraction of the largest displacement of any handle point —
-  the one denominator used in the README, the tests and the benchmarks.
+- m ring points, the kept (thinned) count, the method ``auto`` ran, its centers and seconds;
+- the incremental fit on the kept points alone (seconds, centers, converged);
+- our dense solve (``fit.method: exact``, projected Cholesky) and scipy's
+  ``RBFInterpolator(kernel="cubic", degree=1)`` through every ring point, and the ratio
+  scipy / auto;
+- the free-region deviation of the default fit from that exact interpolant, and its boundary
+  error over every ring point (model units), both as fractions of the largest handle-point
+  displacement.
 
-    python benchmarks/fit_table.py [--tolerances 1e-3,3e-4,1e-4] [--selection greedy]
-          [--max-free 20000] [--only NAME]
+    python benchmarks/fit_table.py [--tolerance 1.5e-4] [--thinning 0.75] [--max-free 20000]
+          [--only NAME] [--threads N]
 """
 
 from __future__ import annotations
@@ -32,10 +37,18 @@ from splatdeform import deform as df  # noqa: E402
 from splatdeform.basis.reference import evaluate_field  # noqa: E402
 from splatdeform.basis.result import Basis  # noqa: E402
 from splatdeform.deform.handle import compose_transform, delta_for_transform  # noqa: E402
+from splatdeform.deform.thin import thin_rings  # noqa: E402
 from splatdeform.edit.selectors import Box, select  # noqa: E402
 from splatdeform.io import load  # noqa: E402
 from splatdeform.model import PointModel  # noqa: E402
 from splatdeform.rbf import Normalization, fit_incremental  # noqa: E402
+from splatdeform.rbf.auto import fit_auto  # noqa: E402
+from splatdeform.rbf.defaults import (  # noqa: E402
+    DEFAULT_MAX_CENTERS,
+    DEFAULT_THINNING,
+    DEFAULT_TOLERANCE,
+)
+from splatdeform.rbf.exact import EXACT_MAX_CONSTRAINTS, dense_threads, fit_exact  # noqa: E402
 
 SHARED = Path(__file__).resolve().parents[2] / "shared" / "data"
 
@@ -78,10 +91,23 @@ def constraints_of(model: PointModel, fixed: np.ndarray, handle: np.ndarray,
                              neighbors=neighbors)
 
 
+def noisy_shell(n: int, jitter: float, seed: int) -> PointModel:
+    """A splat-like sphere: positions jittered normal to the surface by ``jitter`` times the
+    point spacing, with anisotropic splat scales (the fit only sees the positions)."""
+    model = sphere(n, seed=seed)
+    rng = np.random.default_rng(seed)
+    spacing = np.sqrt(4 * np.pi / n)
+    pos = model.positions * (1 + jitter * spacing * rng.standard_normal((n, 1)))
+    return PointModel(positions=pos)
+
+
 def scenes(only: str | None):
     gen = {
         "generated bumpy bar 270k": lambda: bumpy_bar(270_000, seed=7),
         "generated sphere 100k": lambda: sphere(100_000, seed=3),
+        "noisy shell 100k jitter 0.5": lambda: noisy_shell(100_000, 0.5, 11),
+        "noisy shell 100k jitter 2": lambda: noisy_shell(100_000, 2.0, 12),
+        "noisy shell 300k jitter 1": lambda: noisy_shell(300_000, 1.0, 13),
     }
     for name, make in gen.items():
         if only is None or only in name:
@@ -93,28 +119,35 @@ def scenes(only: str | None):
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__)
-    ap.add_argument("--tolerances", default="1e-3,3e-4,1.5e-4")
-    ap.add_argument("--selection", default="greedy", choices=("greedy", "fps"))
-    ap.add_argument("--max-centers", type=int, default=2000)
+    ap.add_argument("--tolerance", type=float, default=DEFAULT_TOLERANCE)
+    ap.add_argument("--thinning", type=float, default=DEFAULT_THINNING)
+    ap.add_argument("--max-centers", type=int, default=DEFAULT_MAX_CENTERS)
+    ap.add_argument("--threads", type=int, default=None, help="dense solve BLAS threads")
     ap.add_argument("--max-free", type=int, default=20_000,
                     help="free points sampled (seeded) for the deviation")
     ap.add_argument("--only", help="substring of a scene name")
     args = ap.parse_args()
-    tolerances = [float(t) for t in args.tolerances.split(",")]
 
-    print(f"fit table {time.strftime('%Y-%m-%d')} on {platform.node()} ({os.cpu_count()} cores, "
-          f"load average {os.getloadavg()[0]:.1f}); selection {args.selection}; deviation = max "
-          "free-point distance to the exact interpolant / largest handle-point displacement")
-    print(f"{'scene':<32}{'points':>9}{'m':>7}{'tol':>8}{'centers':>8}{'fit s':>8}"
-          f"{'max|r|':>10}{'rms|r|':>10}{'deviation':>10}{'conv':>6}{'scipy s':>9}")
+    threads = dense_threads(args.threads)
+    print(f"fit table {time.strftime('%Y-%m-%d %H:%M')} on {platform.node()} "
+          f"({len(os.sched_getaffinity(0))} CPUs, {platform.processor() or platform.machine()}, "
+          f"load average {os.getloadavg()[0]:.1f}); dense threads {threads}; tolerance "
+          f"{args.tolerance:g}, thinning {args.thinning:g}; dev = max free-point distance to the "
+          "exact interpolant, bnd = max ring-point error, both / largest handle displacement")
+    print(f"{'scene':<28}{'points':>9}{'m':>6}{'kept':>6}{'ran':>6}{'n':>6}{'auto s':>8}"
+          f"{'incr s':>8}{'n':>6}{'ours ex':>8}{'scipy':>8}{'ratio':>7}{'dev':>7}{'bnd':>9}"
+          f"{'conv':>5}")
     rng = np.random.default_rng(0)
+    warm = rng.normal(size=(300, 3))  # first calls load LAPACK wrappers and thread pools
+    fit_exact(warm, warm, threads=threads)
+    fit_auto(warm, warm, threads=threads)
     for name, make in scenes(args.only):
         model = make()
         fixed, handle, matrix = typical_edit(model)
         try:
             d = constraints_of(model, fixed, handle)
         except Exception as exc:  # a scene whose typical edit is not valid: say so, go on
-            print(f"{name:<32} skipped: {exc}")
+            print(f"{name:<28} skipped: {exc}")
             continue
         delta = delta_for_transform(d.control_points, matrix)
         moved = model.positions[handle] @ matrix[:3, :3].T + matrix[:3, 3]
@@ -123,14 +156,18 @@ def main() -> None:
         if free_idx.size > args.max_free:
             free_idx = np.sort(rng.choice(free_idx, args.max_free, replace=False))
         free = model.positions[free_idx]
-        pts, rhs = d.constraint_points, d.constraint_rhs
-        row(name, model.n_points, pts, rhs, delta, free, largest,
-            Normalization.of(model.positions), tolerances, args)
+        rings = np.split(d.constraint_idx, np.cumsum(list(d.ring_sizes[0])
+                                                     + list(d.ring_sizes[1]))[:-1])
+        kept = thin_rings(model.positions, rings, 10, args.thinning)
+        row(name, model.n_points, d.constraint_points, d.constraint_rhs, kept, delta, free,
+            largest, Normalization.of(model.positions), threads, args)
+        del model, d
     if args.only is None or args.only in "thin bands":
         sc = thin_band_scene()
-        row("generated thin bands (bench_fit)", int(sc["n_points"]), sc["constraints"], sc["M"],
-            sc["delta_c"], sc["free"], float(np.linalg.norm(sc["disp"], axis=1).max()), None,
-            tolerances, args)
+        pts = sc["constraints"]
+        row("paper thin bands (bench_fit)", int(sc["n_points"]), pts, sc["M"],
+            np.ones(pts.shape[0], dtype=bool), sc["delta_c"], sc["free"],
+            float(np.linalg.norm(sc["disp"], axis=1).max()), None, threads, args)
 
 
 def thin_band_scene() -> dict[str, np.ndarray]:
@@ -141,29 +178,42 @@ def thin_band_scene() -> dict[str, np.ndarray]:
     return make_scene()
 
 
-def row(name: str, n_points: int, pts: np.ndarray, rhs: np.ndarray, delta: np.ndarray,
-        free: np.ndarray, largest: float, norm: Normalization | None, tolerances: list[float],
-        args: argparse.Namespace) -> None:
-    """Print one scene's lines: our fit at each tolerance against the exact interpolant."""
+def row(name: str, n_points: int, pts: np.ndarray, rhs: np.ndarray, kept: np.ndarray,
+        delta: np.ndarray, free: np.ndarray, largest: float, norm: Normalization | None,
+        threads: int, args: argparse.Namespace) -> None:
+    """One scene's line: auto (the default), incremental on the kept points, our exact and
+    scipy's dense solve through every ring point, deviation and boundary error."""
     from scipy.interpolate import RBFInterpolator
+    from threadpoolctl import threadpool_limits
 
-    # scans repeat points (LiDAR returns): the exact interpolant needs distinct constraints
     _, first = np.unique(pts, axis=0, return_index=True)
-    first = np.sort(first)
-    t0 = time.perf_counter()
-    exact = RBFInterpolator(pts[first], rhs[first] @ delta, kernel="cubic", degree=1)
-    t_exact = time.perf_counter() - t0
-    exact_free = exact(free)
-    for tol in tolerances:
+    first = np.sort(first)  # scans repeat points (LiDAR returns): scipy needs distinct ones
+    t_scipy = t_ours = float("nan")
+    exact_free = None
+    if first.size <= EXACT_MAX_CONSTRAINTS:
+        with threadpool_limits(threads, "blas"):
+            t0 = time.perf_counter()
+            exact = RBFInterpolator(pts[first], rhs[first] @ delta, kernel="cubic", degree=1)
+            t_scipy = time.perf_counter() - t0
+        exact_free = exact(free)
         t0 = time.perf_counter()
-        fit = fit_incremental(pts, rhs, tolerance=tol, max_centers=args.max_centers,
-                              normalization=norm, selection=args.selection)
-        t_fit = time.perf_counter() - t0
-        dev = np.linalg.norm(evaluate_field(free, fit) @ delta - exact_free, axis=1).max()
-        print(f"{name[:31]:<32}{n_points:>9,}{pts.shape[0]:>7}{tol:>8.1e}"
-              f"{fit.n_centers:>8}{t_fit:>8.3f}{fit.max_error:>10.2e}{fit.rms_error:>10.2e}"
-              f"{dev / largest:>10.2%}{'yes' if fit.converged else 'NO':>6}{t_exact:>9.3f}",
-              flush=True)
+        fit_exact(pts, rhs, normalization=norm, threads=threads)
+        t_ours = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    inc = fit_incremental(pts[kept], rhs[kept], tolerance=args.tolerance,
+                          max_centers=args.max_centers, normalization=norm)
+    t_inc = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    fit = fit_auto(pts, rhs, kept=kept, tolerance=args.tolerance, max_centers=args.max_centers,
+                   normalization=norm, threads=threads)
+    t_auto = time.perf_counter() - t0
+    dev = float("nan") if exact_free is None else \
+        np.linalg.norm(evaluate_field(free, fit) @ delta - exact_free, axis=1).max() / largest
+    bnd = np.linalg.norm((evaluate_field(pts, fit) - rhs) @ delta, axis=1).max() / largest
+    print(f"{name[:27]:<28}{n_points:>9,}{pts.shape[0]:>6}{int(kept.sum()):>6}"
+          f"{fit.method[:5]:>6}{fit.n_centers:>6}{t_auto:>8.3f}{t_inc:>8.3f}{inc.n_centers:>6}"
+          f"{t_ours:>8.3f}{t_scipy:>8.3f}{t_scipy / t_auto:>6.1f}x{dev:>7.2%}{bnd:>9.1e}"
+          f"{'yes' if fit.converged else 'NO':>5}", flush=True)
 
 if __name__ == "__main__":
     main()

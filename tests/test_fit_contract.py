@@ -102,7 +102,7 @@ def deform(cfg: Path) -> subprocess.CompletedProcess:
 
 
 def test_not_converged_warns_one_line_and_still_writes(bar_dir):
-    res = deform(write_edit(bar_dir, "warn", tolerance=1e-9, max_centers=5))
+    res = deform(write_edit(bar_dir, "warn", tolerance=1e-9, max_centers=5, method="incremental"))
     assert res.returncode == 0, res.stderr
     lines = res.stderr.strip().splitlines()
     assert len(lines) == 1, res.stderr
@@ -113,7 +113,7 @@ def test_not_converged_warns_one_line_and_still_writes(bar_dir):
 
 
 def test_on_not_converged_error_exits_1_writes_nothing(bar_dir):
-    res = deform(write_edit(bar_dir, "err", tolerance=1e-9, max_centers=5,
+    res = deform(write_edit(bar_dir, "err", tolerance=1e-9, max_centers=5, method="incremental",
                             on_not_converged="error"))
     assert res.returncode == 1
     lines = res.stderr.strip().splitlines()
@@ -141,7 +141,8 @@ def test_reuse_key_ignores_on_not_converged(bar_dir):
 
 
 def test_batch_report_flags_unconverged_scans(bar_dir):
-    edit = yaml.safe_load((write_edit(bar_dir, "b", tolerance=1e-9, max_centers=5)).read_text())
+    edit = yaml.safe_load(write_edit(bar_dir, "b", tolerance=1e-9, max_centers=5,
+                                     method="incremental").read_text())
     for key in ("input", "output"):
         edit.pop(key)
     batch = bar_dir / "batch.yaml"

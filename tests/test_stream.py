@@ -88,9 +88,17 @@ def assert_same_result(mem: Path, streamed: Path, source: Path) -> None:
             assert np.array_equal(a[name], b[name]), name
 
 
-def test_stream_equals_in_memory_ply(bar: Path, tmp_path: Path) -> None:
+def _kept_global(deformation) -> np.ndarray:
+    """The global indices of the constraints the fit was given, sorted."""
+    idx = deformation.constraint_idx
+    return np.sort(idx if deformation.kept is None else idx[deformation.kept])
+
+
+@pytest.mark.parametrize("method", ["auto", "incremental"])
+def test_stream_equals_in_memory_ply(bar: Path, tmp_path: Path, method: str) -> None:
     cfg_path = write_edit(tmp_path, bar, "mem.ply")
     cfg = load_edit(cfg_path)
+    cfg = cfg.model_copy(update={"fit": cfg.fit.model_copy(update={"method": method})})
     run_edit(cfg, tmp_path)
     result = run_stream(cfg, tmp_path, output=tmp_path / "st.ply", chunk=7_000, quiet=True)
     assert result.model is None and result.stats["points"] == 60_000
@@ -101,6 +109,12 @@ def test_stream_equals_in_memory_ply(bar: Path, tmp_path: Path) -> None:
     assert result.stats["centers"] == mem.stats["centers"]
     assert np.array_equal(np.sort(result.deformation.constraint_idx),
                           np.sort(mem.deformation.constraint_idx))
+    # the same thinned subset: the same kept count and the same kept points
+    assert result.stats["kept"] == mem.stats["kept"] == mem.deformation.n_kept
+    assert result.stats["method"] == mem.stats["method"]
+    assert np.array_equal(_kept_global(result.deformation), _kept_global(mem.deformation))
+    if method == "incremental":
+        assert mem.stats["kept"] < mem.stats["constraints"]  # the thinning did drop points
     assert_same_result(tmp_path / "mem.ply", tmp_path / "st.ply", bar)
     assert not list(tmp_path.glob(".*tmp*"))  # no temporary left behind
 
@@ -243,6 +257,8 @@ def test_big_handle_frame_from_streamed_moments(bar: Path, tmp_path: Path) -> No
     pos_a = np.stack([a[c] for c in "xyz"], axis=1)
     pos_b = np.stack([b[c] for c in "xyz"], axis=1)
     assert np.array_equal(pos_a[fixed], pos_b[fixed])
-    assert np.abs(pos_a - pos_b).max() <= 1e-9 * float(np.linalg.norm(np.ptp(pos_a, axis=0)))
+    # rounding of the streamed frame goes through the dense solve (condition ~1e7 on this
+    # scene, fit.method auto), so "to rounding" is 1e-8 of the diagonal here
+    assert np.abs(pos_a - pos_b).max() <= 1e-8 * float(np.linalg.norm(np.ptp(pos_a, axis=0)))
     for c in ("nx", "ny", "nz"):
         assert np.allclose(a[c], b[c], atol=1e-6, rtol=0)

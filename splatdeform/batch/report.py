@@ -12,7 +12,8 @@ from typing import Any
 
 from ..io import atomic_write
 
-COLUMNS = ("scan", "status", "points", "centers", "residual", "constraint_error",
+COLUMNS = ("scan", "status", "points", "constraints", "kept", "method", "centers", "residual",
+           "constraint_error",
            "constraint_error_rel", "converged", "seconds", "load", "rings", "fit", "basis",
            "apply", "save", "render", "output", "png", "error")
 

@@ -110,7 +110,8 @@ def process_scan(job: Job) -> dict[str, Any]:
                     error=f"{type(exc).__name__}: {_one_line(exc)} "
                           f"({Path(where.filename).name}:{where.lineno})")
     s = result.stats
-    row = _row(job, "ok", points=s["points"], centers=s["centers"], residual=s["residual"],
+    row = _row(job, "ok", points=s["points"], constraints=s["constraints"], kept=s["kept"],
+               method=s["method"], centers=s["centers"], residual=s["residual"],
                constraint_error=s["constraint_error"],
                constraint_error_rel=s["constraint_error_rel"], converged=s["converged"],
                timings={k: round(v, 4) for k, v in result.timings.items()},

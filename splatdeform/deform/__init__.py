@@ -15,7 +15,7 @@ from splatdeform.lazy import lazy_exports
 
 _MODULES = {
     "deformation": ("Deformation", "prepare", "prepare_metaphors", "prepare_handle",
-                    "prepare_handles", "delta_for", "fit_settings", "basis_settings",
+                    "prepare_handles", "delta_for", "fit_settings", "FitSettings", "basis_settings",
                     "constraint_errors", "constraint_error", "FitFn", "BasisFn"),
     "regions": ("Group", "Layout", "layout", "check_regions", "check_metaphor"),
     "model_apply": ("apply", "full_basis", "handle_matrices", "check_finite"),
@@ -24,6 +24,7 @@ _MODULES = {
     "handle": ("AffineFrame", "compose_transform", "delta_for_transform", "apply_affine"),
     "arrays": ("deform_frame",),
     "normals": ("estimate_normals",),
+    "thin": ("thin_rings", "thin_ring"),
 }
 _LAZY = {name: module for module, names in _MODULES.items() for name in names}
 

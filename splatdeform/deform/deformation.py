@@ -21,8 +21,14 @@ from splatdeform.basis.result import Basis
 from splatdeform.deform.handle import AffineFrame
 from splatdeform.deform.metaphor import Metaphor, handle_metaphor
 from splatdeform.deform.regions import Group, check_regions, layout
+from splatdeform.deform.thin import thin_rings
 from splatdeform.model import PointModel
-from splatdeform.rbf.defaults import DEFAULT_MAX_CENTERS, DEFAULT_TOLERANCE
+from splatdeform.rbf.defaults import (
+    DEFAULT_MAX_CENTERS,
+    DEFAULT_METHOD,
+    DEFAULT_THINNING,
+    DEFAULT_TOLERANCE,
+)
 from splatdeform.rbf.result import RbfFit
 
 
@@ -39,6 +45,9 @@ class Deformation:
     handle's affine frame with it).
     fit: the RBF fit; basis: b and grad b for the free points (Nf rows).
     timings: seconds per stage. rings: ring sizes (fixed, moving).
+    kept: (m,) bool over the constraints: the thinned subset the incremental fit was given
+    (None: every constraint). Dropped ring points are still fixed or moving points, so they
+    get their prescribed values exactly; :func:`constraint_errors` covers all m.
     """
 
     n_points: int
@@ -57,6 +66,12 @@ class Deformation:
     timings: dict[str, float] = field(default_factory=dict)
     ring_sizes: tuple[list[int], list[int]] = ((), ())
     groups: list[Group] = field(default_factory=list)
+    kept: np.ndarray | None = None
+
+    @property
+    def n_kept(self) -> int:
+        """Constraints the fit was given after thinning (all of them without thinning)."""
+        return int(self.constraint_idx.size if self.kept is None else np.count_nonzero(self.kept))
 
     def handle_groups(self) -> list[Group]:
         """The groups whose points get a handle's 4x4 map verbatim (those with a frame)."""
@@ -108,22 +123,59 @@ def _default_fns(model: PointModel, fit_fn: FitFn | None, basis_fn: BasisFn | No
     return fit_fn, basis_fn
 
 
+@dataclass(frozen=True)
+class FitSettings:
+    """The fitter of ``fit:`` as a callable ``fit(points, rhs, kept=None)``.
+
+    method: ``auto`` (the cheaper by predicted cost, :mod:`splatdeform.rbf.auto`),
+    ``incremental`` (least squares on the kept constraints) or ``exact`` (dense, through every
+    constraint). thinning: ring thinning cell in ring widths (:mod:`splatdeform.deform.thin`;
+    0 keeps every ring point), read by :func:`prepare_metaphors`. threads: the dense solve's
+    BLAS threads (None: :func:`splatdeform.rbf.exact.dense_threads`); the incremental fit
+    always uses one. normalization: model -> normalised coordinates (the model's bbox).
+    """
+
+    normalization: object
+    tolerance: float = DEFAULT_TOLERANCE
+    max_centers: int = DEFAULT_MAX_CENTERS
+    selection: str = "greedy"
+    method: str = DEFAULT_METHOD
+    thinning: float = DEFAULT_THINNING
+    threads: int | None = None
+
+    def __call__(self, points: np.ndarray, rhs: np.ndarray,
+                 kept: np.ndarray | None = None) -> RbfFit:
+        """Fit ``rhs`` (m, k) at ``points`` (m, 3); ``kept`` (m,) bool: the thinned subset the
+        incremental fit uses (the exact solve always takes every point)."""
+        if self.method == "exact":
+            from splatdeform.rbf.exact import fit_exact
+
+            return fit_exact(points, rhs, normalization=self.normalization,
+                             threads=self.threads)
+        if self.method == "auto":
+            from splatdeform.rbf.auto import fit_auto
+
+            return fit_auto(points, rhs, kept=kept, tolerance=self.tolerance,
+                            max_centers=self.max_centers, normalization=self.normalization,
+                            selection=self.selection, threads=self.threads)
+        from splatdeform.rbf import fit_incremental
+
+        sub_p, sub_r = (points, rhs) if kept is None else (points[kept], rhs[kept])
+        return fit_incremental(sub_p, sub_r, tolerance=self.tolerance,
+                               max_centers=self.max_centers, selection=self.selection,
+                               normalization=self.normalization)
+
+
 def fit_settings(model: PointModel, *, tolerance: float = DEFAULT_TOLERANCE,
                  max_centers: int = DEFAULT_MAX_CENTERS, selection: str = "greedy",
-                 method: str = "incremental") -> FitFn:
-    """The fitter ``fit_fn(points, rhs)`` for these settings, normalised on the model's bbox
-    (``method``: ``incremental`` QR or the ``exact`` dense solve; both limit BLAS threads)."""
-    from functools import partial
+                 method: str = DEFAULT_METHOD, thinning: float = DEFAULT_THINNING,
+                 threads: int | None = None) -> FitSettings:
+    """The fitter ``fit_fn(points, rhs, kept=None)`` for these settings, normalised on the
+    model's bbox (see :class:`FitSettings`)."""
+    from splatdeform.rbf import Normalization
 
-    from splatdeform.rbf import Normalization, fit_incremental
-
-    norm = Normalization.of(model.positions)
-    if method == "exact":
-        from splatdeform.rbf.exact import fit_exact
-
-        return partial(fit_exact, normalization=norm)
-    return partial(fit_incremental, tolerance=tolerance, max_centers=max_centers,
-                   selection=selection, normalization=norm)
+    return FitSettings(Normalization.of(model.positions), tolerance, max_centers, selection,
+                       method, thinning, threads)
 
 
 def basis_settings(backend: str = "auto", device: str | None = None,
@@ -164,8 +216,21 @@ def prepare_metaphors(model: PointModel, fixed: np.ndarray, metaphors: list[Meta
     rhs = np.zeros((constraint_idx.size, k))
     rhs[fixed_c.size:] = coords_all[lookup[moving_c]]
 
+    thinning = fit_fn.thinning if isinstance(fit_fn, FitSettings) and \
+        fit_fn.method != "exact" else 0.0
     t0 = time.perf_counter()
-    fit = fit_fn(model.positions[constraint_idx], rhs)
+    kept = thin_rings(model.positions, list(fixed_rings) + list(moving_rings), neighbors,
+                      thinning) if thinning > 0 else None
+    timings["rings"] += time.perf_counter() - t0
+    t0 = time.perf_counter()
+    points = model.positions[constraint_idx]
+    if isinstance(fit_fn, FitSettings):
+        fit = fit_fn(points, rhs, kept)
+    else:  # a plain fit_fn(points, rhs): given every constraint
+        fit = fit_fn(points, rhs)
+        kept = None
+    if fit.method == "exact":
+        kept = None  # the dense solve goes through every constraint
     timings["fit"] = time.perf_counter() - t0
 
     free_idx = np.flatnonzero(~(fixed | moving))
@@ -181,7 +246,7 @@ def prepare_metaphors(model: PointModel, fixed: np.ndarray, metaphors: list[Meta
         basis=basis,
         timings=timings,
         ring_sizes=([r.size for r in fixed_rings], [r.size for r in moving_rings]),
-        groups=groups,
+        groups=groups, kept=kept,
     )
 
 
@@ -189,8 +254,8 @@ def prepare_handle(model: PointModel, fixed: np.ndarray, handle: np.ndarray, *,
                    fit_fn: FitFn | None = None, basis_fn: BasisFn | None = None,
                    continuity: int = 2, neighbors: int = 10, **settings) -> Deformation:
     """:func:`prepare_metaphors` for one handle mask (N,) bool (k = 4 affine frame
-    coordinates). ``settings``: tolerance, max_centers, backend, device (when no ``fit_fn`` /
-    ``basis_fn`` is given)."""
+    coordinates). ``settings``: tolerance, max_centers, method, thinning, threads, backend,
+    device (when no ``fit_fn`` / ``basis_fn`` is given)."""
     fit_fn, basis_fn = _settings_fns(model, fit_fn, basis_fn, settings)
     if not handle.any():
         check_regions(fixed, handle)
@@ -211,7 +276,7 @@ def prepare_handles(model: PointModel, fixed: np.ndarray, handles: list[np.ndarr
                              continuity=continuity, neighbors=neighbors)
 
 
-_SETTINGS = ("tolerance", "max_centers", "backend", "device")
+_SETTINGS = ("tolerance", "max_centers", "method", "thinning", "threads", "backend", "device")
 
 
 def _settings_fns(model: PointModel, fit_fn: FitFn | None, basis_fn: BasisFn | None,
@@ -220,7 +285,8 @@ def _settings_fns(model: PointModel, fit_fn: FitFn | None, basis_fn: BasisFn | N
     if unknown:
         raise TypeError(f"unexpected keyword argument {unknown[0]!r} (expected one of "
                         f"fit_fn, basis_fn, continuity, neighbors, {', '.join(_SETTINGS)})")
-    fit_keys = {k: settings[k] for k in ("tolerance", "max_centers") if k in settings}
+    fit_keys = {k: settings[k] for k in ("tolerance", "max_centers", "method", "thinning",
+                                          "threads") if k in settings}
     basis_keys = {k: settings[k] for k in ("backend", "device") if k in settings}
     if fit_fn is None and fit_keys:
         fit_fn = fit_settings(model, **fit_keys)
@@ -247,8 +313,8 @@ def delta_for(deformation: Deformation, matrices) -> np.ndarray:
 
 def constraint_errors(deformation: Deformation, delta_c: np.ndarray,
                       basis_fn: BasisFn) -> tuple[float, float]:
-    """Largest and RMS |d(c) - prescribed(c)| over the constraint points for this delta_c (model
-    units): how well the fitted field meets the constraints it was fitted to."""
+    """Largest and RMS |d(c) - prescribed(c)| over every constraint point (ring point), kept
+    by the thinning or not, for this delta_c (model units): the real boundary error."""
     if deformation.constraint_idx.size == 0:
         return 0.0, 0.0
     basis = basis_fn(deformation.constraint_points, deformation.fit)

@@ -1,6 +1,7 @@
 """Save/load a precomputed deformation so a new handle transform skips fit and basis.
 
-The file (``.npz``) holds the centers, weights, normalisation, basis, region masks and the edit
+The file (``.npz``) holds the centers, weights, normalisation, basis, region masks, the kept
+(thinned) subset of the constraints and the edit
 key: a hash of everything that determines the basis (input file bytes, regions, boundary, fit,
 normals, curve control points, backend). The handle transform and curve ``moved_to`` are not in
 the key: changing them is exactly what reuse is for.
@@ -25,7 +26,8 @@ from splatdeform.io.atomic import atomic_path
 from splatdeform.model import PointModel
 from splatdeform.rbf.result import Normalization, RbfFit
 
-FORMAT_VERSION = 5  # 3: metaphor groups; 4: registry key; 5: frames only in groups
+FORMAT_VERSION = 6  # 3: metaphor groups; 4: registry key; 5: frames only in groups;
+#                      6: the thinned (kept) constraints
 
 
 def _file_digest(path: Path) -> str:
@@ -93,6 +95,9 @@ def save_deformation(path: str | Path, key: str, d: Deformation) -> Path:
         "norm_scale": np.array(d.fit.normalization.scale),
         "values": d.basis.values,
         "gradients": d.basis.gradients if d.basis.gradients is not None else np.zeros(0),
+        "ring_fixed": np.asarray(d.ring_sizes[0], dtype=np.int64),
+        "ring_moving": np.asarray(d.ring_sizes[1], dtype=np.int64),
+        "kept": d.kept if d.kept is not None else np.zeros(0, dtype=bool),
         **_groups_arrays(d),
     }
     path = Path(path)
@@ -149,7 +154,8 @@ def load_deformation(path: str | Path, key: str, model: PointModel) -> Deformati
             constraint_points=z["constraint_points"], constraint_rhs=z["constraint_rhs"],
             control_points=z["control_points"], fit=fit,
             basis=Basis(z["values"], grads if grads.size else None),
-            groups=_groups_from(z))
+            ring_sizes=(list(z["ring_fixed"]), list(z["ring_moving"])),
+            groups=_groups_from(z), kept=z["kept"] if z["kept"].size else None)
     except (OSError, KeyError, ValueError, EOFError, zipfile.BadZipFile) as exc:
         reason = "missing " + str(exc) if isinstance(exc, KeyError) else \
             "not an .npz written by splatdeform" if "pickle" in str(exc) or not str(exc) else \

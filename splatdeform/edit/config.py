@@ -17,7 +17,12 @@ from splatdeform.basis.names import BACKENDS
 from splatdeform.edit.schema import Strict, Vec3
 from splatdeform.edit.selectors import SelectorCfg
 from splatdeform.errors import ConfigError
-from splatdeform.rbf.defaults import DEFAULT_MAX_CENTERS, DEFAULT_TOLERANCE
+from splatdeform.rbf.defaults import (
+    DEFAULT_MAX_CENTERS,
+    DEFAULT_METHOD,
+    DEFAULT_THINNING,
+    DEFAULT_TOLERANCE,
+)
 
 MAX_CONTROL_POINTS = 128  # curve control points (the renderer's storage-buffer limit)
 MIN_IMAGE, MAX_IMAGE = 16, 8192  # image width/height in pixels (as --size)
@@ -127,14 +132,19 @@ class BoundaryCfg(_Strict):
 
 
 class FitCfg(_Strict):
-    """``fit:``. tolerance bounds the largest constraint error |r_ic| in the dimensionless
-    coordinates of M (a ring point then misses its target by at most k * tolerance * the
-    largest control-point move); defaults from the measured table in the README."""
+    """``fit:``. tolerance bounds the largest constraint error |r_ic| over the kept (thinned)
+    constraints in the dimensionless coordinates of M (a kept ring point then misses its target
+    by at most k * tolerance * the largest control-point move); method ``auto`` takes the
+    cheaper of ``incremental`` and ``exact`` by predicted cost; thinning: ring thinning cell in
+    ring widths (0 keeps every ring point); threads: the exact solve's BLAS threads (default:
+    the CPUs this process may use). Defaults from the measured table in the README."""
 
     tolerance: float = Field(default=DEFAULT_TOLERANCE, gt=0, lt=1)
     max_centers: int = Field(default=DEFAULT_MAX_CENTERS, ge=0, le=20000)
-    method: Literal["incremental", "exact"] = "incremental"
+    method: Literal["auto", "incremental", "exact"] = DEFAULT_METHOD
     selection: Literal["greedy", "fps"] = "greedy"
+    thinning: float = Field(default=DEFAULT_THINNING, ge=0, le=20)
+    threads: int | None = Field(default=None, ge=1, le=1024)
     on_not_converged: Literal["warn", "error"] = "warn"
 
 

@@ -72,7 +72,8 @@ def fit_fn(cfg: EditConfig, model: PointModel) -> FitFn:
     """The fitter of ``fit:`` normalised on the model's bbox."""
     f = cfg.fit
     return fit_settings(model, tolerance=f.tolerance, max_centers=f.max_centers,
-                        selection=f.selection, method=f.method)
+                        selection=f.selection, method=f.method, thinning=f.thinning,
+                        threads=f.threads)
 
 
 def basis_fn(cfg: EditConfig) -> BasisFn:

@@ -47,7 +47,7 @@ def not_converged_message(fit: RbfFit, cfg: EditConfig) -> str | None:
     return (f"fit: did not converge: largest constraint error {fit.max_error:.3g} > "
             f"fit.tolerance {fit.tolerance:.3g} after {fit.n_centers} centers "
             f"(fit.max_centers {cfg.fit.max_centers}); raise fit.max_centers or fit.tolerance, "
-            "or use fit.method: exact")
+            "or use fit.method: exact or auto")
 
 
 def prepare_model(cfg: EditConfig, base_dir: Path, timings: dict[str, float],
@@ -169,6 +169,7 @@ def run_edit(cfg: EditConfig, base_dir: str | Path = ".", *, output: str | Path 
         "points": model.n_points,
         "free_points": int(deformation.free_idx.size),
         "constraints": int(deformation.constraint_idx.size),
+        "kept": deformation.n_kept,
         "centers": fit.n_centers,
         "residual": fit.max_error,
         "residual_rms": fit.rms_error,
@@ -192,13 +193,14 @@ def format_report(result: EditResult) -> str:
     """The lines ``splatdeform deform`` prints: counts, fit figures, per-stage timings."""
     s = result.stats
     lines = [
-        f"points {s['points']:,}  free {s['free_points']:,}  constraints {s['constraints']:,}  "
-        f"centers {s['centers']}",
+        f"points {s['points']:,}  free {s['free_points']:,}  constraints {s['constraints']:,} "
+        f"(kept {s.get('kept', s['constraints']):,})  centers {s['centers']}",
         f"fit ({s['method']}): largest |r| {s['residual']:.3g}, RMS {s['residual_rms']:.3g} "
-        f"(tolerance {s['tolerance']:.3g}, converged: {str(s['converged']).lower()})",
-        f"constraint error for this transform: max {s['constraint_error']:.3g}, RMS "
-        f"{s['constraint_error_rms']:.3g} model units ({s['constraint_error_rel']:.2e} of the "
-        "diagonal)",
+        f"over the {'kept' if s['method'] != 'exact' else 'all'} constraints (tolerance "
+        f"{s['tolerance']:.3g}, converged: {str(s['converged']).lower()})",
+        f"constraint error for this transform over all {s['constraints']:,} ring points: max "
+        f"{s['constraint_error']:.3g}, RMS {s['constraint_error_rms']:.3g} model units "
+        f"({s['constraint_error_rel']:.2e} of the diagonal)",
     ]
     if s.get("refused_splats"):
         lines.append(f"gaussians.covariance rotation: {s['refused_splats']:,} splats folded "

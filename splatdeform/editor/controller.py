@@ -364,6 +364,7 @@ class EditorController:
         self.fit_stats = {
             "points": self.model.n_points, "free_points": int(deformation.free_idx.size),
             "constraints": int(deformation.constraint_idx.size), "centers": fit.n_centers,
+            "kept": deformation.n_kept, "method": fit.method,
             "converged": bool(fit.converged), "seconds": time.perf_counter() - t0,
             **{f"{k}_s": v for k, v in deformation.timings.items()},
         }

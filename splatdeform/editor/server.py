@@ -351,7 +351,8 @@ class EditorApp:
                 stats = self.ed.fit(report)
                 self.reset_buffers(self.ed.set_pose(self.ed.handles[0].matrix))
             self.fit_md.content = (
-                f"centers **{stats['centers']}** · constraints {stats['constraints']:,} · "
+                f"centers **{stats['centers']}** · constraints {stats['constraints']:,} "
+                f"(kept {stats.get('kept', stats['constraints']):,}, {stats.get('method', '')}) · "
                 f"converged {str(stats['converged']).lower()}  \n"
                 f"rings {stats.get('rings_s', 0):.2f} s · fit {stats.get('fit_s', 0):.2f} s · "
                 f"basis {stats.get('basis_s', 0):.2f} s")

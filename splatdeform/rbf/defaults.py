@@ -1,7 +1,14 @@
-"""Defaults of ``fit.tolerance`` and ``fit.max_centers``, chosen from the measured table in the
-README (``benchmarks/fit_table.py`` re-measures it): at them every shared scan and splat file and
-every generated benchmark scene converges within 3% of the exact interpolant. A module of its
-own so the config layer reads them without importing the fitter (scipy.linalg)."""
+"""Defaults of ``fit.tolerance``, ``fit.max_centers``, ``fit.method`` and ``fit.thinning``, chosen
+from the measured table in the README (``benchmarks/fit_table.py`` re-measures it): at them every
+shared scan and splat file and every generated benchmark scene converges, within 3% of the exact
+interpolant. A module of its own so the config layer reads them without importing the fitter
+(scipy.linalg)."""
 
 DEFAULT_TOLERANCE = 1.5e-4
 DEFAULT_MAX_CENTERS = 2000
+
+#: ``fit.method``: ``auto`` picks the cheaper of the incremental fit and the exact solve.
+DEFAULT_METHOD = "auto"
+#: ``fit.thinning``: voxel cell of each ring's thinning, in units of the ring's width
+#: (:mod:`splatdeform.deform.thin`); 0 keeps every ring point.
+DEFAULT_THINNING = 0.75

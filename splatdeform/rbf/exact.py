@@ -5,22 +5,66 @@
 
 This is the minimiser of the third-order energy through all constraints (``fit.method: exact``),
 the same interpolant as scipy's ``RBFInterpolator(kernel="cubic", degree=1)``, and the in-house
-oracle of the incremental fitter. It costs O(m^3) time and 8 (m + 4)^2 bytes, so it is refused
-above :data:`EXACT_MAX_CONSTRAINTS`.
+oracle of the incremental fitter. The matrix is symmetric (indefinite), so it is factored by
+LAPACK's symmetric-indefinite solver (``?sysv``, Bunch-Kaufman: m^3 / 3 flops, about half an LU)
+on :func:`dense_threads` BLAS threads. It costs O(m^3) time and 8 (m + 4)^2 bytes, so it is
+refused above :data:`EXACT_MAX_CONSTRAINTS`.
 """
 
 from __future__ import annotations
 
+import os
+import warnings
+
 import numpy as np
-from scipy.linalg import LinAlgError, lu_factor, lu_solve
+from scipy.linalg import LinAlgError, LinAlgWarning, solve
+from scipy.spatial.distance import cdist
 
 from splatdeform.errors import InputError, ProcessingError
-from splatdeform.rbf.kernel import kernel_matrix
 from splatdeform.rbf.result import Normalization, RbfFit
 
 #: Measured on the 2-core development machine: 8,000 constraints take ~7 s and 0.5 GB; the
 #: cost grows with m^3, so 12,000 is ~25 s and 1.2 GB. Beyond that use the incremental fit.
 EXACT_MAX_CONSTRAINTS = 12_000
+
+#: Environment variables that set the dense solve's BLAS threads, first found wins (after an
+#: explicit ``threads``): our own, then the usual BLAS / OpenMP ones.
+THREAD_VARIABLES = ("SPLATDEFORM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS",
+                    "OMP_NUM_THREADS")
+
+
+def dense_threads(threads: int | None = None) -> int:
+    """BLAS threads for the dense solve: ``threads`` when given (``fit.threads``), else the
+    first of :data:`THREAD_VARIABLES` set to a positive integer, else the CPUs this process may
+    run on (``len(os.sched_getaffinity(0))``)."""
+    if threads is not None:
+        if int(threads) != threads or threads < 1:
+            raise InputError(f"threads: expected an integer >= 1, got {threads!r}")
+        return int(threads)
+    for name in THREAD_VARIABLES:
+        value = os.environ.get(name, "").strip()
+        if value.isdigit() and int(value) > 0:
+            return int(value)
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except AttributeError:  # pragma: no cover - not Linux
+        return max(1, os.cpu_count() or 1)
+
+
+def unique_constraints(pts: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The distinct constraint points (u, 3) in first-seen order and their values (u, k).
+
+    Raises InputError when duplicates carry different values."""
+    uniq, first, inverse = np.unique(pts, axis=0, return_index=True, return_inverse=True)
+    inverse = inverse.reshape(-1)
+    order = np.argsort(first)  # keep the constraints' order
+    rank = np.empty_like(order)
+    rank[order] = np.arange(order.size)
+    pts_u = uniq[order]
+    b_u = b[first[order]]
+    if not np.allclose(b_u[rank[inverse]], b, rtol=0, atol=1e-12 * max(1.0, np.abs(b).max())):
+        raise InputError("points: duplicate constraint points with different prescribed values")
+    return pts_u, b_u
 
 
 def fit_exact(
@@ -35,20 +79,12 @@ def fit_exact(
     Duplicate points must carry equal right-hand sides (they are merged; conflicting values
     raise InputError). Returns an :class:`RbfFit` whose centers are all distinct constraint
     points (normalised) and whose weights are (4 + n, k), rows [1, x, y, z, phi_1 .. phi_n].
-    threads: BLAS threads for the solve (None: the pool's default, one dense LU uses them well).
+    threads: BLAS threads for the solve (None: :func:`dense_threads`).
     """
     from splatdeform.rbf.fit import _check_inputs, blas_threads
 
     pts, b = _check_inputs(points, rhs, 0.0, 0, 1, normalization)
-    uniq, first, inverse = np.unique(pts, axis=0, return_index=True, return_inverse=True)
-    inverse = inverse.reshape(-1)
-    order = np.argsort(first)  # keep the constraints' order
-    rank = np.empty_like(order)
-    rank[order] = np.arange(order.size)
-    pts_u = uniq[order]
-    b_u = b[first[order]]
-    if not np.allclose(b_u[rank[inverse]], b, rtol=0, atol=1e-12 * max(1.0, np.abs(b).max())):
-        raise InputError("points: duplicate constraint points with different prescribed values")
+    pts_u, b_u = unique_constraints(pts, b)
     m = pts_u.shape[0]
     if m > EXACT_MAX_CONSTRAINTS:
         raise InputError(
@@ -56,24 +92,86 @@ def fit_exact(
             "(O(m^3) time, 8 m^2 bytes); use fit.method: incremental")
     norm = normalization if normalization is not None else Normalization.of(pts_u)
     x = norm.apply(pts_u)
+    with blas_threads(dense_threads(threads)):
+        poly, w = _solve(x, b_u)
+    weights = np.vstack([poly, w])  # rows [1, x, y, z, phi_j]
     k = b.shape[1]
+    return RbfFit(centers=x, weights=np.ascontiguousarray(weights), normalization=norm,
+                  residuals=np.zeros((1, k)), converged=True, tolerance=0.0, max_error=0.0,
+                  rms_error=0.0, method="exact")
+
+
+def _kernel_block(x: np.ndarray, out: np.ndarray) -> None:
+    """out (m, m) <- |x_i - x_j|^3 for x (m, 3), without a second m x m temporary."""
+    dist = cdist(x, x)
+    np.multiply(dist, dist, out=out)
+    out *= dist
+
+
+def _solve(x: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(polynomial part (4, k), center weights (m, k)) of the interpolation system.
+
+    r^3 is conditionally positive definite of order 2: on the vectors w with P^T w = 0 the
+    quadratic form w^T Phi w is positive. With P = Q [R; 0] (Householder, Q = I - V T V^T),
+    w = Q [0; z] satisfies the side conditions, and the system splits into
+    A22 z = (Q^T rhs)_2 with A22 = (Q^T Phi Q)_22 symmetric positive definite (one Cholesky,
+    m^3 / 3 flops, LAPACK's best-threaded factorisation) and R a = (Q^T rhs)_1 - A12 z.
+    Q^T Phi Q is one rank-8 symmetric update (BLAS syr2k). Should rounding make A22 not
+    positive definite (near-duplicate points), the full saddle system is solved by the
+    symmetric-indefinite factorisation instead.
+    """
+    from scipy.linalg import blas, cho_factor, cho_solve, lapack, solve_triangular
+
+    from splatdeform.rbf.fit import _larft
+
+    m = x.shape[0]
+    poly = np.empty((m, 4))
+    poly[:, 0] = 1.0
+    poly[:, 1:] = x
+    qr, tau, _, info = lapack.dgeqrf(poly)
+    if info != 0:
+        raise ProcessingError(f"fit: LAPACK dgeqrf failed (info={info})")
+    v = np.tril(qr[:, :4], -1)
+    v[np.arange(4), np.arange(4)] = 1.0
+    r = np.triu(qr[:4, :4])
+    t = _larft(v, tau)
+    phi = np.empty((m, m), order="F")
+    _kernel_block(x, phi)
+    y = phi @ v                                         # Phi V
+    z = y @ t - 0.5 * v @ (t.T @ (v.T @ y) @ t)         # Q^T Phi Q = Phi - Z V^T - V Z^T
+    c = b - v @ (t.T @ (v.T @ b))                       # Q^T rhs
+    try:
+        phi = blas.dsyr2k(-1.0, z, v, beta=1.0, c=phi, lower=1, overwrite_c=1)
+        chol = cho_factor(phi[4:, 4:], lower=True, overwrite_a=True, check_finite=False)
+        zz = cho_solve(chol, c[4:], check_finite=False)
+        a12 = phi[4:, :4].T                             # the lower triangle holds A21 = A12^T
+        a = solve_triangular(r, c[:4] - a12 @ zz, lower=False, check_finite=False)
+        full = np.zeros_like(c)
+        full[4:] = zz
+        w = full - v @ (t @ (v.T @ full))               # Q [0; z]
+    except LinAlgError:
+        a, w = _solve_indefinite(x, b)
+    if not (np.all(np.isfinite(a)) and np.all(np.isfinite(w))):
+        raise ProcessingError("fit: the exact interpolation system is singular")
+    return a, w
+
+
+def _solve_indefinite(x: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The saddle system [[Phi, P], [P^T, 0]] by the symmetric-indefinite solver (?sysv)."""
+    m, k = b.shape
     lhs = np.zeros((m + 4, m + 4))
-    lhs[:m, :m] = kernel_matrix(x, x)
+    _kernel_block(x, lhs[:m, :m])
     lhs[:m, m] = lhs[m, :m] = 1.0
     lhs[:m, m + 1:] = x
     lhs[m + 1:, :m] = x.T
     full = np.zeros((m + 4, k))
-    full[:m] = b_u
-    with blas_threads(threads):
+    full[:m] = b
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", LinAlgWarning)  # judged by the finite check
         try:
-            sol = lu_solve(lu_factor(lhs, overwrite_a=True, check_finite=False), full,
-                           check_finite=False)
+            sol = solve(lhs, full, assume_a="sym", overwrite_a=True, overwrite_b=True,
+                        check_finite=False)
         except (LinAlgError, ValueError) as exc:
             raise ProcessingError(f"fit: the exact interpolation system is singular ({exc})"
                                   ) from exc
-    if not np.all(np.isfinite(sol)):
-        raise ProcessingError("fit: the exact interpolation system is singular")
-    weights = np.vstack([sol[m:], sol[:m]])  # rows [1, x, y, z, phi_j]
-    return RbfFit(centers=x, weights=np.ascontiguousarray(weights), normalization=norm,
-                  residuals=np.zeros((1, k)), converged=True, tolerance=0.0, max_error=0.0,
-                  rms_error=0.0, method="exact")
+    return sol[m:], sol[:m]

@@ -13,7 +13,7 @@ R W = Q1^T rhs once.
 
 from __future__ import annotations
 
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import AbstractContextManager, nullcontext
 from typing import Literal
 
@@ -276,6 +276,7 @@ def fit_incremental(
     side_weight: float = 1.0,
     selection: Selection = "greedy",
     threads: int | None = 1,
+    stop: Callable[[int, float], bool] | None = None,
 ) -> RbfFit:
     """Fit b(x) = [1, x, |x - s_j|^3] . W to ``rhs`` at ``points`` by incremental QR.
 
@@ -300,6 +301,9 @@ def fit_incremental(
         exact interpolant with fewer centers, see the README's fit table) or "fps" (farthest
         point order, independent of the residual).
     threads: BLAS threads inside the fit (None leaves the pool alone); see :func:`blas_threads`.
+    stop: called after each block with (centers so far, largest |r|); True abandons the fit
+        (returned with ``converged=False``): ``fit.method: auto`` switches to the dense solve
+        once the fit heads past its cost.
 
     Why side conditions: without them the least-squares weights are unconstrained in the
     polynomial directions, and as the center count nears the constraint count the system turns
@@ -323,12 +327,12 @@ def fit_incremental(
         raise InputError(f"selection: expected 'greedy' or 'fps', got {selection!r}")
     with blas_threads(threads):
         return _fit(pts, b, float(tolerance), int(max_centers), normalization, int(block),
-                    float(side_weight), selection)
+                    float(side_weight), selection, stop)
 
 
 def _fit(pts: np.ndarray, b: np.ndarray, tol: float, max_centers: int,
          normalization: Normalization | None, block: int, lam: float,
-         selection: Selection) -> RbfFit:
+         selection: Selection, stop: Callable[[int, float], bool] | None = None) -> RbfFit:
     norm = normalization if normalization is not None else Normalization.of(pts)
     x = norm.apply(pts)
     m, k = b.shape
@@ -378,6 +382,8 @@ def _fit(pts: np.ndarray, b: np.ndarray, tol: float, max_centers: int,
         history.extend(tails[:used])
         order.extend(new[:used])
         state.truncate(start + used)
+        if not converged and stop is not None and stop(len(order), err):
+            break
 
     cols = state.cols
     hist = np.minimum.accumulate(np.vstack(history), axis=0)  # rounding-level monotonicity

@@ -149,6 +149,7 @@ def run_stream(cfg, base_dir: str | Path = ".", *, output: str | Path | None = N
         "points": n,
         "free_points": int(np.count_nonzero(plan.labels == 0)),
         "constraints": int(border.constraint_idx.size),
+        "kept": border.n_kept,
         "centers": fit.n_centers,
         "residual": getattr(fit, "max_error", float("nan")),
         "residual_rms": getattr(fit, "rms_error", float("nan")),

@@ -1,0 +1,86 @@
+"""Thinning of boundary rings to a well-spread subset of fit constraints.
+
+On point clouds and splats a kNN ring is a thick, noisy shell: hundreds of nearly redundant
+points per patch, all with (nearly) the same prescribed value. The fit only needs a well-spread
+subset of each ring; the dropped ring points are still fixed or handle points, so they still get
+their prescribed values exactly (they never go through the field).
+
+Per ring, from its own points only (so the in-memory and the streaming path, which find the same
+rings, keep the same subset):
+
+- local spacing s: the median distance of a ring point to its nearest other ring point;
+- ring width W: the median spread across the ring of each point's 2k nearest ring points
+  (k = ``boundary.neighbors``; second principal axis, :func:`ring_width`), never below s.
+
+The ring is then voxel-thinned at cell size ``factor * W``: in each occupied cell the point
+nearest the cell's centre is kept (ties: the lowest index). A mesh ring one vertex wide has W
+about its edge length, so cells smaller than that keep (nearly) every point; a thick shell keeps
+about one point per W-sized cell. The grid starts at the ring's lowest corner; everything is
+deterministic and independent of the order of the ring's points except for exact ties.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+#: Rings with fewer points are kept whole (nothing to gain, and too few for the statistics).
+MIN_RING = 32
+
+
+def ring_width(points: np.ndarray, neighbors: int) -> tuple[float, float]:
+    """(width W, median spacing s) of one ring's points (M, 3) float64, M >= 2.
+
+    Around each ring point, the covariance of its 2k nearest ring points has the ring's
+    direction as its largest axis; the second is across the ring (a uniform spread of width w
+    has variance w^2 / 12), so W = median sqrt(12 lambda_2), never below the spacing s (the
+    median distance to the nearest other ring point). A ring one point wide has lambda_2 about
+    0 and W = s; a thick shell has W of the order of its kNN neighbourhood.
+    """
+    k = int(min(max(2 * neighbors, 4), points.shape[0] - 1))
+    dist, nbr = cKDTree(points).query(points, k=k + 1)
+    spacing = float(np.median(dist[:, 1]))
+    local = points[nbr]                                  # (M, k + 1, 3)
+    local = local - local.mean(axis=1, keepdims=True)
+    cov = np.einsum("mki,mkj->mij", local, local) / (k + 1)
+    lam = np.linalg.eigvalsh(cov)                        # ascending
+    width = float(np.median(np.sqrt(12.0 * np.maximum(lam[:, 1], 0.0))))
+    return max(width, spacing), spacing
+
+
+def thin_ring(points: np.ndarray, neighbors: int, factor: float) -> np.ndarray:
+    """Indices (K,) int64, ascending, of the kept points of one ring (M, 3) (all when
+    ``factor`` <= 0 or the ring is small)."""
+    pts = np.asarray(points, dtype=np.float64)
+    m = pts.shape[0]
+    if factor <= 0 or m < MIN_RING:
+        return np.arange(m, dtype=np.int64)
+    width, _ = ring_width(pts, neighbors)
+    cell = factor * width
+    if not cell > 0:
+        return np.arange(m, dtype=np.int64)
+    rel = (pts - pts.min(axis=0)) / cell
+    ijk = np.floor(rel).astype(np.int64)
+    off = rel - (ijk + 0.5)
+    d2 = np.einsum("ij,ij->i", off, off)
+    dims = ijk.max(axis=0) + 1
+    keys = (ijk[:, 0] * dims[1] + ijk[:, 1]) * dims[2] + ijk[:, 2]
+    order = np.lexsort((np.arange(m), d2, keys))  # by cell, then distance to centre, then index
+    first = np.ones(m, dtype=bool)
+    first[1:] = keys[order][1:] != keys[order][:-1]
+    return np.sort(order[first]).astype(np.int64)
+
+
+def thin_rings(positions: np.ndarray, rings: list[np.ndarray], neighbors: int,
+               factor: float) -> np.ndarray:
+    """Mask (sum of ring sizes,) bool over the concatenated rings: the kept constraints.
+
+    positions: (N, 3) of the model; rings: index arrays into it, in constraint order.
+    """
+    parts = []
+    for ring in rings:
+        keep = np.zeros(ring.size, dtype=bool)
+        if ring.size:
+            keep[thin_ring(positions[ring], neighbors, factor)] = True
+        parts.append(keep)
+    return np.concatenate(parts) if parts else np.zeros(0, dtype=bool)
