@@ -51,7 +51,8 @@ LIST_BYTES_PER_ROW = 400     # one numpy array object per non-empty list row (np
                               # the object column), row offsets and lengths (measured ~350)
 LIST_BYTES_PER_VALUE = 8      # a gather index (int64) per list value
 LIST_BYTES_PER_ITEM_BYTE = 10  # per byte of a list value: its byte indices (int64) and copies
-COPIES_OF_FILE = 3            # the raw bytes, a joined / copied body, the decoded columns
+COPIES_OF_FILE = 3            # binary: the raw bytes, a copied body, the decoded columns
+ASCII_COPIES_OF_FILE = 5      # ascii: raw bytes, split lines, joined rows, tokens, values
 
 
 def file_cost(path: str | Path) -> FileCost:
@@ -96,7 +97,7 @@ def _ply_cost(path: Path, head: bytes, size: int) -> FileCost:
         if el == "vertex":
             record = sum(np.dtype(p.dtype).itemsize for p in props if not p.is_list)
     record = max(record, 12) + 48   # float64 positions and normals beside the stored columns
-    load = COPIES_OF_FILE * size
+    load = (ASCII_COPIES_OF_FILE if header.text else COPIES_OF_FILE) * size
     if header.text:
         tokens = min(body // 2 + 1, sum(count * len(props) for _, count, props in
                                         header.elements
