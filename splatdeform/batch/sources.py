@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import fnmatch
 import glob
 import os
 import re
@@ -83,6 +84,75 @@ def glob_base(pattern: str) -> Path:
             break
         fixed.append(part)
     return Path(*fixed).resolve() if fixed else Path.cwd()
+
+
+MAX_GLOB_ENTRIES = 200_000   # folder entries one scans glob may visit
+SKIPPED_ROOTS = ("/proc", "/sys", "/dev")
+
+
+def _match_parts(parts: tuple[str, ...], pat: tuple[str, ...]) -> bool:
+    """Glob semantics on path parts: ``**`` matches zero or more folders, other parts match one
+    name with fnmatch; names starting with '.' only match a part that starts with '.'."""
+    memo: dict[tuple[int, int], bool] = {}
+
+    def go(i: int, j: int) -> bool:
+        if (i, j) in memo:
+            return memo[i, j]
+        if j == len(pat):
+            ok = i == len(parts)
+        elif pat[j] == "**":
+            ok = go(i, j + 1) or (i < len(parts) and not parts[i].startswith(".")
+                                  and go(i + 1, j))
+        else:
+            ok = (i < len(parts) and (not parts[i].startswith(".") or pat[j].startswith("."))
+                  and fnmatch.fnmatchcase(parts[i], pat[j]) and go(i + 1, j + 1))
+        memo[i, j] = ok
+        return ok
+
+    return go(0, 0)
+
+
+def bounded_glob(pattern: str, source: str) -> list[Path]:
+    """Paths matching ``pattern`` (``**`` recursive), sorted. Symlinked folders are followed
+    at most once each (a symlink loop is not walked again), /proc, /sys and /dev are never
+    entered, and at most :data:`MAX_GLOB_ENTRIES` entries are visited (ConfigError past it)."""
+    base = glob_base(pattern)
+    pat = _magic_tail(pattern)
+    recursive = "**" in pat
+    out: list[Path] = []
+    seen_dirs: set[tuple[int, int]] = set()
+    visited = 0
+    for root, dirs, files in os.walk(base, followlinks=True):
+        rootp = Path(root)
+        rel = rootp.relative_to(base).parts
+        try:
+            st = rootp.stat()
+        except OSError:
+            dirs[:] = []
+            continue
+        if (st.st_dev, st.st_ino) in seen_dirs or str(rootp) in SKIPPED_ROOTS:
+            dirs[:] = []
+            continue
+        seen_dirs.add((st.st_dev, st.st_ino))
+        visited += len(dirs) + len(files)
+        if visited > MAX_GLOB_ENTRIES:
+            raise ConfigError(f"{source}: scans: {pattern}: the pattern visits more than "
+                              f"{MAX_GLOB_ENTRIES:,} files and folders; narrow it")
+        if not recursive:   # descend only where the pattern has more parts
+            dirs[:] = [d for d in dirs if len(rel) + 1 < len(pat)
+                       and _match_parts(rel + (d,), pat[:len(rel) + 1])]
+        for name in dirs + files:
+            if _match_parts(rel + (name,), pat):
+                out.append(rootp / name)
+    return sorted(set(out))
+
+
+def _magic_tail(pattern: str) -> tuple[str, ...]:
+    parts = Path(pattern).parts
+    for i, part in enumerate(parts):
+        if glob.has_magic(part):
+            return parts[i:]
+    return ()
 
 
 def is_archive(path: str | Path) -> bool:
@@ -270,7 +340,7 @@ def find_scans(patterns: list[str], base: Path, *, exclude: Path, source: str) -
     for pattern in patterns:
         full = base / pattern
         if is_glob(pattern):
-            paths = [Path(p) for p in sorted(glob.glob(str(full), recursive=True))]
+            paths = bounded_glob(str(full), source)
         elif full.exists() or full.is_symlink():
             paths = [full]
         else:

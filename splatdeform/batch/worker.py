@@ -101,7 +101,10 @@ def process_scan(job: Job) -> dict[str, Any]:
             msg = msg.replace(str(local), job.scan.name)
         return _row(job, "failed", seconds=time.perf_counter() - t0, error=msg)
     except MemoryError:
-        return _row(job, "failed", seconds=time.perf_counter() - t0, error="out of memory")
+        from .runner import OUT_OF_MEMORY
+
+        return _row(job, "failed", seconds=time.perf_counter() - t0,
+                    error=OUT_OF_MEMORY.format(mib=(job.memory_budget or 0) / 2**20))
     except Exception as exc:  # an unexpected bug: keep the batch going, say where
         where = traceback.extract_tb(exc.__traceback__)[-1]
         return _row(job, "failed", seconds=time.perf_counter() - t0,
@@ -118,6 +121,39 @@ def process_scan(job: Job) -> dict[str, Any]:
     with atomic_write(job.sidecar) as f:
         f.write(json.dumps(sidecar, indent=1).encode())
     return row
+
+
+CAP_SLACK_BYTES = 300 * 2**20   # above the budget, for what the estimate cannot see
+
+
+def _vm_data() -> int:
+    """Bytes of this process's data segment and private writable mappings (what RLIMIT_DATA
+    counts); 0 where /proc is not there."""
+    try:
+        with open("/proc/self/status") as f:
+            for line in f:
+                if line.startswith("VmData:"):
+                    return int(line.split()[1]) * 1024
+    except OSError:
+        pass
+    return 0
+
+
+def cap_memory(budget: float | None) -> None:
+    """Cap this worker process's memory for the next scan: RLIMIT_DATA (private writable
+    memory; unlike RLIMIT_AS it ignores the address space OpenCL/LLVM and thread stacks only
+    reserve) at what is mapped now plus the scan's budget plus :data:`CAP_SLACK_BYTES`. A
+    scan that outgrows its estimate then gets MemoryError (a failed row) instead of pushing
+    the machine into swap or the OOM killer. Only the soft limit moves, so the next scan can
+    get its own. No budget: no cap."""
+    import resource
+
+    soft, hard = resource.getrlimit(resource.RLIMIT_DATA)
+    want = resource.RLIM_INFINITY if budget is None else \
+        int(_vm_data() + budget + CAP_SLACK_BYTES)
+    if hard != resource.RLIM_INFINITY:
+        want = hard if want == resource.RLIM_INFINITY else min(want, hard)
+    resource.setrlimit(resource.RLIMIT_DATA, (want, hard))
 
 
 def _watch_parent(parent: int) -> None:
