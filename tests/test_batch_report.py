@@ -151,7 +151,6 @@ def test_ten_thousand_broken_members_listed_in_one_pass(tmp_path: Path, kind: st
     assert len(rows) == n and all(row["status"] == "failed" for row in rows.values())
     assert all("declares more data" in row["error"] or "truncated" in row["error"]
                for row in rows.values()), next(iter(rows.values()))["error"]
-    assert temps(Path(os.environ.get("TMPDIR", "/tmp"))) == [] or True
 
 
 def test_list_bomb_and_ascii_member_refused_before_extraction(tmp_path: Path, bars) -> None:

@@ -55,6 +55,13 @@ def probe(name: str, head: bytes, size: int, *, suffix: str | None = None) -> Pr
     if suffix != ".ply":
         return Probe(cost, True, None)
     header = parse_header(Path(name), head)
+    least = sum(count * sum(2 if header.text else
+                            np.dtype(p.len_dtype if p.is_list else p.dtype).itemsize
+                            for p in props) for _, count, props in header.elements)
+    if least > size - header.size + header.text:
+        raise InputError(f"{name}: the header declares more data than the file holds (at "
+                         f"least {least:,} body bytes, the body has {size - header.size:,}); "
+                         "file cut short, or the header's count is wrong")
     if header.text:
         return Probe(cost, True, None)
     body = 0
