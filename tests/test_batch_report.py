@@ -7,7 +7,6 @@ Real archives, real worker processes, real chromium.
 from __future__ import annotations
 
 import io
-import os
 import shutil
 import subprocess
 import tarfile
@@ -16,15 +15,24 @@ from html.parser import HTMLParser
 from pathlib import Path
 
 import pytest
+from test_batch_hostile import report, run_cli, write_batch
 
+from data_tools.make_archive import make_scans
 from splatdeform.batch.config import Job
 from splatdeform.batch.runner import run_local
 from splatdeform.batch.sources import Scan, archive_members
-from test_batch_hostile import bars, report, run_cli, temps, write_batch  # noqa: F401
 
 HOSTILE = "javascript:alert(document.domain);x.ply"
 ASCII_HEAD = b"ply\nformat ascii 1.0\nelement vertex %d\nproperty float x\nproperty float y\n" \
              b"property float z\nend_header\n"
+
+
+@pytest.fixture(scope="module")
+def bars(tmp_path_factory) -> list[Path]:
+    """Two small generated bar scans (good input)."""
+    paths, _ = make_scans(tmp_path_factory.mktemp("bars"), 2, 1500, spheres=False,
+                          zip_name=None)
+    return paths
 
 
 def _tar_add(tf: tarfile.TarFile, name: str, data: bytes) -> None:
