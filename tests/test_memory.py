@@ -11,16 +11,18 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+# VmHWM, not ru_maxrss: the latter keeps the forking parent's peak across exec
 MEASURE = """
-import resource, sys
+import sys
 from splatdeform.io import load
 from splatdeform.memory import file_cost
 import splatdeform.io.ply_format, splatdeform.io.las, laspy, numpy
-base = int(open('/proc/self/status').read().split('VmRSS:')[1].split()[0]) * 1024
+def status(key):
+    return int(open('/proc/self/status').read().split(key + ':')[1].split()[0]) * 1024
+base = status('VmRSS')
 est = file_cost(sys.argv[1]).load_bytes
 load(sys.argv[1])
-peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
-print(peak - base, est)
+print(status('VmHWM') - base, est)
 """
 XYZ = b"property float x\nproperty float y\nproperty float z\n"
 

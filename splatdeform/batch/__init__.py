@@ -22,10 +22,14 @@ A rerun skips scans whose sidecar holds the same config hash (edit, overrides, r
 input size/mtime, package version); ``--force`` redoes them. Exit code 1 when any scan failed.
 
 Hostile inputs are reported, not fatal: a scan that is not a regular file (a FIFO or device
-named ``*.ply``) and the second entry of a duplicate archive member name fail without being
-opened; a scan larger than its PLY header allows, or whose header *or size* exceeds the memory
-budget, fails before it is loaded or extracted (members are never extracted past the size the
-archive declares). The report is always written.
+named ``*.ply``), the second entry of a duplicate archive member name, an archive that cannot be
+read (or whose tar header is cut off, or whose zip entries overlap) each become a failed row
+without being opened; a scan whose PLY header does not fit its size, or whose estimated memory
+(:mod:`splatdeform.memory`, from the header) exceeds the budget, fails before it is loaded or
+extracted (members are never extracted past the size the archive declares); a local worker runs
+each scan under a memory cap (budget + 300 MiB), so a wrong estimate fails one scan. Archives
+are listed and their members checked in one pass. The report is written on every exit, with
+every name valid UTF-8 and escaped in ``index.html``.
 
 Local execution uses worker processes started with "spawn" (OpenCL/GL state is never forked).
 A Dask cluster runs the same task function; every worker must import ``splatdeform`` and see the

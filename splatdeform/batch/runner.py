@@ -239,6 +239,23 @@ def _read_line(fd: int, limit: float) -> bytes:
     return data
 
 
+def _communicate(proc: subprocess.Popen, data: bytes, timeout: float | None) -> bytes:
+    """``proc.communicate(data)`` with a limit of ``timeout`` seconds, waited for an hour at a
+    time (the OS wait calls overflow on a huge single timeout, e.g. 1e7 s)."""
+    deadline = None if timeout is None else time.monotonic() + timeout
+    first: bytes | None = data
+    while True:
+        left = None if deadline is None else deadline - time.monotonic()
+        try:
+            out, _ = proc.communicate(first, timeout=None if left is None else
+                                      max(0.0, min(3600.0, left)))
+            return out
+        except subprocess.TimeoutExpired:
+            first = None   # the input was sent; communicate() goes on where it stopped
+            if deadline is not None and time.monotonic() >= deadline:
+                raise
+
+
 def run_isolated(job: Job) -> Row:
     """``process_scan(job)`` in a child process stopped after ``job.timeout_s`` seconds (the
     Dask path: a Dask task is a thread, which cannot be stopped). The clock starts once the
@@ -257,7 +274,7 @@ def run_isolated(job: Job) -> Row:
             return _row(job, "failed", error=f"the scan's child process did not start: {last}")
         t0 = time.monotonic()
         try:
-            out, err = proc.communicate(pickle.dumps(job), timeout=job.timeout_s)
+            out = _communicate(proc, pickle.dumps(job), job.timeout_s)
         except subprocess.TimeoutExpired:
             proc.terminate()
             try:
