@@ -7,6 +7,7 @@ Real archives, real worker processes, real chromium.
 from __future__ import annotations
 
 import io
+import os
 import shutil
 import subprocess
 import tarfile
@@ -82,6 +83,9 @@ def test_hostile_names_cut_headers_and_bad_archives_all_reported(tmp_path: Path,
         _tar_add(tf, b"caf\xe9.ply".decode("utf-8", "surrogateescape"), good)
     (scans / "latin.tar").write_bytes(buf.getvalue())
     (scans / "broken.zip").write_bytes(b"PK\x03\x04 not really a zip")
+    os.makedirs(os.fsencode(scans) + b"/raw")
+    with open(os.fsencode(scans) + b"/raw/n\xe4me.ply", "wb") as f:   # a Latin-1 file name
+        f.write(good)
     cfg = write_batch(tmp_path / "b.yaml", scans="scans", output_dir="out",
                       render={"size": [64, 64]})
     r = run_cli("batch", cfg, "--workers", "2", "--quiet", timeout=300)
@@ -96,7 +100,9 @@ def test_hostile_names_cut_headers_and_bad_archives_all_reported(tmp_path: Path,
     assert rows["latin.tar:caf\ufffd.ply"]["status"] == "ok"   # replacement character
     bad = [row for name, row in rows.items() if name.endswith("broken.zip")]
     assert len(bad) == 1 and "cannot read the archive" in bad[0]["error"]
-    assert len((out / "report.csv").read_text().splitlines()) == 1 + len(rows) == 7
+    named = [row for name, row in rows.items() if name.endswith("n\ufffdme.ply")]
+    assert len(named) == 1 and named[0]["status"] == "ok"
+    assert len((out / "report.csv").read_text().splitlines()) == 1 + len(rows) == 8
     page = (out / "index.html").read_text()
     links = _Links()
     links.feed(page)
@@ -245,3 +251,21 @@ def test_globs_over_symlink_loops_are_bounded(tmp_path: Path, bars) -> None:
     cfg = write_batch(tmp_path / "c.yaml", scans="/**/*.ply", output_dir="out3")
     r = run_cli("batch", cfg, "--workers", "1", "--quiet", timeout=120)
     assert r.returncode == 2 and "narrow it" in r.stderr, r.stderr
+
+
+def test_report_written_when_the_run_is_interrupted(tmp_path: Path, bars, monkeypatch) -> None:
+    """Ctrl-C (or a worker that cannot start) while scans run: the report still lists every
+    scan, the unfinished ones as not run, and the error goes on."""
+    import splatdeform.batch.runner as runner
+    from splatdeform.batch import run_batch
+
+    def interrupted(jobs, workers, on_done, **kw):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(runner, "run_local", interrupted)
+    cfg = write_batch(tmp_path / "b.yaml", scans=[str(p) for p in bars], output_dir="out")
+    with pytest.raises(KeyboardInterrupt):
+        run_batch(cfg, workers=1, quiet=True)
+    rows = report(tmp_path / "out")
+    assert len(rows) == 2 and all(r["status"] == "failed" and "not run" in r["error"]
+                                  for r in rows.values())
