@@ -17,12 +17,15 @@ import os
 from dataclasses import dataclass
 from pathlib import Path
 
+from .rbf.defaults import DEFAULT_MAX_CENTERS
+
 BASE_BYTES = 150 * 2**20   # interpreter + numpy + scipy + pyopencl resident (measured)
 
 # Per point of the in-memory deform beyond the loaded model: float64 geometry and its deformed
 # copy, the kNN graph (~(k+1)*16*3 bytes), basis values and Jacobians of the free points.
 DEFORM_BYTES_PER_POINT = 300
 KNN_BYTES_PER_NEIGHBOR = 16
+FIT_BYTES_PER_CENTER = 128 * 2**10   # the fit's working set per allowed center (fit.max_centers)
 
 # Per point of an in-memory render: float32 vertex attributes, basis rows, the depth-sort keys.
 RENDER_BYTES_PER_POINT = 256
@@ -136,10 +139,15 @@ def _las_cost(head: bytes, size: int) -> FileCost:
     return FileCost(points, size, record_bytes, 3 * points * record + points * 32 + size)
 
 
-def deform_bytes(cost: FileCost, neighbors: int = 10) -> int:
-    """Peak bytes of the in-memory ``deform`` of a file of this cost (above BASE_BYTES)."""
+def deform_bytes(cost: FileCost, neighbors: int = 10,
+                 max_centers: int = DEFAULT_MAX_CENTERS) -> int:
+    """Peak bytes of the in-memory ``deform`` of a file of this cost (above BASE_BYTES): the
+    load, the per-point arrays, and the fit's matrices (constraint rows x centers, with the
+    modules the run imports on the way; measured up to ~200 MiB at 2000 centers whatever the
+    point count, see tests/test_memory.py)."""
     per_point = DEFORM_BYTES_PER_POINT + KNN_BYTES_PER_NEIGHBOR * 3 * (neighbors + 1)
-    return cost.load_bytes + cost.points * (per_point + cost.record_bytes)
+    return cost.load_bytes + cost.points * (per_point + cost.record_bytes) + \
+        FIT_BYTES_PER_CENTER * max_centers
 
 
 def render_bytes(points: int, record_bytes: int = 64) -> int:

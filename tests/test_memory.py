@@ -69,3 +69,38 @@ def test_file_cost_bounds_the_measured_load_peak(tmp_path: Path, kind, make, n) 
     assert measured > 0
     assert estimate >= measured, (kind, measured / 2**20, estimate / 2**20)
     assert estimate <= 4 * measured + 64 * 2**20, (kind, measured / 2**20, estimate / 2**20)
+
+
+DEFORM = """
+import sys
+from splatdeform.cli import main
+import splatdeform.edit.run, splatdeform.io, scipy.spatial, splatdeform.basis
+from splatdeform.memory import deform_bytes, file_cost
+def status(key):
+    return int(open('/proc/self/status').read().split(key + ':')[1].split()[0]) * 1024
+base = status('VmRSS')
+est = deform_bytes(file_cost(sys.argv[2]))
+assert main(['deform', sys.argv[1]]) == 0
+print(status('VmHWM') - base, est)
+"""
+
+
+def test_deform_bytes_bounds_the_measured_deform_peak(tmp_path: Path) -> None:
+    import yaml
+
+    from data_tools.make_archive import make_scans
+
+    (scan,), _ = make_scans(tmp_path, 1, 150_000, spheres=False, zip_name=None)
+    cfg = tmp_path / "e.yaml"
+    cfg.write_text(yaml.safe_dump({
+        "input": str(scan), "output": str(tmp_path / "out.ply"), "backend": "numpy",
+        "regions": {"units": "relative",
+                    "fixed": [{"box": {"min": [0, 0, 0], "max": [0.25, 1, 1]}}],
+                    "handle": [{"box": {"min": [0.75, 0, 0], "max": [1, 1, 1]}}]},
+        "handle": {"transform": {"pivot": [0.75, 0.5, 0.5],
+                                 "rotate": {"axis": [0, 0, 1], "degrees": 35}}}}))
+    r = subprocess.run([sys.executable, "-c", DEFORM, str(cfg), str(scan)], capture_output=True,
+                       text=True, timeout=600, check=True)
+    measured, estimate = map(int, r.stdout.split()[-2:])
+    assert estimate >= measured, (measured / 2**20, estimate / 2**20)
+    assert estimate <= 4 * measured + 64 * 2**20, (measured / 2**20, estimate / 2**20)

@@ -17,6 +17,7 @@ import numpy as np
 from ..errors import InputError
 from ..io.ply_format import parse_header
 from ..memory import BASE_BYTES, HEAD_BYTES, FileCost, deform_bytes, head_cost
+from ..rbf.defaults import DEFAULT_MAX_CENTERS
 
 __all__ = ["HEAD_BYTES", "Probe", "check", "estimate_memory", "probe"]
 SLACK_BYTES = 1 << 20           # trailing whitespace the reader tolerates after a binary body
@@ -77,12 +78,14 @@ def probe(name: str, head: bytes, size: int, *, suffix: str | None = None) -> Pr
     return Probe(cost, False, header.size + body + SLACK_BYTES)
 
 
-def estimate_memory(p: Probe) -> int:
-    """Peak bytes to deform the scan, the interpreter included."""
-    return BASE_BYTES + deform_bytes(p.cost)
+def estimate_memory(p: Probe, max_centers: int = DEFAULT_MAX_CENTERS) -> int:
+    """Peak bytes to deform the scan, the interpreter included (``max_centers``: the edit's
+    ``fit.max_centers``)."""
+    return BASE_BYTES + deform_bytes(p.cost, max_centers=max_centers)
 
 
-def check(name: str, p: Probe, budget: float | None, available: float | None = None) -> None:
+def check(name: str, p: Probe, budget: float | None, available: float | None = None,
+          max_centers: int = DEFAULT_MAX_CENTERS) -> None:
     """Refuse a scan larger than its header allows, or one that does not fit the memory budget.
 
     ``budget``: bytes per worker (None: no budget set; then the estimate must fit in
@@ -92,7 +95,7 @@ def check(name: str, p: Probe, budget: float | None, available: float | None = N
         raise InputError(f"{name}: the file is {p.size:,} bytes but its PLY header declares at "
                          f"most {p.max_size:,} (header, element counts and 1 MiB of slack); "
                          "refusing to read it")
-    need = estimate_memory(p)
+    need = estimate_memory(p, max_centers)
     if budget is not None:
         if need > budget:
             raise InputError(f"{name}: needs about {need / mib:.0f} MiB for {p.points:,} points "

@@ -62,6 +62,7 @@ def process_scan(job: Job) -> dict[str, Any]:
 
     from ..errors import SplatdeformError
     from ..io import atomic_write
+    from ..rbf.defaults import DEFAULT_MAX_CENTERS
     from .probe import check, probe
     from .sources import clean_stale_temps, materialize
 
@@ -75,8 +76,11 @@ def process_scan(job: Job) -> dict[str, Any]:
     def vet(head: bytes, size: int) -> None:
         """Before loading (and before extracting a member): header vs size, memory budget."""
         p = probe(job.scan.name, head, size, suffix=job.scan.suffix)
+        fit = job.edit.get("fit") if isinstance(job.edit.get("fit"), dict) else {}
+        centers = fit.get("max_centers", DEFAULT_MAX_CENTERS)
         check(job.scan.name, p, job.memory_budget,
-              None if job.memory_budget is not None else available_memory())
+              None if job.memory_budget is not None else available_memory(),
+              max_centers=centers if isinstance(centers, int) else DEFAULT_MAX_CENTERS)
 
     try:
         with materialize(job.scan, vet) as local:
