@@ -170,12 +170,12 @@ def test_ten_thousand_broken_members_listed_in_one_pass(tmp_path: Path, kind: st
 def test_list_bomb_and_ascii_member_refused_before_extraction(tmp_path: Path, bars) -> None:
     path = tmp_path / "bombs.zip"
     with zipfile.ZipFile(path, "w", zipfile.ZIP_DEFLATED, compresslevel=9) as zf:
-        zf.writestr("list.ply", list_bomb(8_000_000))
-        zf.writestr("ascii.ply", ASCII_HEAD % 10_000_000 + b"0 0 0\n" * 10_000_000)
+        zf.writestr("list.ply", list_bomb(8_000_000))   # 16 MB body, a ~40 KB member
+        zf.writestr("ascii.ply", ASCII_HEAD % 10_000_000 + b"0 0 0\n" * 10_000_000)   # 60 MB
         zf.write(bars[0], "good.ply")
     assert path.stat().st_size < 400_000
     cfg = write_batch(tmp_path / "b.yaml", scans=path.name, output_dir="out",
-                      memory_per_worker_mb=400)
+                      memory_per_worker_mb=600)
     r = run_cli("batch", cfg, "--workers", "1", "--quiet", timeout=300)
     assert r.returncode == 1, r.stderr
     rows = report(tmp_path / "out")
