@@ -13,8 +13,11 @@ imply and what the file's size can hold.
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass
 from pathlib import Path
+
+from .rbf.defaults import DEFAULT_MAX_CENTERS
 
 BASE_BYTES = 150 * 2**20   # interpreter + numpy + scipy + pyopencl resident (measured)
 
@@ -22,6 +25,7 @@ BASE_BYTES = 150 * 2**20   # interpreter + numpy + scipy + pyopencl resident (me
 # copy, the kNN graph (~(k+1)*16*3 bytes), basis values and Jacobians of the free points.
 DEFORM_BYTES_PER_POINT = 300
 KNN_BYTES_PER_NEIGHBOR = 16
+FIT_BYTES_PER_CENTER = 128 * 2**10   # the fit's working set per allowed center (fit.max_centers)
 
 # Per point of an in-memory render beyond its decoded record: float64 positions and their
 # float32 copy, normals, splat axes, colours, the kNN spacing query (k + 1 distances and
@@ -46,44 +50,91 @@ class FileCost:
     load_bytes: int
 
 
+HEAD_BYTES = 2**20 + 4096   # enough to hold any header the readers accept (PLY: 1 MiB)
+
+# Measured parse costs of the PLY reader (tests/test_memory.py checks them as upper bounds):
+ASCII_BYTES_PER_TOKEN = 64    # a bytes object and its list slot from split(), the float64 value
+ASCII_BYTES_PER_LINE = 64     # a bytes object per body line and its slot in two lists
+LIST_BYTES_PER_ROW = 400     # one numpy array object per non-empty list row (np.split views,
+                              # the object column), row offsets and lengths (measured ~350)
+LIST_BYTES_PER_VALUE = 8      # a gather index (int64) per list value
+LIST_BYTES_PER_ITEM_BYTE = 10  # per byte of a list value: its byte indices (int64) and copies
+COPIES_OF_FILE = 3            # binary: the raw bytes, a copied body, the decoded columns
+ASCII_COPIES_OF_FILE = 5      # ascii: raw bytes, split lines, joined rows, tokens, values
+
+
 def file_cost(path: str | Path) -> FileCost:
     """Judge ``path`` from its header and size (no body is read).
 
     Raises InputError/FormatError (one line naming the file) for an unreadable header."""
     path = Path(path)
-    size = path.stat().st_size
-    suffix = path.suffix.lower()
-    if suffix == ".ply":
-        return _ply_cost(path, size)
-    if suffix in (".las", ".laz"):
-        return _las_cost(path, size)
+    with open(path, "rb") as fh:
+        size = os.fstat(fh.fileno()).st_size
+        head = fh.read(HEAD_BYTES)
+    return head_cost(path, head, size)
+
+
+def head_cost(name: str | Path, head: bytes, size: int, suffix: str | None = None) -> FileCost:
+    """:func:`file_cost` from the file's first bytes ``head`` (up to :data:`HEAD_BYTES`) and its
+    ``size``: what the batch guard uses for an archive member before extracting it.
+    ``suffix`` (default: the name's) picks the format."""
+    from .io import LAS_EXTENSIONS, PLY_EXTENSIONS, extension_of
+
+    suffix = (suffix or extension_of(name)).lower()
+    if suffix in PLY_EXTENSIONS:
+        return _ply_cost(Path(name), head, size)
+    if suffix in LAS_EXTENSIONS:
+        return _las_cost(head, size)
     points = max(size // 12, 1)
     return FileCost(points, size, 24, 4 * size + 48 * points)
 
 
-def _ply_cost(path: Path, size: int) -> FileCost:
+def _ply_cost(path: Path, head: bytes, size: int) -> FileCost:
+    """The PLY reader's peak from the header's counts and the file's size: binary rows are
+    copied once, but every non-empty list row becomes an array object and an ASCII token a
+    Python bytes object (tens of bytes for a two-byte token), so a list- or token-dense body
+    costs up to ~30x its size. Counts are bounded by what the size can hold, so a lying
+    header cannot make the estimate small."""
     import numpy as np
 
-    from .io.ply_format import MAX_HEADER_BYTES, parse_header
+    from .io.ply_format import parse_header
 
-    with open(path, "rb") as fh:
-        head = fh.read(MAX_HEADER_BYTES + 4096)
     header = parse_header(path, head)
+    body = max(size - header.size, 0)
     points = sum(count for el, count, _ in header.elements if el == "vertex")
     record = 0
     for el, _, props in header.elements:
         if el == "vertex":
             record = sum(np.dtype(p.dtype).itemsize for p in props if not p.is_list)
-    record = max(record, 12) + 24   # float64 positions beside the stored columns
-    factor = 12 if header.text else 3   # parsed tokens / list rows; binary: buffer + columns
-    return FileCost(points, size, record, max(factor * size, 2 * size + points * record))
+    record = max(record, 12) + 48   # float64 positions and normals beside the stored columns
+    load = (ASCII_COPIES_OF_FILE if header.text else COPIES_OF_FILE) * size
+    if header.text:
+        tokens = min(body // 2 + 1, sum(count * len(props) for _, count, props in
+                                        header.elements
+                                        if not any(p.is_list for p in props)))
+        if any(p.is_list for _, _, props in header.elements for p in props):
+            tokens = body // 2 + 1   # list values: as many tokens as the body can hold
+        lines = min(body // 2 + 1, sum(count for _, count, _ in header.elements))
+        load += tokens * ASCII_BYTES_PER_TOKEN + lines * ASCII_BYTES_PER_LINE
+    else:
+        for _, count, props in header.elements:
+            lists = [p for p in props if p.is_list]
+            if not lists:
+                continue
+            smallest = min(np.dtype(p.dtype).itemsize for p in lists)
+            values = body // smallest
+            rows = min(count, body // max(1, sum(np.dtype(p.len_dtype).itemsize
+                                                 for p in lists)))
+            load += rows * (LIST_BYTES_PER_ROW * len(lists) + 16 * len(props)) + \
+                values * (LIST_BYTES_PER_VALUE + LIST_BYTES_PER_ITEM_BYTE * smallest)
+    return FileCost(points, size, record, max(load, 2 * size + points * record))
 
 
-def _las_cost(path: Path, size: int) -> FileCost:
+def _las_cost(head: bytes, size: int) -> FileCost:
+    """LAS/LAZ from laspy's header parser: the point records (decompressed for LAZ, which holds
+    3-10x more points than its size suggests) and their decoded columns."""
     import io
 
-    with open(path, "rb") as fh:
-        head = fh.read(64 * 1024)
     try:
         import laspy
 
@@ -92,13 +143,18 @@ def _las_cost(path: Path, size: int) -> FileCost:
     except Exception:  # noqa: BLE001 - the loader reports a bad header with its own message
         points, record = max(size // 20, 1), 20
     record_bytes = record + 24 + 8   # raw record, float64 positions, decoded attributes
-    return FileCost(points, size, record_bytes, 3 * points * record + points * 32)
+    return FileCost(points, size, record_bytes, 3 * points * record + points * 32 + size)
 
 
-def deform_bytes(cost: FileCost, neighbors: int = 10) -> int:
-    """Peak bytes of the in-memory ``deform`` of a file of this cost (above BASE_BYTES)."""
+def deform_bytes(cost: FileCost, neighbors: int = 10,
+                 max_centers: int = DEFAULT_MAX_CENTERS) -> int:
+    """Peak bytes of the in-memory ``deform`` of a file of this cost (above BASE_BYTES): the
+    load, the per-point arrays, and the fit's matrices (constraint rows x centers, with the
+    modules the run imports on the way; measured up to ~200 MiB at 2000 centers whatever the
+    point count, see tests/test_memory.py)."""
     per_point = DEFORM_BYTES_PER_POINT + KNN_BYTES_PER_NEIGHBOR * 3 * (neighbors + 1)
-    return cost.load_bytes + cost.points * (per_point + cost.record_bytes)
+    return cost.load_bytes + cost.points * (per_point + cost.record_bytes) + \
+        FIT_BYTES_PER_CENTER * max_centers
 
 
 def render_bytes(points: int, record_bytes: int = 64) -> int:

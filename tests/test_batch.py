@@ -86,7 +86,7 @@ def test_folder_batch_isolates_failures_and_reports(local_run: Path) -> None:
     assert len(csv) == 9 and csv[0].startswith("scan,status,points")
     html = (local_run / "index.html").read_text()
     for name in GOOD:
-        assert f'src="{name}.png"' in html and (local_run / f"{name}.png").stat().st_size > 0
+        assert f'src="./{name}.png"' in html and (local_run / f"{name}.png").stat().st_size > 0
     assert html.count('class="card failed"') == 2
 
 

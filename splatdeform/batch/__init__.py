@@ -22,10 +22,14 @@ A rerun skips scans whose sidecar holds the same config hash (edit, overrides, r
 input size/mtime, package version); ``--force`` redoes them. Exit code 1 when any scan failed.
 
 Hostile inputs are reported, not fatal: a scan that is not a regular file (a FIFO or device
-named ``*.ply``) and the second entry of a duplicate archive member name fail without being
-opened; a scan larger than its PLY header allows, or whose header *or size* exceeds the memory
-budget, fails before it is loaded or extracted (members are never extracted past the size the
-archive declares). The report is always written.
+named ``*.ply``), the second entry of a duplicate archive member name, an archive that cannot be
+read (or whose tar header is cut off, or whose zip entries overlap) each become a failed row
+without being opened; a scan whose PLY header does not fit its size, or whose estimated memory
+(:mod:`splatdeform.memory`, from the header) exceeds the budget, fails before it is loaded or
+extracted (members are never extracted past the size the archive declares); a local worker runs
+each scan under a memory cap (budget + 300 MiB), so a wrong estimate fails one scan. Archives
+are listed and their members checked in one pass. The report is written on every exit, with
+every name valid UTF-8 and escaped in ``index.html``.
 
 Local execution uses worker processes started with "spawn" (OpenCL/GL state is never forked).
 A Dask cluster runs the same task function; every worker must import ``splatdeform`` and see the
@@ -92,10 +96,12 @@ class _Progress:
             self.bar = tqdm(total=total, unit="scan", dynamic_ncols=True)
 
     def __call__(self, row: dict[str, Any]) -> None:
+        from .report import printable
+
         self.n += 1
-        msg = f"{row['scan']}: {row['status']}"
+        msg = f"{printable(row['scan'])}: {row['status']}"
         if row["status"] == "failed" or row.get("error"):
-            msg += f": {_strip_name(row)}"
+            msg += f": {printable(_strip_name(row))}"
         elif row.get("seconds") is not None:
             msg += f" ({row['seconds']:.1f} s)"
         if self.bar is not None:
@@ -140,9 +146,13 @@ def run_batch(path: str | Path, *, workers: int | None = None, scheduler: Any = 
     rows: dict[int, dict[str, Any]] = {}
     todo: list[Job] = []
     problems: list[dict[str, Any]] = []
+    budget = batch.memory_per_worker_mb * 2**20 if batch.memory_per_worker_mb else None
+    if budget is None and not scheduler:
+        budget = available_memory() / max(1, min(workers, len(batch.jobs)))
     for i, job in enumerate(batch.jobs):
-        if job.problem is not None:   # never opened: a FIFO, a duplicate member, ...
-            rows[i] = _row(job, "failed", seconds=0.0, error=job.problem)
+        problem = job.problem or _over_budget(job, budget)
+        if problem is not None:   # never opened: a FIFO, a duplicate member, over budget ...
+            rows[i] = _row(job, "failed", seconds=0.0, error=problem)
             problems.append(rows[i])
             continue
         side = None if force else read_sidecar(job)
@@ -156,38 +166,53 @@ def run_batch(path: str | Path, *, workers: int | None = None, scheduler: Any = 
     if not quiet and skipped:
         print(f"skipping {skipped} scan(s) already done with this config (--force redoes "
               "them)", flush=True)
+    stopped = "not run: the batch was stopped before this scan finished"
     try:
         for row in problems:
             progress(row)
         if todo:
             if scheduler:
-                budget = batch.memory_per_worker_mb * 2**20 if batch.memory_per_worker_mb else None
                 done = run_dask(todo, scheduler, progress, budget, timeout)
             else:
-                budget = (batch.memory_per_worker_mb * 2**20 if batch.memory_per_worker_mb
-                          else available_memory() / min(workers, len(todo)))
                 for job in todo:
                     job.memory_budget = budget
                 done = run_local(todo, workers, progress, timeout=timeout)
             by_name = {job.scan.name: index[id(job)] for job in todo}
             for row in done:
                 rows[by_name[row["scan"]]] = row
+    except BaseException as exc:   # the report is written on every exit, then the error goes on
+        stopped = f"not run: the batch stopped ({type(exc).__name__}: {exc})"
+        raise
     finally:
         progress.close()
         clean_stale_temps()
-    ordered = [rows[i] for i in sorted(rows)]
-    counts = {s: sum(r["status"] == s for r in ordered) for s in ("ok", "failed", "skipped")}
-    summary = {"batch": str(batch.source), "output_dir": str(batch.output_dir),
-               "workers": None if scheduler else workers,
-               "scheduler": scheduler if isinstance(scheduler, str) else
-               (None if scheduler is None else type(scheduler).__name__),
-               "scan_timeout_s": timeout,
-               "seconds": time.perf_counter() - t0, "counts": counts,
-               "config": batch.config}
-    write_reports(batch.output_dir, ordered, summary)
+        for job in todo:   # scans a stopped run never finished are rows too
+            rows.setdefault(index[id(job)], _row(job, "failed", error=stopped))
+        ordered = [rows[i] for i in sorted(rows)]
+        counts = {s: sum(r["status"] == s for r in ordered) for s in ("ok", "failed", "skipped")}
+        summary = {"batch": str(batch.source), "output_dir": str(batch.output_dir),
+                   "workers": None if scheduler else workers,
+                   "scheduler": scheduler if isinstance(scheduler, str) else
+                   (None if scheduler is None else type(scheduler).__name__),
+                   "scan_timeout_s": timeout, "memory_per_worker_mb":
+                   None if budget is None else round(budget / 2**20),
+                   "seconds": time.perf_counter() - t0, "counts": counts,
+                   "config": batch.config}
+        write_reports(batch.output_dir, ordered, summary)
     summary["rows"] = ordered
     summary["exit_code"] = 1 if counts["failed"] else 0
     return summary
+
+
+def _over_budget(job: Job, budget: float | None) -> str | None:
+    """An archive member whose header-based estimate exceeds the per-worker budget is refused
+    before it is extracted or sent to a worker."""
+    need = job.scan.need
+    if budget is None or need is None or need <= budget:
+        return None
+    return (f"{job.scan.name}: needs about {need / 2**20:.0f} MiB (estimated from its header "
+            f"and size), more than the {budget / 2**20:.0f} MiB per worker; use fewer workers "
+            "or set memory_per_worker_mb")
 
 
 def parse_timeout(value: Any, what: str) -> float:
@@ -206,6 +231,8 @@ def parse_timeout(value: Any, what: str) -> float:
 
 
 def cmd_batch(args: argparse.Namespace) -> int:
+    from .report import printable
+
     summary = run_batch(args.config, workers=args.workers, scheduler=args.scheduler,
                         force=args.force, quiet=args.quiet, scan_timeout=args.scan_timeout)
     c = summary["counts"]
@@ -215,8 +242,8 @@ def cmd_batch(args: argparse.Namespace) -> int:
     if c["failed"] and args.quiet:   # otherwise the progress lines showed them
         for row in summary["rows"]:
             if row["status"] == "failed":
-                print(f"splatdeform: failed: {row['scan']}: {_strip_name(row)}",
-                      file=sys.stderr)
+                print(f"splatdeform: failed: {printable(row['scan'])}: "
+                      f"{printable(_strip_name(row))}", file=sys.stderr)
     if not args.quiet or c["failed"]:
         print(line, file=sys.stderr if args.quiet else sys.stdout)
     return summary["exit_code"]

@@ -12,7 +12,7 @@ import sys
 
 
 def main() -> int:
-    from .worker import process_scan, warm_up, worker_init
+    from .worker import cap_memory, process_scan, warm_up, worker_init
 
     worker_init(os.getppid())   # SIGTERM unwinds (temp folders, partial outputs); exit
                                 # when the Dask worker that started us is gone
@@ -23,6 +23,7 @@ def main() -> int:
     out.write(b"ready\n")
     out.flush()
     job = pickle.loads(sys.stdin.buffer.read())
+    cap_memory(job.memory_budget)   # a process of its own: the cap cannot hurt the Dask worker
     row = process_scan(job)
     out.write(pickle.dumps(row))
     out.flush()

@@ -18,9 +18,17 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import BaseModel, ConfigDict, Field, StrictInt, ValidationError
 
-from splatdeform.edit.config import EditConfig, input_paths, parse_edit, read_yaml, validation_error
+from splatdeform.edit.config import (
+    MAX_IMAGE,
+    MIN_IMAGE,
+    EditConfig,
+    input_paths,
+    parse_edit,
+    read_yaml,
+    validation_error,
+)
 
 from .. import __version__
 from ..errors import ConfigError, InputError
@@ -42,10 +50,15 @@ class OverrideCfg(_Strict):
 
 
 class BatchRenderCfg(_Strict):
-    size: Annotated[list[int], Field(min_length=2, max_length=2)] = [512, 256]
-    azimuth: float = 30.0
-    elevation: float = 20.0
-    fov: float = 35.0
+    """As ``deform``'s render (the same bounds); the thumbnail is two halves side by side, so
+    the width is at most half the largest image."""
+
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+    size: Annotated[list[Annotated[StrictInt, Field(ge=MIN_IMAGE, le=MAX_IMAGE // 2)]],
+                    Field(min_length=2, max_length=2)] = [512, 256]
+    azimuth: float = Field(default=30.0, ge=-1e6, le=1e6)
+    elevation: float = Field(default=20.0, ge=-1e6, le=1e6)
+    fov: float = Field(default=35.0, ge=1, le=179)
     up: Literal["+x", "+y", "+z", "-x", "-y", "-z"] | None = None  # None: the file's convention
     roll: float = Field(default=0.0, ge=-360, le=360)
     camera: str | None = None   # a camera file (OUT.camera.json), relative to the batch file
@@ -57,10 +70,10 @@ class BatchConfig(_Strict):
     scans: str | list[str]
     edit: str | dict[str, Any]
     overrides: list[OverrideCfg] = []
-    output_dir: str
+    output_dir: str = Field(min_length=1)
     render: BatchRenderCfg | None = None
-    workers: int | None = Field(default=None, ge=1, le=512)
-    scheduler: str | None = None
+    workers: StrictInt | None = Field(default=None, ge=1, le=512)
+    scheduler: str | None = Field(default=None, min_length=1, pattern=r"\S")
     memory_per_worker_mb: float | None = Field(default=None, gt=0)
     scan_timeout_s: float | None = Field(default=None, gt=0, le=MAX_TIMEOUT_S,
                                          allow_inf_nan=False)
@@ -278,9 +291,22 @@ def _inside(child: Path, parent: Path) -> bool:
         return False
 
 
+SYSTEM_DIRS = (Path("/dev"), Path("/proc"), Path("/sys"))
+
+
 def _check_output_dir(patterns: list[str], base: Path, output_dir: Path, scans: list[Scan],
                       src: str) -> None:
-    """Refuse an output_dir that a rerun would scan again (outputs becoming inputs)."""
+    """Refuse an output_dir that a rerun would scan again (outputs becoming inputs): inside or
+    equal to a scanned folder or a glob's folder; and one under /dev, /proc or /sys."""
+    for system in SYSTEM_DIRS:
+        if _inside(output_dir, system):
+            raise ConfigError(f"{src}: output_dir: {output_dir} is under {system} (devices and "
+                              "kernel files); choose an ordinary folder")
+    for pattern in patterns:   # a glob's folder is a scan folder, whatever it matches now
+        folder = glob_base(str(base / pattern)) if is_glob(pattern) else None
+        if folder is not None and _inside(output_dir, folder):
+            raise ConfigError(f"{src}: output_dir: {output_dir} is inside the scan folder "
+                              f"{folder} of {pattern!r}; choose a folder outside the inputs")
     for pattern in patterns:
         if is_glob(pattern):
             pat = str(base / pattern)

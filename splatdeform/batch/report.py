@@ -9,6 +9,7 @@ import json
 import os
 from pathlib import Path
 from typing import Any
+from urllib.parse import quote
 
 from ..io import atomic_write
 
@@ -16,6 +17,23 @@ COLUMNS = ("scan", "status", "points", "constraints", "kept", "method", "centers
            "constraint_error",
            "constraint_error_rel", "converged", "seconds", "load", "rings", "fit", "basis",
            "apply", "save", "render", "output", "png", "error")
+
+
+def printable(text: Any) -> str:
+    """``text`` as valid UTF-8: a name that is not (a non-UTF-8 file or member name, decoded by
+    Python with surrogate escapes) shows replacement characters instead of failing the write."""
+    return str(text).encode("utf-8", "surrogateescape").decode("utf-8", "replace")
+
+
+def clean(value: Any) -> Any:
+    """A copy of a row / summary with every string made :func:`printable`."""
+    if isinstance(value, str):
+        return printable(value)
+    if isinstance(value, dict):
+        return {printable(k): clean(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [clean(v) for v in value]
+    return value
 
 
 def _flat(row: dict[str, Any]) -> dict[str, Any]:
@@ -41,7 +59,10 @@ def _fmt(value: Any, spec: str) -> str:
 
 
 def write_reports(output_dir: Path, rows: list[dict[str, Any]], summary: dict[str, Any]) -> None:
+    """report.json, report.csv and index.html, each written atomically. Every name is made valid
+    UTF-8 first (so no name can stop the report), and HTML-escaped in the page."""
     output_dir.mkdir(parents=True, exist_ok=True)
+    rows, summary = clean(rows), clean(summary)
     _write_text(output_dir / "report.json",
                 json.dumps({**summary, "scans": rows}, indent=1, default=str))
     buf = io.StringIO()
@@ -54,16 +75,27 @@ def write_reports(output_dir: Path, rows: list[dict[str, Any]], summary: dict[st
 
 
 def _rel(path: str | None, base: Path) -> str | None:
-    if not path or not Path(path).is_file():
+    """A link to ``path`` that can only be a relative file link: ``./`` then the relative path
+    percent-encoded (a name like ``javascript:alert(1).ply`` cannot become a scheme), escaped
+    for an attribute; None when there is no such file under ``base``."""
+    if not path:
         return None
-    return os.path.relpath(path, base)
+    try:
+        if not Path(path).is_file():
+            return None
+        rel = os.path.relpath(path, base)
+    except (OSError, ValueError):
+        return None
+    if rel.startswith(".."):
+        return None
+    return html.escape("./" + quote(rel.encode("utf-8", "surrogateescape")), quote=True)
 
 
 def _html(output_dir: Path, rows: list[dict[str, Any]], summary: dict[str, Any]) -> str:
     cards = []
     for row in rows:
         png = _rel(row.get("png"), output_dir)
-        img = (f'<img src="{html.escape(png)}" alt="before/after {html.escape(row["scan"])}">'
+        img = (f'<img src="{png}" alt="before/after {html.escape(row["scan"])}">'
                if png else '<div class="noimg">no thumbnail</div>')
         t = row.get("timings") or {}
         figures = (f"points {_fmt(row.get('points'), ',')} · "
@@ -77,10 +109,11 @@ def _html(output_dir: Path, rows: list[dict[str, Any]], summary: dict[str, Any])
             err += ('<div class="warn">fit not converged: largest constraint error above '
                     'fit.tolerance at fit.max_centers</div>')
         out = _rel(row.get("output"), output_dir)
-        link = f' · <a href="{html.escape(out)}">model</a>' if out else ""
+        link = f' · <a href="{out}">model</a>' if out else ""
         flag = " unconverged" if row.get("converged") is False else ""
-        cards.append(f'<div class="card {row["status"]}{flag}"><h3>{html.escape(row["scan"])}</h3>'
-                     f'<div class="status">{row["status"]}{link}</div>{img}'
+        status = html.escape(str(row["status"]))
+        cards.append(f'<div class="card {status}{flag}"><h3>{html.escape(row["scan"])}</h3>'
+                     f'<div class="status">{status}{link}</div>{img}'
                      f'<div class="fig">{figures}</div>{err}</div>')
     counts = summary.get("counts", {})
     head = " · ".join(f"{k} {v}" for k, v in counts.items())

@@ -30,7 +30,7 @@ from pathlib import Path
 from typing import Any
 
 from .config import Job
-from .worker import _row, process_scan, warm_up, worker_init
+from .worker import _row, cap_memory, process_scan, warm_up, worker_init
 
 Row = dict[str, Any]
 THREAD_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
@@ -38,6 +38,10 @@ GRACE_S = 3.0            # after SIGTERM, before SIGKILL
 START_TIMEOUT_S = 300.0  # a worker process that cannot import in this time is broken
 DIED = ("the worker process died while processing this scan (killed, out of memory or "
         "crashed)")
+
+
+OUT_OF_MEMORY = ("out of memory: the scan outgrew its {mib:.0f} MiB per-worker budget (plus "
+                 "300 MiB) and was stopped; raise memory_per_worker_mb or use fewer workers")
 
 
 def timed_out(limit: float) -> str:
@@ -81,7 +85,11 @@ def _worker_main(conn: Any, fn: Callable[[Job], Row], parent: int) -> None:
         if job is None:
             return
         try:
+            cap_memory(getattr(job, "memory_budget", None))
             row = fn(job)
+        except MemoryError:
+            row = _row(job, "failed", error=OUT_OF_MEMORY.format(
+                mib=(job.memory_budget or 0) / 2**20))
         except Exception as exc:  # a task function that raises: fail its scan, keep serving
             row = _row(job, "failed", error=f"{type(exc).__name__}: {exc}")
         conn.send(("row", row))
@@ -149,7 +157,8 @@ def run_local(jobs: list[Job], workers: int, on_done: Callable[[Row], None], *,
             now = time.monotonic()
             limits = [w.deadline for w in pool if w.deadline is not None] + \
                 [w.started + START_TIMEOUT_S for w in pool if not w.ready]
-            wait_s = max(0.0, min(limits) - now) if limits else None
+            # at most an hour a wait: the OS wait calls overflow on huge timeouts (1e7 s)
+            wait_s = min(3600.0, max(0.0, min(limits) - now)) if limits else None
             mp_wait([w.conn for w in pool] + [w.proc.sentinel for w in pool], wait_s)
             now = time.monotonic()
             for w in list(pool):
@@ -230,6 +239,23 @@ def _read_line(fd: int, limit: float) -> bytes:
     return data
 
 
+def _communicate(proc: subprocess.Popen, data: bytes, timeout: float | None) -> bytes:
+    """``proc.communicate(data)`` with a limit of ``timeout`` seconds, waited for an hour at a
+    time (the OS wait calls overflow on a huge single timeout, e.g. 1e7 s)."""
+    deadline = None if timeout is None else time.monotonic() + timeout
+    first: bytes | None = data
+    while True:
+        left = None if deadline is None else deadline - time.monotonic()
+        try:
+            out, _ = proc.communicate(first, timeout=None if left is None else
+                                      max(0.0, min(3600.0, left)))
+            return out
+        except subprocess.TimeoutExpired:
+            first = None   # the input was sent; communicate() goes on where it stopped
+            if deadline is not None and time.monotonic() >= deadline:
+                raise
+
+
 def run_isolated(job: Job) -> Row:
     """``process_scan(job)`` in a child process stopped after ``job.timeout_s`` seconds (the
     Dask path: a Dask task is a thread, which cannot be stopped). The clock starts once the
@@ -248,7 +274,7 @@ def run_isolated(job: Job) -> Row:
             return _row(job, "failed", error=f"the scan's child process did not start: {last}")
         t0 = time.monotonic()
         try:
-            out, err = proc.communicate(pickle.dumps(job), timeout=job.timeout_s)
+            out = _communicate(proc, pickle.dumps(job), job.timeout_s)
         except subprocess.TimeoutExpired:
             proc.terminate()
             try:

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import fnmatch
 import glob
 import os
 import re
@@ -29,6 +30,7 @@ from typing import BinaryIO
 
 from ..errors import ConfigError, InputError
 from ..io import SUPPORTED
+from ..memory import HEAD_BYTES
 
 ARCHIVES = (".zip", ".tar", ".tar.gz", ".tgz", ".tar.bz2", ".tbz2", ".tar.xz", ".txz")
 
@@ -48,6 +50,8 @@ class Scan:
     size: int | None = None   # bytes (the archive's declared member size for a member)
     problem: str | None = None
     occurrence: int = 1
+    need: int | None = None   # estimated peak bytes to deform it (archive members, from the header)
+    offset: int | None = None  # a tar member's header offset (read without listing the archive)
 
     @property
     def filename(self) -> str:
@@ -80,6 +84,75 @@ def glob_base(pattern: str) -> Path:
             break
         fixed.append(part)
     return Path(*fixed).resolve() if fixed else Path.cwd()
+
+
+MAX_GLOB_ENTRIES = 200_000   # folder entries one scans glob may visit
+SKIPPED_ROOTS = ("/proc", "/sys", "/dev")
+
+
+def _match_parts(parts: tuple[str, ...], pat: tuple[str, ...]) -> bool:
+    """Glob semantics on path parts: ``**`` matches zero or more folders, other parts match one
+    name with fnmatch; names starting with '.' only match a part that starts with '.'."""
+    memo: dict[tuple[int, int], bool] = {}
+
+    def go(i: int, j: int) -> bool:
+        if (i, j) in memo:
+            return memo[i, j]
+        if j == len(pat):
+            ok = i == len(parts)
+        elif pat[j] == "**":
+            ok = go(i, j + 1) or (i < len(parts) and not parts[i].startswith(".")
+                                  and go(i + 1, j))
+        else:
+            ok = (i < len(parts) and (not parts[i].startswith(".") or pat[j].startswith("."))
+                  and fnmatch.fnmatchcase(parts[i], pat[j]) and go(i + 1, j + 1))
+        memo[i, j] = ok
+        return ok
+
+    return go(0, 0)
+
+
+def bounded_glob(pattern: str, source: str) -> list[Path]:
+    """Paths matching ``pattern`` (``**`` recursive), sorted. Symlinked folders are followed
+    at most once each (a symlink loop is not walked again), /proc, /sys and /dev are never
+    entered, and at most :data:`MAX_GLOB_ENTRIES` entries are visited (ConfigError past it)."""
+    base = glob_base(pattern)
+    pat = _magic_tail(pattern)
+    recursive = "**" in pat
+    out: list[Path] = []
+    seen_dirs: set[tuple[int, int]] = set()
+    visited = 0
+    for root, dirs, files in os.walk(base, followlinks=True):
+        rootp = Path(root)
+        rel = rootp.relative_to(base).parts
+        try:
+            st = rootp.stat()
+        except OSError:
+            dirs[:] = []
+            continue
+        if (st.st_dev, st.st_ino) in seen_dirs or str(rootp) in SKIPPED_ROOTS:
+            dirs[:] = []
+            continue
+        seen_dirs.add((st.st_dev, st.st_ino))
+        visited += len(dirs) + len(files)
+        if visited > MAX_GLOB_ENTRIES:
+            raise ConfigError(f"{source}: scans: {pattern}: the pattern visits more than "
+                              f"{MAX_GLOB_ENTRIES:,} files and folders; narrow it")
+        if not recursive:   # descend only where the pattern has more parts
+            dirs[:] = [d for d in dirs if len(rel) + 1 < len(pat)
+                       and _match_parts(rel + (d,), pat[:len(rel) + 1])]
+        for name in dirs + files:
+            if _match_parts(rel + (name,), pat):
+                out.append(rootp / name)
+    return sorted(set(out))
+
+
+def _magic_tail(pattern: str) -> tuple[str, ...]:
+    parts = Path(pattern).parts
+    for i, part in enumerate(parts):
+        if glob.has_magic(part):
+            return parts[i:]
+    return ()
 
 
 def is_archive(path: str | Path) -> bool:
@@ -119,42 +192,122 @@ def _file_scan(p: Path) -> Scan:
     return Scan(str(p), None, (st.st_size, st.st_mtime_ns), size=st.st_size)
 
 
-def archive_members(path: Path) -> list[Scan]:
-    """Model files inside an archive, in archive order; InputError for an unreadable archive.
+def _one_line(exc: BaseException) -> str:
+    msg = " ".join(str(exc).split()) or type(exc).__name__
+    return msg if len(msg) < 300 else msg[:297] + "..."
 
-    A member name seen before in the same archive is listed with a ``problem``: only its first
-    entry is processed (extracting by name would silently pick the last one). Members that are
-    not regular files (links, FIFOs, devices) are listed with a ``problem`` too."""
+
+def _vet_head(name: str, head: bytes, size: int) -> tuple[str | None, int | None]:
+    """A member judged from its header while the archive is listed: (problem, estimated peak
+    bytes). Only the header-vs-size check refuses here; the budget is the runner's."""
+    from ..errors import SplatdeformError
+    from .probe import check, estimate_memory, probe
+
+    try:
+        p = probe(name, head, size)
+        check(name, p, None)
+    except SplatdeformError as exc:
+        return _one_line(exc), None
+    return None, estimate_memory(p)
+
+
+def _zip_overlap(infos: list[zipfile.ZipInfo], end: int) -> str | None:
+    """Entries whose data overlap another entry (a 'zip bomb' of many entries sharing one
+    member) or the central directory: the archive is refused (one sort, linear after it)."""
+    spans = sorted((info.header_offset, 30 + info.compress_size, info.filename)
+                   for info in infos)
+    ends = spans[1:] + [(end, 0, "the central directory")]
+    for (at, length, name), nxt in zip(spans, ends, strict=True):
+        if at + length > nxt[0]:
+            return (f"archive entries overlap ({name!r} at byte {at:,} runs into {nxt[2]!r} at "
+                    f"byte {nxt[0]:,}); refusing the archive")
+    return None
+
+
+def archive_members(path: Path) -> list[Scan]:
+    """Model files inside an archive, in archive order, each checked from its header (read
+    once, in one pass over the archive: linear in the member count).
+
+    Never raises for the archive's content: a member that cannot be used (a duplicate name,
+    a link or special file, a header that does not fit its size) is listed with a ``problem``,
+    and an archive that cannot be read (or read to its end: a cut tar header, overlapping zip
+    entries) adds one row for the archive itself with the reason."""
     problem = not_regular(path)
     if problem is not None:
         return [Scan(str(path), problem=problem)]
     out: list[Scan] = []
     seen: dict[str, int] = {}
 
-    def add(name: str, index: int, identity: tuple, size: int, regular: bool) -> None:
+    def add(name: str, index: int, identity: tuple, size: int, regular: bool,
+            read_head: Callable[[], bytes], offset: int | None = None) -> None:
         seen[name] = seen.get(name, 0) + 1
-        why = None
+        why, need = None, None
         if seen[name] > 1:
             why = (f"duplicate member name in the archive (entry {seen[name]} with this name); "
                    "only the first entry is processed, rename the others")
         elif not regular:
             why = "not a regular file in the archive (a link or special file); skipped"
-        out.append(Scan(str(path), name, identity, index, size, why))
+        else:
+            label = f"{path.name}:{name}"
+            try:
+                head = read_head()
+            except Exception as exc:  # noqa: BLE001 - any decoder error is this member's row
+                why = f"{label}: cannot read the archive member: {_one_line(exc)}"
+            else:
+                why, need = _vet_head(label, head, size)
+        out.append(Scan(str(path), name, identity, index, size, why, need=need, offset=offset))
 
     try:
         if path.suffix.lower() == ".zip":
-            with zipfile.ZipFile(path) as zf:
-                for i, info in enumerate(zf.infolist()):
-                    if not info.is_dir() and _supported(info.filename):
-                        add(info.filename, i, (info.file_size, info.CRC), info.file_size, True)
-            return out
-        with tarfile.open(path) as tf:
-            for i, m in enumerate(tf.getmembers()):
-                if not m.isdir() and _supported(m.name):
-                    add(m.name, i, (m.size, m.mtime), m.size, m.isfile())
-        return out
-    except (zipfile.BadZipFile, tarfile.TarError, OSError, EOFError) as exc:
-        raise InputError(f"{path}: cannot read the archive: {exc}") from exc
+            _list_zip(path, add)
+        else:
+            _list_tar(path, add)
+    except Exception as exc:  # noqa: BLE001 - zlib/lzma/bz2/struct errors too: a row, not a crash
+        out.append(Scan(str(path), problem=f"cannot read the archive: {_one_line(exc)}"))
+    return out
+
+
+def _list_zip(path: Path, add: Callable[..., None]) -> None:
+    with zipfile.ZipFile(path) as zf:
+        infos = zf.infolist()
+        overlap = _zip_overlap(infos, zf.start_dir)
+        if overlap is not None:
+            raise InputError(overlap)
+        for i, info in enumerate(infos):
+            if info.is_dir() or not _supported(info.filename):
+                continue
+
+            def head(info: zipfile.ZipInfo = info) -> bytes:
+                with zf.open(info) as src:
+                    return _read_head(src, min(HEAD_BYTES, info.file_size))
+
+            add(info.filename, i, (info.file_size, info.CRC), info.file_size, True, head)
+
+
+def _list_tar(path: Path, add: Callable[..., None]) -> None:
+    """One pass (a compressed tar is decompressed once); a header that cannot be read after
+    the first member is not the end of the archive: it is reported (tarfile would stop
+    silently and the members after it would be missing without a word)."""
+    with tarfile.open(path) as tf:
+        i = 0
+        while True:
+            m = tf.next()
+            if m is None:
+                break
+            if not m.isdir() and _supported(m.name):
+                def head(m: tarfile.TarInfo = m) -> bytes:
+                    src = tf.extractfile(m)
+                    assert src is not None
+                    return _read_head(src, min(HEAD_BYTES, m.size))
+
+                add(m.name, i, (m.size, m.mtime), m.size, m.isfile(), head, m.offset)
+            i += 1
+        assert tf.fileobj is not None
+        tf.fileobj.seek(tf.offset)
+        block = tf.fileobj.read(tarfile.BLOCKSIZE)
+        if block.strip(b"\0"):
+            raise InputError(f"the member header at byte {tf.offset:,} is cut off or unreadable "
+                             f"(after {i} entries); the members after it are not listed")
 
 
 def _expand_path(p: Path, exclude: Path) -> list[Scan]:
@@ -187,7 +340,7 @@ def find_scans(patterns: list[str], base: Path, *, exclude: Path, source: str) -
     for pattern in patterns:
         full = base / pattern
         if is_glob(pattern):
-            paths = [Path(p) for p in sorted(glob.glob(str(full), recursive=True))]
+            paths = bounded_glob(str(full), source)
         elif full.exists() or full.is_symlink():
             paths = [full]
         else:
@@ -292,11 +445,17 @@ def _open_member(scan: Scan) -> Iterator[BinaryIO]:
                 yield src
         return
     with tarfile.open(scan.path) as tf:
-        members = tf.getmembers()
-        if scan.index is None or scan.index >= len(members) or \
-                members[scan.index].name != scan.member:
+        if scan.offset is None:
             raise changed
-        src = tf.extractfile(members[scan.index])
+        assert tf.fileobj is not None
+        tf.fileobj.seek(scan.offset)
+        try:
+            member = tarfile.TarInfo.fromtarfile(tf)
+        except tarfile.HeaderError:
+            raise changed from None
+        if member.name != scan.member:
+            raise changed
+        src = tf.extractfile(member)
         if src is None:
             raise InputError(f"{scan.name}: not a regular file in the archive")
         with src:
@@ -339,8 +498,6 @@ def materialize(scan: Scan, vet: Vet | None = None) -> Iterator[Path]:
     ``vet(head, size)`` sees the first bytes (up to ``probe.HEAD_BYTES``) and the size before
     anything is extracted, and raises to refuse the scan. A member is never extracted past the
     size the archive declares for it, nor into a temp folder without room for it."""
-    from .probe import HEAD_BYTES
-
     if scan.member is None:
         path = Path(scan.path)
         with _open_regular(path) as f:

@@ -62,6 +62,7 @@ def process_scan(job: Job) -> dict[str, Any]:
 
     from ..errors import SplatdeformError
     from ..io import atomic_write
+    from ..rbf.defaults import DEFAULT_MAX_CENTERS
     from .probe import check, probe
     from .sources import clean_stale_temps, materialize
 
@@ -75,8 +76,11 @@ def process_scan(job: Job) -> dict[str, Any]:
     def vet(head: bytes, size: int) -> None:
         """Before loading (and before extracting a member): header vs size, memory budget."""
         p = probe(job.scan.name, head, size, suffix=job.scan.suffix)
+        fit = job.edit.get("fit") if isinstance(job.edit.get("fit"), dict) else {}
+        centers = fit.get("max_centers", DEFAULT_MAX_CENTERS)
         check(job.scan.name, p, job.memory_budget,
-              None if job.memory_budget is not None else available_memory())
+              None if job.memory_budget is not None else available_memory(),
+              max_centers=centers if isinstance(centers, int) else DEFAULT_MAX_CENTERS)
 
     try:
         with materialize(job.scan, vet) as local:
@@ -103,7 +107,10 @@ def process_scan(job: Job) -> dict[str, Any]:
             msg = msg.replace(str(local), job.scan.name)
         return _row(job, "failed", seconds=time.perf_counter() - t0, error=msg)
     except MemoryError:
-        return _row(job, "failed", seconds=time.perf_counter() - t0, error="out of memory")
+        from .runner import OUT_OF_MEMORY
+
+        return _row(job, "failed", seconds=time.perf_counter() - t0,
+                    error=OUT_OF_MEMORY.format(mib=(job.memory_budget or 0) / 2**20))
     except Exception as exc:  # an unexpected bug: keep the batch going, say where
         where = traceback.extract_tb(exc.__traceback__)[-1]
         return _row(job, "failed", seconds=time.perf_counter() - t0,
@@ -121,6 +128,39 @@ def process_scan(job: Job) -> dict[str, Any]:
     with atomic_write(job.sidecar) as f:
         f.write(json.dumps(sidecar, indent=1).encode())
     return row
+
+
+CAP_SLACK_BYTES = 300 * 2**20   # above the budget, for what the estimate cannot see
+
+
+def _vm_data() -> int:
+    """Bytes of this process's data segment and private writable mappings (what RLIMIT_DATA
+    counts); 0 where /proc is not there."""
+    try:
+        with open("/proc/self/status") as f:
+            for line in f:
+                if line.startswith("VmData:"):
+                    return int(line.split()[1]) * 1024
+    except OSError:
+        pass
+    return 0
+
+
+def cap_memory(budget: float | None) -> None:
+    """Cap this worker process's memory for the next scan: RLIMIT_DATA (private writable
+    memory; unlike RLIMIT_AS it ignores the address space OpenCL/LLVM and thread stacks only
+    reserve) at what is mapped now plus the scan's budget plus :data:`CAP_SLACK_BYTES`. A
+    scan that outgrows its estimate then gets MemoryError (a failed row) instead of pushing
+    the machine into swap or the OOM killer. Only the soft limit moves, so the next scan can
+    get its own. No budget: no cap."""
+    import resource
+
+    soft, hard = resource.getrlimit(resource.RLIMIT_DATA)
+    want = resource.RLIM_INFINITY if budget is None else \
+        int(_vm_data() + budget + CAP_SLACK_BYTES)
+    if hard != resource.RLIM_INFINITY:
+        want = hard if want == resource.RLIM_INFINITY else min(want, hard)
+    resource.setrlimit(resource.RLIMIT_DATA, (want, hard))
 
 
 def _watch_parent(parent: int) -> None:

@@ -1,0 +1,106 @@
+"""memory.py's file cost against measurement: generated binary, list-heavy and ASCII PLY and a
+LAS file are loaded in a fresh subprocess, whose peak RSS above its post-import baseline must
+not exceed the estimate, and the estimate must stay within a sane factor of it."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+# VmHWM, not ru_maxrss: the latter keeps the forking parent's peak across exec
+MEASURE = """
+import sys
+from splatdeform.io import load
+from splatdeform.memory import file_cost
+import splatdeform.io.ply_format, splatdeform.io.las, laspy, numpy
+def status(key):
+    return int(open('/proc/self/status').read().split(key + ':')[1].split()[0]) * 1024
+base = status('VmRSS')
+est = file_cost(sys.argv[1]).load_bytes
+load(sys.argv[1])
+print(status('VmHWM') - base, est)
+"""
+XYZ = b"property float x\nproperty float y\nproperty float z\n"
+
+
+def _binary(path: Path, n: int) -> None:
+    xyz = np.random.default_rng(0).random((n, 3)).astype("<f4")
+    path.write_bytes(b"ply\nformat binary_little_endian 1.0\nelement vertex %d\n" % n + XYZ +
+                     b"end_header\n" + xyz.tobytes())
+
+
+def _lists(path: Path, rows: int) -> None:
+    body = np.tile(np.frombuffer(b"\x01\x00\x02\x00\x00", np.uint8), rows // 2).tobytes()
+    path.write_bytes(b"ply\nformat binary_little_endian 1.0\nelement vertex 3\n" + XYZ +
+                     b"element face %d\nproperty list uchar uchar vertex_indices\n" % rows +
+                     b"end_header\n" + bytes(36) + body)
+
+
+def _ascii(path: Path, n: int) -> None:
+    path.write_bytes(b"ply\nformat ascii 1.0\nelement vertex %d\n" % n + XYZ + b"end_header\n"
+                     + b"0 0 0\n" * n)
+
+
+def _las(path: Path, n: int) -> None:
+    import laspy
+
+    header = laspy.LasHeader(point_format=3, version="1.2")
+    header.scales, header.offsets = [0.001] * 3, [0, 0, 0]
+    las = laspy.LasData(header)
+    xyz = np.random.default_rng(0).random((n, 3))
+    las.x, las.y, las.z = xyz[:, 0], xyz[:, 1], xyz[:, 2]
+    las.write(path)
+
+
+@pytest.mark.parametrize("kind, make, n", [("binary.ply", _binary, 2_000_000),
+                                           ("lists.ply", _lists, 1_000_000),
+                                           ("ascii.ply", _ascii, 1_000_000),
+                                           ("points.las", _las, 1_000_000)])
+def test_file_cost_bounds_the_measured_load_peak(tmp_path: Path, kind, make, n) -> None:
+    path = tmp_path / kind
+    make(path, n)
+    r = subprocess.run([sys.executable, "-c", MEASURE, str(path)], capture_output=True,
+                       text=True, timeout=300, check=True)
+    measured, estimate = map(int, r.stdout.split())
+    assert measured > 0
+    assert estimate >= measured, (kind, measured / 2**20, estimate / 2**20)
+    assert estimate <= 4 * measured + 64 * 2**20, (kind, measured / 2**20, estimate / 2**20)
+
+
+DEFORM = """
+import sys
+from splatdeform.cli import main
+import splatdeform.edit.run, splatdeform.io, scipy.spatial, splatdeform.basis
+from splatdeform.memory import deform_bytes, file_cost
+def status(key):
+    return int(open('/proc/self/status').read().split(key + ':')[1].split()[0]) * 1024
+base = status('VmRSS')
+est = deform_bytes(file_cost(sys.argv[2]))
+assert main(['deform', sys.argv[1]]) == 0
+print(status('VmHWM') - base, est)
+"""
+
+
+def test_deform_bytes_bounds_the_measured_deform_peak(tmp_path: Path) -> None:
+    import yaml
+
+    from data_tools.make_archive import make_scans
+
+    (scan,), _ = make_scans(tmp_path, 1, 150_000, spheres=False, zip_name=None)
+    cfg = tmp_path / "e.yaml"
+    cfg.write_text(yaml.safe_dump({
+        "input": str(scan), "output": str(tmp_path / "out.ply"), "backend": "numpy",
+        "regions": {"units": "relative",
+                    "fixed": [{"box": {"min": [0, 0, 0], "max": [0.25, 1, 1]}}],
+                    "handle": [{"box": {"min": [0.75, 0, 0], "max": [1, 1, 1]}}]},
+        "handle": {"transform": {"pivot": [0.75, 0.5, 0.5],
+                                 "rotate": {"axis": [0, 0, 1], "degrees": 35}}}}))
+    r = subprocess.run([sys.executable, "-c", DEFORM, str(cfg), str(scan)], capture_output=True,
+                       text=True, timeout=600, check=True)
+    measured, estimate = map(int, r.stdout.split()[-2:])
+    assert estimate >= measured, (measured / 2**20, estimate / 2**20)
+    assert estimate <= 4 * measured + 64 * 2**20, (measured / 2**20, estimate / 2**20)
