@@ -149,7 +149,10 @@ def cmd_select(args: argparse.Namespace) -> int:
 
 
 def cmd_edit(args: argparse.Namespace) -> int:
-    from .editor.server import run
+    if args.viewer == "viser":
+        from .editor.server import run
+    else:
+        from .editor.page_server import run
 
     if not 0 <= args.port <= 65535:
         raise InputError(f"--port: expected 0..65535, got {args.port}")
@@ -299,6 +302,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--port", type=int, default=8080, help="port (default 8080; next free one)")
     p.add_argument("--host", default="127.0.0.1",
                    help="address to bind (default 127.0.0.1: this machine only)")
+    p.add_argument("--viewer", choices=("page", "viser"), default="page",
+                   help="page (default): the editor's WebGL2 page, deforming on the browser's "
+                        "GPU; viser: the older viewer fed whole deformed frames")
     p.set_defaults(func=cmd_edit)
 
     from .batch import register as register_batch

@@ -368,7 +368,7 @@ def test_app_shows_splats_and_meshes(viser_server, tmp_path):
 # ---- the edit verb in a subprocess -----------------------------------------------------
 def _start_editor(path: Path) -> tuple[subprocess.Popen, int]:
     proc = subprocess.Popen([sys.executable, "-m", "splatdeform.cli", "edit", str(path),
-                             "--port", "0"], stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                             "--port", "0", "--viewer", "viser"], stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
                             text=True)
     deadline = time.time() + 60
     for line in proc.stdout:

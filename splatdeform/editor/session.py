@@ -148,11 +148,9 @@ class Session:
         return self.state()
 
     def save(self, model: str | None, config: str | None, image: str | None):
-        """The controller's save with the PNG at ``render.size`` when the YAML has one."""
-        r = self.ed.settings.render
-        size = tuple(r.size) if r is not None else (1200, 600)
+        """The controller's save (the PNG at ``render.size`` when the YAML has one)."""
         return self.ed.save(model and Path(model), config and Path(config),
-                            image and Path(image), image_size=size)
+                            image and Path(image))
 
     # ---- arrays -------------------------------------------------------------------------
     def labels(self) -> np.ndarray:

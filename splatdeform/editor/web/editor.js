@@ -356,6 +356,7 @@ async function applyState(st) {
   renderOutlines();
   attachGizmo();
   requestDraw();
+  S.shown = st;  // what sdState() reports: the state once it is on screen
 }
 
 function findSelector(ref) {
@@ -672,9 +673,14 @@ async function start() {
   window.sdReady = true;
 }
 window.sdApply = applyState;
+window.sdGizmo = gizmo;
 window.sdAct = async (req) => { const st = await act(req); await applyState(st); return st; };
-window.sdState = () => S.state;
+window.sdState = () => S.shown;
 window.sdSelect = (ref) => { S.selected = ref; renderTree(); attachGizmo(); };
+window.sdScreenOf = (p) => {  // page pixel of a local point (tests click on the model)
+  const v = new THREE.Vector3(...p).project(camera), rect = renderer.domElement.getBoundingClientRect();
+  return [rect.left + (v.x * 0.5 + 0.5) * rect.width, rect.top + (0.5 - v.y * 0.5) * rect.height];
+};
 window.sdGizmoScreen = () => {  // where the gizmo centre is on screen (for tests that drag it)
   const v = gizmoTarget.position.clone().project(camera), rect = renderer.domElement.getBoundingClientRect();
   return [rect.left + (v.x * 0.5 + 0.5) * rect.width, rect.top + (0.5 - v.y * 0.5) * rect.height];
