@@ -23,8 +23,7 @@ from data_tools.synth import bumpy_bar
 from splatdeform.basis import reference
 from splatdeform.deform import full_basis
 from splatdeform.edit.selectors import Box
-from splatdeform.editor import EditorController
-from splatdeform.editor import payload
+from splatdeform.editor import EditorController, payload
 from splatdeform.editor.browser import Chromium
 from splatdeform.editor.page_server import make_server
 from splatdeform.editor.session import Session

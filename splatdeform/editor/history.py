@@ -30,7 +30,8 @@ def restore(ed: EditorController, snap: tuple[Any, ...]) -> None:
 def _same(a: tuple[Any, ...], b: tuple[Any, ...]) -> bool:
     if a[0] != b[0] or len(a[1]) != len(b[1]):
         return False
-    return all(sa == sb and np.array_equal(ma, mb) for (sa, ma), (sb, mb) in zip(a[1], b[1]))
+    return all(sa == sb and np.array_equal(ma, mb)
+               for (sa, ma), (sb, mb) in zip(a[1], b[1], strict=True))
 
 
 @dataclass
