@@ -106,7 +106,7 @@ function baseUniforms() {
     u_show_regions: { value: 1.0 }, u_size: { value: S.scene.point_size },
     u_px: { value: 500 }, u_has_normals: { value: S.arrays.normals ? 1.0 : 0.0 },
     u_splat: { value: null }, u_splat_width: { value: 1 }, u_sh: { value: null },
-    u_sh_width: { value: 1 }, u_viewport: { value: new THREE.Vector2(1, 1) },
+    u_sh_width: { value: 1 }, u_order: { value: null }, u_order_width: { value: 1 }, u_viewport: { value: new THREE.Vector2(1, 1) },
   };
 }
 
@@ -156,15 +156,22 @@ function buildModel() {
   const a = S.arrays, n = S.scene.n, kind = S.scene.kind;
   makeMaterial();
   if (kind === 'splats') {
-    const quad = new THREE.InstancedBufferGeometry();
-    quad.setAttribute('a_corner', new THREE.BufferAttribute(new Float32Array([-1, -1, 1, -1, 1, 1, -1, 1]), 2));
-    quad.setIndex([0, 1, 2, 0, 2, 3]);
-    S.order = new Float32Array(n);
+    // one plain (not instanced) draw: 4 vertices per sorted slot, the splat index of a slot
+    // from the order texture (per-instance draws are slow in software WebGL)
+    const quad = new THREE.BufferGeometry();
+    const corners = new Float32Array(8 * n), index = new Uint32Array(6 * n);
+    const pattern = [-1, -1, 1, -1, 1, 1, -1, 1];
+    for (let i = 0; i < n; i++) {
+      corners.set(pattern, 8 * i);
+      index.set([4 * i, 4 * i + 1, 4 * i + 2, 4 * i, 4 * i + 2, 4 * i + 3], 6 * i);
+    }
+    quad.setAttribute('a_corner', new THREE.BufferAttribute(corners, 2));
+    quad.setIndex(new THREE.BufferAttribute(index, 1));
+    S.order = new Float32Array(4 * Math.ceil(n / 4));
     for (let i = 0; i < n; i++) S.order[i] = i;
-    S.orderAttr = new THREE.InstancedBufferAttribute(S.order, 1);
-    S.orderAttr.setUsage(THREE.DynamicDrawUsage);
-    quad.setAttribute('a_index', S.orderAttr);
-    quad.instanceCount = n;
+    const ot = floatTexture(S.order);
+    S.orderTex = ot.tex;
+    material.uniforms.u_order.value = ot.tex; material.uniforms.u_order_width.value = ot.width;
     const sp = floatTexture(splatTextureData());
     material.uniforms.u_splat.value = sp.tex; material.uniforms.u_splat_width.value = sp.width;
     if (a.sh_rest) {
@@ -258,7 +265,8 @@ function sortSplats() {
   for (let i = 0; i < n; i++) { bucket[i] = (depth[i] - lo) * scale; counts[bucket[i] + 1]++; }
   for (let i = 1; i < 65537; i++) counts[i] += counts[i - 1];
   for (let i = 0; i < n; i++) S.order[counts[bucket[i]]++] = i;  // most negative z (far) first
-  S.orderAttr.needsUpdate = true;
+  S.orderTex.image.data.set(S.order);
+  S.orderTex.needsUpdate = true;
   S.sortKey = key; S.needSort = false;
   stats.sortMs = performance.now() - t0;
 }

@@ -1,11 +1,13 @@
 // splatdeform editor page: 3D Gaussian splats deformed in the vertex stage, the WebGL2 twin of
-// shaders/gauss.vert (no geometry shader: one instanced quad per splat, in depth order).
-// Per splat (a_index, sorted back to front by the page) 4 texels of u_splat:
+// shaders/gauss.vert (no geometry shader: a quad of 4 vertices per splat, in depth order).
+// Vertex v is corner a_corner of slot v / 4; slot s draws splat u_order[s] (the page sorts the
+// slots back to front). Per splat 4 texels of u_splat:
 // [x y z opacity] [xx xy xz yy] [yz zz label 0] [r g b 0]; SH_TEXELS texels of u_sh (f_rest,
 // channel-major). The host prepends "#define K", "#define SH_DEGREE", "#define SH_REST",
 // "#define SH_TEXELS", deform.glsl and shading.glsl.
 in vec2 a_corner;
-in float a_index;
+uniform highp sampler2D u_order;
+uniform int u_order_width;
 uniform highp sampler2D u_splat;
 uniform int u_splat_width;
 #if SH_DEGREE > 0
@@ -59,7 +61,9 @@ vec3 sh_view(int i, vec3 d) {
 #endif
 
 void main() {
-    int i = int(a_index + 0.5);
+    int slot = gl_VertexID / 4;
+    int ot = slot / 4;
+    int i = int(texelFetch(u_order, ivec2(ot % u_order_width, ot / u_order_width), 0)[slot % 4] + 0.5);
     vec4 t0 = splat_texel(i, 0), t1 = splat_texel(i, 1), t2 = splat_texel(i, 2);
     vec3 p = t0.xyz;
     mat3 sigma = mat3(t1.x, t1.y, t1.z, t1.y, t1.w, t2.x, t1.z, t2.x, t2.y);
