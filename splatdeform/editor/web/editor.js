@@ -156,17 +156,12 @@ function buildModel() {
   const a = S.arrays, n = S.scene.n, kind = S.scene.kind;
   makeMaterial();
   if (kind === 'splats') {
-    // one plain (not instanced) draw: 4 vertices per sorted slot, the splat index of a slot
-    // from the order texture (per-instance draws are slow in software WebGL)
+    // one plain draw of point sprites, one vertex per sorted slot, the splat index of a slot
+    // from the order texture (per-instance draws are slow in software WebGL, and a quad of 4
+    // vertices runs the per-splat maths 4 times)
     const quad = new THREE.BufferGeometry();
-    const corners = new Float32Array(8 * n), index = new Uint32Array(6 * n);
-    const pattern = [-1, -1, 1, -1, 1, 1, -1, 1];
-    for (let i = 0; i < n; i++) {
-      corners.set(pattern, 8 * i);
-      index.set([4 * i, 4 * i + 1, 4 * i + 2, 4 * i, 4 * i + 2, 4 * i + 3], 6 * i);
-    }
-    quad.setAttribute('a_corner', new THREE.BufferAttribute(corners, 2));
-    quad.setIndex(new THREE.BufferAttribute(index, 1));
+    quad.setAttribute('position', new THREE.BufferAttribute(new Float32Array(n), 1));  // the count
+    quad.boundingSphere = new THREE.Sphere(new THREE.Vector3(), Infinity);  // never culled
     S.order = new Float32Array(4 * Math.ceil(n / 4));
     for (let i = 0; i < n; i++) S.order[i] = i;
     const ot = floatTexture(S.order);
@@ -180,7 +175,7 @@ function buildModel() {
       const sh = floatTexture(data);
       material.uniforms.u_sh.value = sh.tex; material.uniforms.u_sh_width.value = sh.width;
     }
-    model = new THREE.Mesh(quad, material);
+    model = new THREE.Points(quad, material);
   } else {
     const geo = new THREE.BufferGeometry();
     geo.setAttribute('position', new THREE.BufferAttribute(a.positions, 3));
@@ -273,6 +268,7 @@ function sortSplats() {
 
 // ---- drawing and frame timing ------------------------------------------------------------
 let drawQueued = false;
+const pixel = new Uint8Array(4);
 let pendingInput = null;  // performance.now() timestamp of the input a frame answers
 function requestDraw(inputTime) {
   if (inputTime !== undefined && pendingInput === null) pendingInput = inputTime;
@@ -293,6 +289,8 @@ function draw() {
   sortSplats();
   renderer.render(scene3, camera);
   gl.finish();
+  gl.readPixels(0, 0, 1, 1, gl.RGBA, gl.UNSIGNED_BYTE, pixel);  // a true fence: finish alone
+  // returned before software WebGL had drawn (measured), a read-back cannot
   stats.frames++;
   stats.lastDrawMs = performance.now() - t0;
   if (pendingInput !== null) {
@@ -682,6 +680,7 @@ async function start() {
 }
 window.sdApply = applyState;
 window.sdGizmo = gizmo;
+window.sdDebug = { model: () => model, outlines, gizmo };
 window.sdAct = async (req) => { const st = await act(req); await applyState(st); return st; };
 window.sdState = () => S.shown;
 window.sdSelect = (ref) => { S.selected = ref; renderTree(); attachGizmo(); };

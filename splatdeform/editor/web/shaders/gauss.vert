@@ -1,11 +1,9 @@
 // splatdeform editor page: 3D Gaussian splats deformed in the vertex stage, the WebGL2 twin of
-// shaders/gauss.vert (no geometry shader: a quad of 4 vertices per splat, in depth order).
-// Vertex v is corner a_corner of slot v / 4; slot s draws splat u_order[s] (the page sorts the
-// slots back to front). Per splat 4 texels of u_splat:
+// shaders/gauss.vert (no geometry shader: one point sprite per splat, square, covering 3 sigma,
+// in depth order). Vertex s draws splat u_order[s] (the page sorts the slots back to front). Per splat 4 texels of u_splat:
 // [x y z opacity] [xx xy xz yy] [yz zz label 0] [r g b 0]; SH_TEXELS texels of u_sh (f_rest,
 // channel-major). The host prepends "#define K", "#define SH_DEGREE", "#define SH_REST",
 // "#define SH_TEXELS", deform.glsl and shading.glsl.
-in vec2 a_corner;
 uniform highp sampler2D u_order;
 uniform int u_order_width;
 uniform highp sampler2D u_splat;
@@ -61,7 +59,7 @@ vec3 sh_view(int i, vec3 d) {
 #endif
 
 void main() {
-    int slot = gl_VertexID / 4;
+    int slot = gl_VertexID;
     int ot = slot / 4;
     int i = int(texelFetch(u_order, ivec2(ot % u_order_width, ot / u_order_width), 0)[slot % 4] + 0.5);
     vec4 t0 = splat_texel(i, 0), t1 = splat_texel(i, 1), t2 = splat_texel(i, 2);
@@ -88,10 +86,9 @@ void main() {
     if (!(det > 0.0)) return;
     v_conic = vec3(c, -b, a) / det;
     v_center = vec2(fx * t.x / z + 0.5 * u_viewport.x, fy * t.y / z + 0.5 * u_viewport.y);
-    vec2 extent = min(3.0 * sqrt(vec2(a, c)), vec2(1024.0));
-    vec2 px = v_center + a_corner * extent;
-    vec4 clip = projectionMatrix * vec4(t, 1.0);
-    gl_Position = vec4((2.0 * px / u_viewport - 1.0) * clip.w, clip.z, clip.w);
+    gl_Position = projectionMatrix * vec4(t, 1.0);
+    float lmax = 0.5 * (a + c) + sqrt(0.25 * (a - c) * (a - c) + b * b);  // 2D eigenvalue
+    gl_PointSize = min(6.0 * sqrt(lmax), 1024.0);  // 3 sigma each side
     vec3 rgb = splat_texel(i, 3).rgb;
 #if SH_DEGREE > 0
     vec3 d = transpose(polar_rotation(J)) * normalize(p - cameraPosition);
