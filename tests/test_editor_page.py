@@ -313,3 +313,81 @@ def test_scanned_mesh_without_normals_is_shaded(tmp_path):
     assert model.size > 0.03 * view_area.size, "the mesh is not drawn"
     # shaded, not one flat grey: many grey levels with a wide spread
     assert len(np.unique(model)) > 40 and model.std() > 15
+
+
+def test_splat_scene_is_drawn_sorted_by_the_page(tmp_path):
+    from io import BytesIO
+
+    from PIL import Image
+
+    path = shared_file("splats/tile_3dgs_sh3.ply")
+    srv = make_server(path, port=0)
+    threading.Thread(target=srv.serve_forever, daemon=True).start()
+    try:
+        assert srv.scene["kind"] == "splats" and srv.scene["sh_degree"] == 3
+        assert srv.scene["up"] == "-y"   # the renderer's rule for 3DGS files
+        with Chromium(size=(900, 600)) as tab:
+            _open(tab, srv.url())
+            img = np.asarray(Image.open(BytesIO(tab.screenshot())).convert("RGB")).astype(int)
+            # the page's back-to-front order is a permutation of all splats
+            order = tab.eval(f"Array.from(sdDebug.order().slice(0, {srv.scene['n']}))")
+    finally:
+        srv.shutdown()
+        srv.server_close()
+    assert sorted(int(i) for i in order) == list(range(srv.scene["n"]))
+    view_area = img[:, :560]
+    bg = view_area[2, 2]
+    drawn = (np.abs(view_area - bg).sum(axis=2) > 40).mean()
+    assert drawn > 0.05, f"the splats are not drawn ({drawn:.3f})"
+
+
+def test_png_uses_render_size_of_the_loaded_yaml(bar_path, tmp_path):
+    from PIL import Image
+
+    work = tmp_path
+    shutil.copy(bar_path, work / "bar.ply")
+    cfg = {"input": "bar.ply", "output": "bent.ply",
+           "regions": {"fixed": [{"box": {"min": [-1, -1, -1], "max": [1, 1, 1]}}],
+                       "handle": [{"box": {"min": [3, -1, -1], "max": [5, 1, 1]}}]},
+           "handle": {"matrix": np.eye(4).tolist()}, "fit": {"tolerance": 1e-3},
+           "render": {"output": "bent.png", "size": [320, 160]}}
+    (work / "e.yaml").write_text(yaml.safe_dump(cfg))
+    s = Session(EditorController.open(work / "e.yaml"))
+    s.act({"op": "fit"})
+    st = s.act({"op": "save", "model": str(work / "out.ply"), "yaml": str(work / "out.yaml"),
+                "png": str(work / "out.png")})
+    assert "wrote" in st["message"]
+    image = Image.open(work / "out.png")
+    assert image.size[0] == 320 and image.size[1] >= 160
+    assert yaml.safe_load((work / "out.yaml").read_text())["backend"] == "auto"
+
+
+def test_api_needs_the_printed_token(page_server):
+    import urllib.error
+    import urllib.request
+
+    host, port = page_server.server_address[:2]
+    opener = urllib.request.build_opener(urllib.request.ProxyHandler({}))
+    with pytest.raises(urllib.error.HTTPError) as err:
+        opener.open(f"http://{host}:{port}/api/state", timeout=10)
+    assert err.value.code == 403
+    assert b"<html" in opener.open(page_server.url(), timeout=10).read().lower()
+    req = urllib.request.Request(f"http://{host}:{port}/api/state",
+                                 headers={"X-Editor-Token": page_server.token,
+                                          "Origin": "http://evil.example"})
+    with pytest.raises(urllib.error.HTTPError) as err:
+        opener.open(req, timeout=10)
+    assert err.value.code == 403
+
+
+def test_bad_requests_are_one_line_answers(bar_path):
+    s = Session(EditorController.open(bar_path))
+    for req in ({"op": "pose", "matrix": np.eye(4).tolist()},             # no fit yet
+                {"op": "move_selector", "role": "fixed", "index": 3},    # no such selector
+                {"op": "add_selector", "role": "fixed", "kind": "box", "center": [1, 2]}):
+        with pytest.raises(InputError) as err:
+            s.act(req)
+        assert "\n" not in str(err.value)
+    from splatdeform.editor.session import error_line
+
+    assert error_line(KeyError("role")).startswith("bad request")

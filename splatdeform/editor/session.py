@@ -167,5 +167,5 @@ def error_line(exc: Exception) -> str:
     if isinstance(exc, SplatdeformError):
         return str(exc)
     if isinstance(exc, (KeyError, TypeError, ValueError)):
-        return f"bad request: {exc}"
-    raise exc
+        return f"bad request: {type(exc).__name__}: {exc}"
+    return f"internal error: {type(exc).__name__}: {exc}"

@@ -680,7 +680,7 @@ async function start() {
 }
 window.sdApply = applyState;
 window.sdGizmo = gizmo;
-window.sdDebug = { model: () => model, outlines, gizmo };
+window.sdDebug = { model: () => model, outlines, gizmo, order: () => S.order };
 window.sdAct = async (req) => { const st = await act(req); await applyState(st); return st; };
 window.sdState = () => S.shown;
 window.sdSelect = (ref) => { S.selected = ref; renderTree(); attachGizmo(); };
