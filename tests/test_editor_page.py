@@ -391,3 +391,27 @@ def test_bad_requests_are_one_line_answers(bar_path):
     from splatdeform.editor.session import error_line
 
     assert error_line(KeyError("role")).startswith("bad request")
+
+
+def test_rectangle_selection_becomes_an_indices_selector(page_server):
+    with Chromium(size=(1000, 700)) as tab:
+        _open(tab, page_server.url())
+        tab.eval("document.querySelector('[data-rect=\"fixed\"]').click()")
+        # a rectangle around the middle of the view
+        x0, y0, x1, y1 = 250, 250, 400, 450
+        tab.mouse("mouseMoved", x0, y0)
+        tab.mouse("mousePressed", x0, y0, button="left", clickCount=1)
+        tab.mouse("mouseMoved", (x0 + x1) / 2, (y0 + y1) / 2, button="left")
+        tab.mouse("mouseMoved", x1, y1, button="left")
+        tab.mouse("mouseReleased", x1, y1, button="left", clickCount=1)
+        st = tab.wait("sdState().selectors.length && sdState()")
+        sel = st["selectors"][0]
+        assert sel["type"] == "indices" and sel["role"] == "fixed"
+        picked = sel["yaml"]["indices"]
+        assert 0 < len(picked) < N and st["counts"]["fixed"] == len(picked)
+        # exactly the points whose screen position is inside the rectangle
+        positions = np.asarray(tab.eval("sdDeformedPositions()")).reshape(-1, 3)
+        screen = np.asarray(tab.eval(f"{positions.tolist()}.map(p => sdScreenOf(p))"))
+    inside = ((screen[:, 0] >= x0) & (screen[:, 0] <= x1) & (screen[:, 1] >= y0) &
+              (screen[:, 1] <= y1))
+    assert sorted(picked) == np.flatnonzero(inside).tolist()

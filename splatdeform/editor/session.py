@@ -96,6 +96,18 @@ class Session:
                 size = [d, d, d] if kind == "box" else d / 2
             self.ed.move_selector(role, index, size=size, handle=h)
 
+    def _op_add_indices(self, req: dict[str, Any]) -> None:
+        """A screen-space selection (rectangle) as an ``indices`` selector."""
+        from splatdeform.edit.selectors import Indices
+
+        idx = np.unique(np.asarray(req.get("indices", []), dtype=np.int64))
+        if idx.size == 0:
+            raise InputError("selection: the rectangle holds no point; drag over the model")
+        if idx[0] < 0 or idx[-1] >= self.ed.model.n_points:
+            raise InputError(f"indices: expected 0..{self.ed.model.n_points - 1}")
+        self.ed.add_selector(req["role"], Indices(tuple(int(i) for i in idx)),
+                             handle=int(req.get("handle", 0)))
+
     def _op_move_selector(self, req: dict[str, Any]) -> None:
         size = req.get("size")
         if size is not None:

@@ -534,7 +534,56 @@ renderer.domElement.addEventListener('pointerup', async (e) => {
   await applyState(st);
 });
 
+// ---- rectangle selection: the points drawn inside a screen rectangle become an indices selector
+function pointsInRect(x0, y0, x1, y1) {
+  const rect = renderer.domElement.getBoundingClientRect();
+  const p = deformedPositions(), n = S.scene.n, out = [];
+  camera.updateMatrixWorld();
+  const m = new THREE.Matrix4().multiplyMatrices(camera.projectionMatrix, camera.matrixWorldInverse).elements;
+  const [lx, hx, ly, hy] = [Math.min(x0, x1) - rect.left, Math.max(x0, x1) - rect.left,
+    Math.min(y0, y1) - rect.top, Math.max(y0, y1) - rect.top];
+  for (let i = 0; i < n; i++) {
+    const px = p[3 * i], py = p[3 * i + 1], pz = p[3 * i + 2];
+    const w = m[3] * px + m[7] * py + m[11] * pz + m[15];
+    if (w <= 0) continue;
+    const sx = ((m[0] * px + m[4] * py + m[8] * pz + m[12]) / w * 0.5 + 0.5) * rect.width;
+    const sy = (0.5 - (m[1] * px + m[5] * py + m[9] * pz + m[13]) / w * 0.5) * rect.height;
+    if (sx >= lx && sx <= hx && sy >= ly && sy <= hy) out.push(i);
+  }
+  return out;
+}
+
+let rectStart = null;
+renderer.domElement.addEventListener('pointerdown', (e) => {
+  if (!S.rectRole) return;
+  rectStart = [e.clientX, e.clientY];
+  orbit.enabled = false;
+}, true);
+renderer.domElement.addEventListener('pointermove', (e) => {
+  if (!rectStart) return;
+  const box = $('rect');
+  Object.assign(box.style, { display: 'block', left: `${Math.min(rectStart[0], e.clientX)}px`,
+    top: `${Math.min(rectStart[1], e.clientY)}px`, width: `${Math.abs(e.clientX - rectStart[0])}px`,
+    height: `${Math.abs(e.clientY - rectStart[1])}px` });
+});
+renderer.domElement.addEventListener('pointerup', async (e) => {
+  if (!rectStart) return;
+  const [x0, y0] = rectStart, role = S.rectRole;
+  rectStart = null; S.rectRole = null; orbit.enabled = true;
+  $('rect').style.display = 'none';
+  const indices = pointsInRect(x0, y0, e.clientX, e.clientY);
+  const handle = role === 'handle' ? Number($('active-handle').value || 0) : 0;
+  const st = await act({ op: 'add_indices', role, handle, indices });
+  const mine = (st.selectors || []).filter((s) => s.role === role && s.handle === handle);
+  if (!st.error && mine.length) S.selected = { type: 'selector', role, handle, index: mine[mine.length - 1].index };
+  await applyState(st);
+});
+window.sdPointsInRect = pointsInRect;
+
 // ---- panel -------------------------------------------------------------------------------
+for (const b of document.querySelectorAll('[data-rect]')) {
+  b.onclick = () => { S.rectRole = b.dataset.rect; S.placing = null; $('status').textContent = `drag a rectangle on the view: its points join the ${b.dataset.rect} region`; };
+}
 for (const b of document.querySelectorAll('[data-add]')) {
   b.onclick = () => { S.placing = b.dataset.add.split(' '); $('status').textContent = `click on the model to place the ${b.dataset.add}`; };
 }
