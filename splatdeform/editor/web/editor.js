@@ -495,25 +495,31 @@ function setPose(h, rows, send = true, inputTime) {
 }
 
 // ---- picking and placing -----------------------------------------------------------------
-function pick(clientX, clientY) {
+// Every drawn point (P + B dC) in canvas pixels: calls visit(i, sx, sy, w) for those in front.
+function forEachOnScreen(visit) {
   const rect = renderer.domElement.getBoundingClientRect();
-  const x = clientX - rect.left, y = clientY - rect.top;
   const p = deformedPositions(), n = S.scene.n;
   camera.updateMatrixWorld();
   const m = new THREE.Matrix4().multiplyMatrices(camera.projectionMatrix, camera.matrixWorldInverse).elements;
-  let best = -1, bestZ = Infinity;
-  const r2 = 12 * 12;
-  const cand = [];
   for (let i = 0; i < n; i++) {
     const px = p[3 * i], py = p[3 * i + 1], pz = p[3 * i + 2];
     const w = m[3] * px + m[7] * py + m[11] * pz + m[15];
     if (w <= 0) continue;
     const sx = ((m[0] * px + m[4] * py + m[8] * pz + m[12]) / w * 0.5 + 0.5) * rect.width;
     const sy = (0.5 - (m[1] * px + m[5] * py + m[9] * pz + m[13]) / w * 0.5) * rect.height;
-    const d2 = (sx - x) ** 2 + (sy - y) ** 2;
-    if (d2 < r2) cand.push([w, i]);
+    visit(i, sx, sy, w);
   }
-  for (const [w, i] of cand) if (w < bestZ) { bestZ = w; best = i; }
+  return { rect, p };
+}
+
+// The nearest point drawn within 12 px of a click (local coordinates), or null.
+function pick(clientX, clientY) {
+  const canvas = renderer.domElement.getBoundingClientRect();
+  const x = clientX - canvas.left, y = clientY - canvas.top;
+  let best = -1, bestZ = Infinity;
+  const { p } = forEachOnScreen((i, sx, sy, w) => {
+    if ((sx - x) ** 2 + (sy - y) ** 2 < 144 && w < bestZ) { bestZ = w; best = i; }
+  });
   return best < 0 ? null : [p[3 * best], p[3 * best + 1], p[3 * best + 2]];
 }
 window.sdPick = pick;
@@ -536,20 +542,10 @@ renderer.domElement.addEventListener('pointerup', async (e) => {
 
 // ---- rectangle selection: the points drawn inside a screen rectangle become an indices selector
 function pointsInRect(x0, y0, x1, y1) {
-  const rect = renderer.domElement.getBoundingClientRect();
-  const p = deformedPositions(), n = S.scene.n, out = [];
-  camera.updateMatrixWorld();
-  const m = new THREE.Matrix4().multiplyMatrices(camera.projectionMatrix, camera.matrixWorldInverse).elements;
-  const [lx, hx, ly, hy] = [Math.min(x0, x1) - rect.left, Math.max(x0, x1) - rect.left,
-    Math.min(y0, y1) - rect.top, Math.max(y0, y1) - rect.top];
-  for (let i = 0; i < n; i++) {
-    const px = p[3 * i], py = p[3 * i + 1], pz = p[3 * i + 2];
-    const w = m[3] * px + m[7] * py + m[11] * pz + m[15];
-    if (w <= 0) continue;
-    const sx = ((m[0] * px + m[4] * py + m[8] * pz + m[12]) / w * 0.5 + 0.5) * rect.width;
-    const sy = (0.5 - (m[1] * px + m[5] * py + m[9] * pz + m[13]) / w * 0.5) * rect.height;
-    if (sx >= lx && sx <= hx && sy >= ly && sy <= hy) out.push(i);
-  }
+  const c = renderer.domElement.getBoundingClientRect(), out = [];
+  const [lx, hx, ly, hy] = [Math.min(x0, x1) - c.left, Math.max(x0, x1) - c.left,
+    Math.min(y0, y1) - c.top, Math.max(y0, y1) - c.top];
+  forEachOnScreen((i, sx, sy) => { if (sx >= lx && sx <= hx && sy >= ly && sy <= hy) out.push(i); });
   return out;
 }
 
