@@ -393,25 +393,46 @@ def test_bad_requests_are_one_line_answers(bar_path):
     assert error_line(KeyError("role")).startswith("bad request")
 
 
-def test_rectangle_selection_becomes_an_indices_selector(page_server):
+@pytest.mark.parametrize("shape", ["rect", "lasso", "brush"])
+def test_screen_selection_becomes_an_indices_selector(page_server, shape):
+    path = {"rect": [(250, 250), (325, 350), (400, 450)],
+            "lasso": [(250, 250), (450, 260), (420, 460), (260, 420), (250, 250)],
+            "brush": [(250, 300), (300, 320), (350, 340), (400, 360)]}[shape]
     with Chromium(size=(1000, 700)) as tab:
         _open(tab, page_server.url())
-        tab.eval("document.querySelector('[data-rect=\"fixed\"]').click()")
-        # a rectangle around the middle of the view
-        x0, y0, x1, y1 = 250, 250, 400, 450
-        tab.mouse("mouseMoved", x0, y0)
-        tab.mouse("mousePressed", x0, y0, button="left", clickCount=1)
-        tab.mouse("mouseMoved", (x0 + x1) / 2, (y0 + y1) / 2, button="left")
-        tab.mouse("mouseMoved", x1, y1, button="left")
-        tab.mouse("mouseReleased", x1, y1, button="left", clickCount=1)
+        tab.eval(f"document.getElementById('select-shape').value = '{shape}'; "
+                 "document.querySelector('[data-select=\"fixed\"]').click()")
+        tab.mouse("mouseMoved", *path[0])
+        tab.mouse("mousePressed", *path[0], button="left", clickCount=1)
+        for x, y in path[1:]:
+            tab.mouse("mouseMoved", x, y, button="left")
+        tab.mouse("mouseReleased", *path[-1], button="left", clickCount=1)
         st = tab.wait("sdState().selectors.length && sdState()")
         sel = st["selectors"][0]
         assert sel["type"] == "indices" and sel["role"] == "fixed"
         picked = sel["yaml"]["indices"]
         assert 0 < len(picked) < N and st["counts"]["fixed"] == len(picked)
-        # exactly the points whose screen position is inside the rectangle
         positions = np.asarray(tab.eval("sdDeformedPositions()")).reshape(-1, 3)
         screen = np.asarray(tab.eval(f"{positions.tolist()}.map(p => sdScreenOf(p))"))
-    inside = ((screen[:, 0] >= x0) & (screen[:, 0] <= x1) & (screen[:, 1] >= y0) &
-              (screen[:, 1] <= y1))
-    assert sorted(picked) == np.flatnonzero(inside).tolist()
+    # exactly the points drawn inside the shape (oracles: a box test, the winding number,
+    # the distance to the stroke's samples)
+    if shape == "rect":
+        (x0, y0), (x1, y1) = path[0], path[-1]
+        inside = ((screen[:, 0] >= x0) & (screen[:, 0] <= x1) & (screen[:, 1] >= y0) &
+                  (screen[:, 1] <= y1))
+    elif shape == "lasso":
+        inside = _winding(np.asarray(path, float), screen) != 0
+    else:
+        d = np.linalg.norm(screen[:, None, :] - np.asarray(path, float)[None], axis=2)
+        inside = d.min(axis=1) <= 20
+    expected = np.flatnonzero(inside)
+    # points within a hair of the boundary may fall either way (float32 vs float64)
+    assert len(set(picked) ^ set(expected.tolist())) <= 2
+
+
+def _winding(poly: np.ndarray, pts: np.ndarray) -> np.ndarray:
+    """(M,) winding numbers of points (M, 2) about the closed polygon (P, 2), by summed angles."""
+    a = poly[None, :, :] - pts[:, None, :]
+    b = np.roll(poly, -1, axis=0)[None, :, :] - pts[:, None, :]
+    ang = np.arctan2(a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0], (a * b).sum(-1))
+    return np.rint(ang.sum(axis=1) / (2 * np.pi)).astype(int)

@@ -540,7 +540,9 @@ renderer.domElement.addEventListener('pointerup', async (e) => {
   await applyState(st);
 });
 
-// ---- rectangle selection: the points drawn inside a screen rectangle become an indices selector
+// ---- screen selection: the points drawn inside a rectangle, a lasso or under a brush stroke
+// become an indices selector of a region (what splat editors' users expect)
+const BRUSH_PX = 20;
 function pointsInRect(x0, y0, x1, y1) {
   const c = renderer.domElement.getBoundingClientRect(), out = [];
   const [lx, hx, ly, hy] = [Math.min(x0, x1) - c.left, Math.max(x0, x1) - c.left,
@@ -549,36 +551,81 @@ function pointsInRect(x0, y0, x1, y1) {
   return out;
 }
 
-let rectStart = null;
+function pointsInLasso(path) {  // even-odd rule against the closed polygon (page pixels)
+  const c = renderer.domElement.getBoundingClientRect(), out = [];
+  const poly = path.map(([x, y]) => [x - c.left, y - c.top]);
+  forEachOnScreen((i, sx, sy) => {
+    let inside = false;
+    for (let a = 0, b = poly.length - 1; a < poly.length; b = a++) {
+      const [xa, ya] = poly[a], [xb, yb] = poly[b];
+      if ((ya > sy) !== (yb > sy) && sx < (xb - xa) * (sy - ya) / (yb - ya) + xa) inside = !inside;
+    }
+    if (inside) out.push(i);
+  });
+  return out;
+}
+
+function pointsUnderBrush(path, radius = BRUSH_PX) {
+  const c = renderer.domElement.getBoundingClientRect(), out = [];
+  const pts = path.map(([x, y]) => [x - c.left, y - c.top]);
+  forEachOnScreen((i, sx, sy) => {
+    if (pts.some(([x, y]) => (sx - x) ** 2 + (sy - y) ** 2 <= radius * radius)) out.push(i);
+  });
+  return out;
+}
+
+const overlay = document.createElement('canvas');
+overlay.id = 'overlay';
+document.body.appendChild(overlay);
+function drawOverlay(path, shape) {
+  overlay.width = window.innerWidth; overlay.height = window.innerHeight;
+  const g = overlay.getContext('2d');
+  g.clearRect(0, 0, overlay.width, overlay.height);
+  if (!path) return;
+  g.strokeStyle = '#ff781e'; g.fillStyle = 'rgba(255,120,30,0.25)'; g.setLineDash([4, 3]);
+  const [x0, y0] = path[0], [x1, y1] = path[path.length - 1];
+  if (shape === 'rect') { g.strokeRect(Math.min(x0, x1), Math.min(y0, y1), Math.abs(x1 - x0), Math.abs(y1 - y0)); return; }
+  if (shape === 'brush') { for (const [x, y] of path) { g.beginPath(); g.arc(x, y, BRUSH_PX, 0, 2 * Math.PI); g.fill(); } return; }
+  g.beginPath(); g.moveTo(x0, y0);
+  for (const [x, y] of path) g.lineTo(x, y);
+  g.closePath(); g.stroke();
+}
+
+let stroke = null;
 renderer.domElement.addEventListener('pointerdown', (e) => {
-  if (!S.rectRole) return;
-  rectStart = [e.clientX, e.clientY];
+  if (!S.tool) return;
+  stroke = [[e.clientX, e.clientY]];
   orbit.enabled = false;
 }, true);
 renderer.domElement.addEventListener('pointermove', (e) => {
-  if (!rectStart) return;
-  const box = $('rect');
-  Object.assign(box.style, { display: 'block', left: `${Math.min(rectStart[0], e.clientX)}px`,
-    top: `${Math.min(rectStart[1], e.clientY)}px`, width: `${Math.abs(e.clientX - rectStart[0])}px`,
-    height: `${Math.abs(e.clientY - rectStart[1])}px` });
+  if (!stroke) return;
+  stroke.push([e.clientX, e.clientY]);
+  drawOverlay(stroke, S.tool.shape);
 });
 renderer.domElement.addEventListener('pointerup', async (e) => {
-  if (!rectStart) return;
-  const [x0, y0] = rectStart, role = S.rectRole;
-  rectStart = null; S.rectRole = null; orbit.enabled = true;
-  $('rect').style.display = 'none';
-  const indices = pointsInRect(x0, y0, e.clientX, e.clientY);
+  if (!stroke) return;
+  stroke.push([e.clientX, e.clientY]);
+  const path = stroke, { role, shape } = S.tool;
+  stroke = null; S.tool = null; orbit.enabled = true;
+  drawOverlay(null);
+  const [x0, y0] = path[0], [x1, y1] = path[path.length - 1];
+  const indices = shape === 'rect' ? pointsInRect(x0, y0, x1, y1)
+    : shape === 'lasso' ? pointsInLasso(path) : pointsUnderBrush(path);
   const handle = role === 'handle' ? Number($('active-handle').value || 0) : 0;
   const st = await act({ op: 'add_indices', role, handle, indices });
   const mine = (st.selectors || []).filter((s) => s.role === role && s.handle === handle);
   if (!st.error && mine.length) S.selected = { type: 'selector', role, handle, index: mine[mine.length - 1].index };
   await applyState(st);
 });
-window.sdPointsInRect = pointsInRect;
+window.sdSelectIn = { rect: pointsInRect, lasso: pointsInLasso, brush: pointsUnderBrush };
 
 // ---- panel -------------------------------------------------------------------------------
-for (const b of document.querySelectorAll('[data-rect]')) {
-  b.onclick = () => { S.rectRole = b.dataset.rect; S.placing = null; $('status').textContent = `drag a rectangle on the view: its points join the ${b.dataset.rect} region`; };
+for (const b of document.querySelectorAll('[data-select]')) {
+  b.onclick = () => {
+    const shape = $('select-shape').value;
+    S.tool = { role: b.dataset.select, shape }; S.placing = null;
+    $('status').textContent = `drag a ${shape} on the view: its points join the ${b.dataset.select} region`;
+  };
 }
 for (const b of document.querySelectorAll('[data-add]')) {
   b.onclick = () => { S.placing = b.dataset.add.split(' '); $('status').textContent = `click on the model to place the ${b.dataset.add}`; };
