@@ -14,6 +14,21 @@ uniform highp sampler2D u_basis;
 uniform int u_basis_width;
 uniform vec3 u_delta[K];
 
+#if K == 4
+// one handle: 4 texels, read as vectors (software WebGL runs this faster than the array form)
+vec4 basis_texel(int t) {
+    return texelFetch(u_basis, ivec2(t % u_basis_width, t / u_basis_width), 0);
+}
+mat3 deform_point(int i, inout vec3 p) {
+    vec4 v = basis_texel(4 * i), g0 = basis_texel(4 * i + 1), g1 = basis_texel(4 * i + 2),
+         g2 = basis_texel(4 * i + 3);
+    p += v.x * u_delta[0] + v.y * u_delta[1] + v.z * u_delta[2] + v.w * u_delta[3];
+    return mat3(1.0) + outerProduct(u_delta[0], g0.xyz)
+         + outerProduct(u_delta[1], vec3(g0.w, g1.xy))
+         + outerProduct(u_delta[2], vec3(g1.zw, g2.x))
+         + outerProduct(u_delta[3], g2.yzw);
+}
+#else
 mat3 deform_point(int i, inout vec3 p) {
     float b[4 * K];
     for (int j = 0; j < K; ++j) {
@@ -32,6 +47,7 @@ mat3 deform_point(int i, inout vec3 p) {
     }
     return J;
 }
+#endif
 #else
 mat3 deform_point(int i, inout vec3 p) {
     return mat3(1.0);
