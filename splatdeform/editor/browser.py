@@ -36,7 +36,8 @@ class Chromium:
         exe = shutil.which("chromium") or shutil.which("chromium-browser")
         if exe is None:
             raise InputError("chromium: not found; `make test` installs it (apt chromium)")
-        self.profile = tempfile.TemporaryDirectory(prefix="sd-chromium-")
+        self.profile = tempfile.TemporaryDirectory(prefix="sd-chromium-",
+                                                   ignore_cleanup_errors=True)
         self.proc = subprocess.Popen(
             [exe, *FLAGS, f"--window-size={size[0]},{size[1]}", "--remote-debugging-port=0",
              f"--user-data-dir={self.profile.name}", "about:blank"],

@@ -37,8 +37,9 @@ class EditorHTTPServer(ThreadingHTTPServer):
         self.session = session
         self.token = secrets.token_urlsafe(16)
         self.lock = threading.Lock()
-        self.arrays = payload.model_arrays(session.ed)
-        self.scene = payload.scene_info(session.ed)
+        normals, source = payload.display_normals(session.ed)  # PCA at most once
+        self.arrays = payload.model_arrays(session.ed, normals)
+        self.scene = payload.scene_info(session.ed, self.arrays, source)
 
     def url(self) -> str:
         host, port = self.server_address[:2]

@@ -52,17 +52,19 @@ def model_kind(ed: EditorController) -> str:
     return "splats" if m.gaussians is not None else "mesh" if m.n_faces else "points"
 
 
-def model_arrays(ed: EditorController) -> dict[str, np.ndarray]:
+def model_arrays(ed: EditorController, normals: np.ndarray | None = None
+                 ) -> dict[str, np.ndarray]:
     """The page's per-model arrays: positions (N, 3) float32 local, colors (N, 4) uint8 (RGB
     as stored or neutral grey; alpha the 3DGS opacity), and when present normals (N, 3) float32,
     faces (F, 3) uint32, cov6 (N, 6) float32 (xx, xy, xz, yy, yz, zz), sh_rest (N, 3 * R)
-    float32 channel-major."""
+    float32 channel-major. ``normals``: :func:`display_normals` when already computed."""
     m = ed.model
     out: dict[str, np.ndarray] = {
         "positions": (np.asarray(m.positions, np.float64) - ed.origin).astype(np.float32),
         "colors": view.splat_rgba(m, view.base_colors(m).astype(np.float32)),
     }
-    normals, _ = display_normals(ed)
+    if normals is None:
+        normals, _ = display_normals(ed)
     if normals is not None:
         out["normals"] = normals
     if m.n_faces:
@@ -83,10 +85,13 @@ def sh_degree(ed: EditorController) -> int:
     return {3: 1, 8: 2, 15: 3}.get(per_channel, 0)
 
 
-def scene_info(ed: EditorController) -> dict[str, Any]:
-    """JSON-able description of the model for the page."""
-    arrays = model_arrays(ed)
-    _, normals_from = display_normals(ed)
+def scene_info(ed: EditorController, arrays: dict[str, np.ndarray] | None = None,
+               normals_from: str | None = None) -> dict[str, Any]:
+    """JSON-able description of the model for the page (``arrays``, ``normals_from``: from
+    :func:`model_arrays` / :func:`display_normals` when already computed)."""
+    if arrays is None or normals_from is None:
+        normals, normals_from = display_normals(ed)
+        arrays = model_arrays(ed, normals)
     return {
         "name": ed.model_path.name, "kind": model_kind(ed), "n": int(ed.model.n_points),
         "n_faces": int(ed.model.n_faces), "diagonal": float(max(ed.model.diagonal(), 1e-9)),
