@@ -9,7 +9,7 @@ APT_PKGS := pocl-opencl-icd ocl-icd-libopencl1 libusb-1.0-0 libegl1 libegl-mesa0
 SUDO    := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
 DEMO_DIR := demo_out
 
-.PHONY: demo test setup system lint bench clean oracle
+.PHONY: demo test setup system lint bench clean oracle editor-vendor
 
 system:
 	@missing=""; for p in $(APT_PKGS); do dpkg -s $$p >/dev/null 2>&1 || missing="$$missing $$p"; done; \
@@ -55,6 +55,20 @@ lint: setup
 
 bench: setup
 	for b in benchmarks/bench_*.py; do echo "== $$b"; $(PY) $$b || exit 1; done
+
+# The editor page's WebGL2 library: three.js from the npm registry at a pinned version (npm pack
+# checks the tarball against the registry's integrity hash). The copied files are committed, so
+# `splatdeform edit` never fetches anything at run time; this target only refreshes them.
+THREE_VERSION := 0.160.0
+VENDOR := splatdeform/editor/web/vendor
+editor-vendor:
+	rm -rf build/three && mkdir -p build/three $(VENDOR)
+	cd build/three && npm pack --silent three@$(THREE_VERSION) >/dev/null && tar xzf three-$(THREE_VERSION).tgz
+	cp build/three/package/build/three.module.min.js build/three/package/LICENSE $(VENDOR)/
+	cp build/three/package/examples/jsm/controls/OrbitControls.js $(VENDOR)/
+	cp build/three/package/examples/jsm/controls/TransformControls.js $(VENDOR)/
+	echo "three.js $(THREE_VERSION) from the npm registry (make editor-vendor); MIT, see LICENSE" > $(VENDOR)/VERSION
+	@du -cb $(VENDOR)/* | tail -1
 
 clean:
 	rm -rf $(DEMO_DIR) build dist .pytest_cache

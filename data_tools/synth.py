@@ -68,6 +68,25 @@ def sphere(n_points: int = 10000, *, radius: float = 1.0, seed: int = 0) -> Poin
                       kind="surfel_radius")
 
 
+def gaussian_bar(n_points: int = 150000, *, sh_degree: int = 0, seed: int = 0) -> PointModel:
+    """A 3DGS model of n Gaussians on the bumpy bar (benchmarks at real-scene sizes): random
+    rotations, 2-10 mm scales, logit opacities, SH DC colours and ``sh_degree`` bands."""
+    from splatdeform.model import Gaussians
+
+    rng = np.random.default_rng(seed)
+    bar = bumpy_bar(n_points, seed=seed)
+    q = rng.normal(size=(n_points, 4)).astype(np.float32)
+    rest = None
+    if sh_degree:
+        rest = rng.normal(scale=0.1, size=(n_points, 3 * ((sh_degree + 1) ** 2 - 1)))
+    g = Gaussians(scale_log=np.log(rng.uniform(0.002, 0.01, (n_points, 3))).astype(np.float32),
+                  rotation=q / np.linalg.norm(q, axis=1, keepdims=True),
+                  opacity=rng.normal(size=n_points).astype(np.float32),
+                  sh_dc=rng.normal(size=(n_points, 3)).astype(np.float32),
+                  sh_rest=None if rest is None else rest.astype(np.float32))
+    return PointModel(positions=bar.positions, gaussians=g, kind="gaussians")
+
+
 def main(argv: list[str] | None = None) -> None:
     from splatdeform.io import save
 

@@ -209,7 +209,10 @@ def cmd_select(args: argparse.Namespace) -> int:
 
 
 def cmd_edit(args: argparse.Namespace) -> int:
-    from .editor.server import run
+    if args.viewer == "viser":
+        from .editor.server import run
+    else:
+        from .editor.page_server import run
 
     if not 0 <= args.port <= 65535:
         raise InputError(f"--port: expected 0..65535, got {args.port}")
@@ -414,6 +417,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--save-dir", metavar="DIR",
                    help="the one folder Save writes into, by file name (default: the folder "
                         "of MODEL or EDIT.yaml)")
+    p.add_argument("--viewer", choices=("page", "viser"), default="page",
+                   help="page (default): the editor's WebGL2 page, deforming on the browser's "
+                        "GPU; viser: the older viewer fed whole deformed frames")
     p.set_defaults(func=cmd_edit)
 
     from .batch import register as register_batch

@@ -477,7 +477,8 @@ class EditorController:
     def to_config(self, *, output: str | Path | None = None,
                   config_dir: str | Path | None = None) -> EditConfig:
         """The edit config of the current state: regions in the editor's units, the handle pose
-        as ``matrix`` rows, the backend written out. Paths are relative to ``config_dir``
+        as ``matrix`` rows, the backend as configured (``auto`` unless one was chosen). Paths
+        are relative to ``config_dir``
         (default: the editor's base folder) when they are inside it."""
         return parse_edit(self.to_yaml_dict(output=output, config_dir=config_dir),
                           "editor state")
@@ -511,7 +512,7 @@ class EditorController:
             "boundary": s.boundary.model_dump(),
             "fit": s.fit.model_dump(),
             "normals": s.normals,
-            "backend": self.resolved_backend(),
+            "backend": s.backend,  # "auto" stays "auto": the YAML also runs without OpenCL
         })
         if s.device is not None:
             data["device"] = s.device
@@ -552,10 +553,18 @@ class EditorController:
 
     def save(self, model_path: str | Path | None = None, config_path: str | Path | None = None,
              image_path: str | Path | None = None, *, image: bool = True,
-             image_size: tuple[int, int] = (512, 512)) -> SaveResult:
+             image_size: tuple[int, int] | None = None) -> SaveResult:
         """Write the deformed model (atomic, never over the input), the edit YAML that
         reproduces it through ``splatdeform deform``, and (``image``) a before/after PNG through
-        the project's renderer. Defaults: :meth:`default_paths`."""
+        the project's renderer, ``image_size`` (width, height) pixels for both panels, as
+        ``deform --render`` (default: ``render.size`` of the loaded YAML, else its default
+        1200 x 600; the view from ``render``'s azimuth, elevation, fov, up and roll). Defaults:
+        :meth:`default_paths`."""
+        r = self.settings.render
+        if image_size is None:
+            image_size = tuple(r.size) if r is not None else (1200, 600)
+        view = {} if r is None else {"azimuth": r.azimuth, "elevation": r.elevation,
+                                     "fov": r.fov, "up": r.up, "roll": r.roll}
         from ..io import atomic_write
 
         d_model, d_yaml, d_png = self.default_paths()
@@ -581,7 +590,8 @@ class EditorController:
         if image:
             from ..render import render_comparison
 
-            render_comparison(self.model, deformed, png, size=image_size,
+            render_comparison(self.model, deformed, png, **view,
+                              size=(max(image_size[0] // 2, 1), image_size[1]),
                               labels=("before", "after"))
         return SaveResult(written, ypath, png if image else None)
 

@@ -25,7 +25,7 @@ from pathlib import Path
 from typing import Any
 from urllib.parse import parse_qs, urlsplit
 
-from ..errors import InputError
+from ..errors import InputError, SplatdeformError
 
 LOOPBACK_NAMES = ("localhost", "127.0.0.1", "::1", "ip6-localhost")
 
@@ -191,5 +191,20 @@ class SaveFolder:
         return [p for p in paths if p.exists()]
 
 
-__all__ = ["SaveFolder", "exposure_warning", "guarded_viser", "is_loopback", "new_token",
-           "refusal", "request_token"]
+def default_save_folder(controller: Any,
+                        save_dir: str | Path | None = None) -> SaveFolder:
+    """The save folder (``save_dir``, else the folder of the model or config opened) and the
+    edit's inputs, which saves never replace."""
+    from ..edit.config import input_paths
+
+    inputs = [controller.model_path, *([controller.config_path] if controller.config_path
+                                       else [])]
+    with contextlib.suppress(SplatdeformError, AttributeError, TypeError):
+        inputs += [p for _, p in input_paths(controller.settings, controller.base_dir)]
+    root = save_dir if save_dir is not None else (
+        controller.config_path or controller.model_path).parent
+    return SaveFolder(Path(root), inputs)
+
+
+__all__ = ["SaveFolder", "default_save_folder", "exposure_warning", "guarded_viser",
+           "is_loopback", "new_token", "refusal", "request_token"]

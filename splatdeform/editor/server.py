@@ -9,7 +9,6 @@ fast drag never queues stale frames.
 
 from __future__ import annotations
 
-import contextlib
 import signal
 import sys
 import threading
@@ -24,7 +23,13 @@ from splatdeform.deform.gaussians import quaternion_to_matrix
 from ..errors import SplatdeformError
 from . import view
 from .controller import EditorController, Frame
-from .security import SaveFolder, exposure_warning, guarded_viser, new_token
+from .security import (
+    SaveFolder,
+    default_save_folder,
+    exposure_warning,
+    guarded_viser,
+    new_token,
+)
 
 ROLE_COLORS = {"fixed": (50, 110, 255), "handle": (255, 120, 30)}
 
@@ -505,21 +510,6 @@ class EditorApp:
     def close(self) -> None:
         self._closing = True
         self._wake.set()
-
-
-def default_save_folder(controller: EditorController,
-                        save_dir: str | Path | None = None) -> SaveFolder:
-    """The save folder (``save_dir``, else the folder of the model or config opened) and the
-    edit's inputs, which saves never replace."""
-    from ..edit.config import input_paths
-
-    inputs = [controller.model_path, *([controller.config_path] if controller.config_path
-                                       else [])]
-    with contextlib.suppress(SplatdeformError, AttributeError, TypeError):
-        inputs += [p for _, p in input_paths(controller.settings, controller.base_dir)]
-    root = save_dir if save_dir is not None else (
-        controller.config_path or controller.model_path).parent
-    return SaveFolder(Path(root), inputs)
 
 
 def run(path: str, *, host: str = "127.0.0.1", port: int = 8080,

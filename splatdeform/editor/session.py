@@ -1,0 +1,199 @@
+"""The editor page's actions over one controller (no web imports): JSON-able requests in,
+JSON-able state out. :mod:`.page_server` only moves these over HTTP.
+
+Coordinates in requests and answers are *local* (model minus ``controller.origin``), as the page
+draws them. Every change is recorded for undo / redo (:mod:`.history`); a pose drag sends
+``pose`` messages (16 floats) and records once when the drag ends (``commit``).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..errors import InputError, SplatdeformError
+from . import payload
+from . import selectors as sl
+from .controller import EditorController
+from .history import History
+from .security import SaveFolder, default_save_folder
+
+DEFAULT_SIZE = 0.08  # a new selector: this fraction of the model's diagonal
+
+
+class Session:
+    """Controller + undo history + what the page needs to know (see the module docstring)."""
+
+    def __init__(self, ed: EditorController, save_folder: SaveFolder | None = None) -> None:
+        self.ed = ed
+        self.save_folder = save_folder or default_save_folder(ed)
+        self._confirm_pending: tuple[str, str, str] | None = None
+        self.history = History(ed)
+        self.fit_id = 0
+        self.last_fit: dict[str, Any] = {}
+        self.message = ""
+
+    # ---- state --------------------------------------------------------------------------
+    def _selector_info(self, role: str, h: int, i: int, sel: Any) -> dict[str, Any]:
+        shape = sl.shape_of(sel, self.ed.model, self.ed.units)
+        return {"role": role, "handle": h, "index": i, "kind": shape.kind,
+                "type": type(sel).__name__.lower(),
+                "center": [float(v) for v in shape.center - self.ed.origin],
+                "size": [float(v) for v in shape.size],
+                "normal": [float(v) for v in shape.normal],
+                "yaml": sl.to_yaml(sel, self.ed.base_dir)}
+
+    def state(self) -> dict[str, Any]:
+        ed = self.ed
+        sels = [self._selector_info("fixed", 0, i, s) for i, s in enumerate(ed.fixed)]
+        for h, state in enumerate(ed.handles):
+            sels += [self._selector_info("handle", h, i, s)
+                     for i, s in enumerate(state.selectors)]
+        fit = None
+        if ed.deformation is not None:
+            _, control = payload.basis_arrays_meta(ed)
+            fit = {"id": self.fit_id, "k": int(ed.deformation.k), "control": control,
+                   "stats": {k: (v if isinstance(v, (int, float, bool, str)) else str(v))
+                             for k, v in self.last_fit.items()}}
+        return {
+            "selectors": sels, "handles": len(ed.handles), "fit": fit, "stale": ed.stale,
+            "poses": [payload.model_to_local(ed, h.matrix).tolist() for h in ed.handles],
+            "counts": ed.counts(), "problem": ed.problem(),
+            "can_undo": bool(self.history.undo_stack), "can_redo": bool(self.history.redo_stack),
+            "message": self.message,
+            "defaults": [p.name for p in ed.default_paths()],
+            "save_folder": str(self.save_folder.root),
+        }
+
+    # ---- actions ------------------------------------------------------------------------
+    def act(self, req: dict[str, Any]) -> dict[str, Any]:
+        """Apply one request; returns the new state (``pose`` without ``commit``: {"ok": 1})."""
+        op = req.get("op")
+        handler = getattr(self, f"_op_{op}", None) if isinstance(op, str) else None
+        if handler is None:
+            raise InputError(f"op: unknown editor action {op!r}")
+        self.message = ""
+        quick = handler(req)
+        if quick is not None:
+            return quick
+        self.history.record()
+        return self.state()
+
+    def _center(self, req: dict[str, Any], key: str = "center") -> np.ndarray | None:
+        v = req.get(key)
+        if v is None:
+            return None
+        a = np.asarray(v, np.float64)
+        if a.shape != (3,) or not np.isfinite(a).all():
+            raise InputError(f"{key}: expected 3 finite numbers")
+        return a + self.ed.origin
+
+    def _op_add_selector(self, req: dict[str, Any]) -> None:
+        role, kind, h = req["role"], req["kind"], int(req.get("handle", 0))
+        index = self.ed.add_selector(role, kind, handle=h, center=self._center(req))
+        if kind != "plane":
+            size = req.get("size")
+            if size is None:
+                d = DEFAULT_SIZE * self.ed.model.diagonal()
+                size = [d, d, d] if kind == "box" else d / 2
+            self.ed.move_selector(role, index, size=size, handle=h)
+
+    def _op_add_indices(self, req: dict[str, Any]) -> None:
+        """A screen-space selection (rectangle) as an ``indices`` selector."""
+        from splatdeform.edit.selectors import Indices
+
+        idx = np.unique(np.asarray(req.get("indices", []), dtype=np.int64))
+        if idx.size == 0:
+            raise InputError("selection: the rectangle holds no point; drag over the model")
+        if idx[0] < 0 or idx[-1] >= self.ed.model.n_points:
+            raise InputError(f"indices: expected 0..{self.ed.model.n_points - 1}")
+        self.ed.add_selector(req["role"], Indices(tuple(int(i) for i in idx)),
+                             handle=int(req.get("handle", 0)))
+
+    def _op_move_selector(self, req: dict[str, Any]) -> None:
+        size = req.get("size")
+        if size is not None:
+            size = np.asarray(size, np.float64)
+            if not np.isfinite(size).all() or (size <= 0).any():
+                raise InputError("size: expected positive numbers")
+        normal = req.get("normal")
+        self.ed.move_selector(req["role"], int(req["index"]), center=self._center(req),
+                              size=size, normal=None if normal is None else np.asarray(normal),
+                              handle=int(req.get("handle", 0)))
+
+    def _op_remove_selector(self, req: dict[str, Any]) -> None:
+        self.ed.remove_selector(req["role"], int(req["index"]), handle=int(req.get("handle", 0)))
+
+    def _op_add_handle(self, req: dict[str, Any]) -> None:
+        self.ed.add_handle()
+
+    def _op_fit(self, req: dict[str, Any]) -> None:
+        self.last_fit = self.ed.fit()
+        self.fit_id += 1
+
+    def _op_pose(self, req: dict[str, Any]) -> dict[str, Any] | None:
+        m = np.asarray(req["matrix"], np.float64).reshape(4, 4)
+        h = int(req.get("handle", 0))
+        if self.ed.stale:
+            raise InputError("fit: the regions changed since the last fit (or there is none); "
+                             "fit again before moving the handle")
+        if not np.isfinite(m).all() or not np.allclose(m[3], [0, 0, 0, 1]):
+            raise InputError("pose: expected a finite 4x4 affine matrix (last row 0 0 0 1)")
+        self.ed._region("handle", h)
+        self.ed.handles[h].matrix = payload.local_to_model(self.ed, m)
+        return None if req.get("commit") else {"ok": 1}
+
+    def _op_reset_pose(self, req: dict[str, Any]) -> None:
+        self.ed.reset_pose(int(req.get("handle", 0)))
+
+    def _op_undo(self, req: dict[str, Any]) -> dict[str, Any]:
+        self.history.undo()
+        return self.state()
+
+    def _op_redo(self, req: dict[str, Any]) -> dict[str, Any]:
+        self.history.redo()
+        return self.state()
+
+    def _op_save(self, req: dict[str, Any]) -> dict[str, Any]:
+        """Save under the file *names* typed in the page, into the save folder (never a path,
+        never an input). An existing file is replaced only when the page repeats the same
+        names with ``replace`` after the user confirmed (the state's ``confirm`` lists them)."""
+        names = tuple(str(req.get(k) or "") for k in ("model", "yaml", "png"))
+        replace = bool(req.get("replace")) and self._confirm_pending == names
+        self._confirm_pending = None
+        paths = self.save_folder.targets([("model", names[0]), ("edit YAML", names[1]),
+                                          ("before/after", names[2])])
+        existing = self.save_folder.existing(paths)
+        if existing and not replace:
+            self._confirm_pending = names
+            self.message = ("exists already: " + ", ".join(p.name for p in existing)
+                            + "; press Replace to overwrite, or change the names")
+            return {**self.state(), "confirm": [p.name for p in existing]}
+        result = self.save(*paths)
+        self.message = "wrote " + ", ".join(p.name for p in
+                                            (result.model, result.config, result.image) if p)
+        return self.state()
+
+    def save(self, model: Path, config: Path, image: Path):
+        """The controller's save (the PNG at ``render.size`` when the YAML has one)."""
+        return self.ed.save(model, config, image)
+
+    # ---- arrays -------------------------------------------------------------------------
+    def labels(self) -> np.ndarray:
+        return self.ed.labels()
+
+    def basis(self) -> np.ndarray:
+        if self.ed.deformation is None:
+            raise InputError("fit: no fit yet")
+        return payload.basis_arrays(self.ed)[0]
+
+
+def error_line(exc: Exception) -> str:
+    """The one line the page shows for a failed action."""
+    if isinstance(exc, SplatdeformError):
+        return str(exc)
+    if isinstance(exc, (KeyError, TypeError, ValueError)):
+        return f"bad request: {type(exc).__name__}: {exc}"
+    return f"internal error: {type(exc).__name__}: {exc}"

@@ -1,0 +1,28 @@
+// splatdeform editor page: the deform math of deform.glsl read back by transform feedback, for
+// the parity test against splatdeform/basis/reference.py (host prepends "#define K", deform.glsl).
+in vec3 position;
+in vec3 normal;
+in vec3 cov_a;   // xx xy xz
+in vec3 cov_b;   // yy yz zz
+out vec3 o_position;
+out vec3 o_normal;
+out vec3 o_cov_a;
+out vec3 o_cov_b;
+out vec3 o_r0;
+out vec3 o_r1;
+out vec3 o_r2;
+void main() {
+    vec3 p = position;
+    mat3 J = deform_point(gl_VertexID, p);
+    mat3 s = mat3(cov_a.x, cov_a.y, cov_a.z, cov_a.y, cov_b.x, cov_b.y, cov_a.z, cov_b.y, cov_b.z);
+    s = J * s * transpose(J);
+    mat3 R = polar_rotation(J);
+    o_position = p;
+    o_normal = deform_normal(J, normal);
+    o_cov_a = vec3(s[0][0], s[1][0], s[2][0]);
+    o_cov_b = vec3(s[1][1], s[2][1], s[2][2]);
+    o_r0 = R[0];  // columns
+    o_r1 = R[1];
+    o_r2 = R[2];
+    gl_Position = vec4(0.0);
+}

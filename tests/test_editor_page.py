@@ -1,0 +1,445 @@
+"""The editor's WebGL2 page: its session (undo / redo, poses in local coordinates), the arrays it
+uploads, the page's deform shader math read back from a real headless chromium (software WebGL)
+against splatdeform/basis/reference.py, and the whole edit driven through the DevTools protocol
+(click to place, numeric size, Fit, drag the handle gizmo, undo / redo, Save) compared with a
+CLI run of the saved YAML."""
+
+from __future__ import annotations
+
+import shutil
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+from conftest import shared_file
+
+import splatdeform as sd
+from data_tools.synth import bumpy_bar
+from splatdeform.basis import reference
+from splatdeform.deform import full_basis
+from splatdeform.edit.selectors import Box
+from splatdeform.editor import EditorController, payload
+from splatdeform.editor.browser import Chromium
+from splatdeform.editor.page_server import make_server
+from splatdeform.editor.session import Session
+from splatdeform.errors import InputError
+
+N = 2000
+
+
+@pytest.fixture(scope="module")
+def bar_path(tmp_path_factory) -> Path:
+    path = tmp_path_factory.mktemp("page") / "bar.ply"
+    sd.save(bumpy_bar(N, seed=5), path)
+    return path
+
+
+def _local(ed: EditorController, model_point) -> list[float]:
+    return [float(v) for v in np.asarray(model_point, float) - ed.origin]
+
+
+def _fitted_session(path: Path) -> Session:
+    s = Session(EditorController.open(path))
+    s.ed.settings.fit.tolerance = 1e-3
+    s.act({"op": "add_selector", "role": "fixed", "kind": "box",
+           "center": _local(s.ed, (0, 0, 0)), "size": [2, 2, 2]})
+    s.act({"op": "add_selector", "role": "handle", "kind": "box",
+           "center": _local(s.ed, (4, 0, 0)), "size": [2, 2, 2]})
+    s.act({"op": "fit"})
+    return s
+
+
+# ---- session and payload (no browser) ------------------------------------------------------
+def test_new_selectors_are_sized_relative_to_the_model(bar_path):
+    s = Session(EditorController.open(bar_path))
+    st = s.act({"op": "add_selector", "role": "fixed", "kind": "sphere",
+                "center": _local(s.ed, (0, 0, 0))})
+    sel = st["selectors"][0]
+    assert sel["size"][0] == pytest.approx(0.04 * s.ed.model.diagonal())
+    assert np.allclose(sel["center"], _local(s.ed, (0, 0, 0)))
+    assert st["counts"]["fixed"] > 0
+
+
+def test_undo_restores_regions_and_poses_and_keeps_the_fit(bar_path):
+    s = _fitted_session(bar_path)
+    fit = s.ed.deformation
+    pose = np.eye(4)
+    pose[:3, 3] = (0, 0.5, 0)
+    s.act({"op": "pose", "handle": 0, "matrix": pose.tolist()})       # a drag step
+    s.act({"op": "pose", "handle": 0, "matrix": pose.tolist(), "commit": True})
+    assert np.allclose(s.ed.handles[0].matrix[:3, 3], (0, 0.5, 0))   # a translation
+    # a wrong grab of the fixed box: the fit goes stale ...
+    st = s.act({"op": "move_selector", "role": "fixed", "index": 0,
+                "center": _local(s.ed, (2, 0, 0))})
+    assert st["stale"]
+    # ... and undo brings back the regions, the pose and the same fit
+    st = s.act({"op": "undo"})
+    assert not st["stale"] and s.ed.deformation is fit
+    assert np.allclose(st["poses"][0], pose)
+    st = s.act({"op": "undo"})
+    assert np.allclose(st["poses"][0], np.eye(4)) and st["can_redo"]
+    st = s.act({"op": "redo"})
+    assert np.allclose(st["poses"][0], pose)
+    with pytest.raises(InputError, match="op"):
+        s.act({"op": "explode"})
+
+
+def test_basis_upload_is_the_deform_glsl_layout(bar_path):
+    s = _fitted_session(bar_path)
+    ed = s.ed
+    basis, control = payload.basis_arrays(ed)
+    values, grads = full_basis(ed.deformation)
+    k = values.shape[1]
+    assert basis.shape == (N, 4 * k) and basis.dtype == np.float32
+    assert np.array_equal(basis[:, :k], values)
+    assert np.array_equal(basis[:, k:].reshape(N, k, 3), grads)
+    # delta C from a local pose equals the controller's from the same model-space pose
+    m_local = np.eye(4)
+    m_local[:3, :3] = [[0, -1, 0], [1, 0, 0], [0, 0, 1]]
+    m_local[:3, 3] = (0.3, 0.1, 0)
+    ed.handles[0].matrix = payload.local_to_model(ed, m_local)
+    ours = (control @ m_local[:3, :3].T + m_local[:3, 3]) - control
+    assert np.allclose(ours, ed.delta_c(), atol=1e-9)
+    assert np.allclose(payload.model_to_local(ed, ed.handles[0].matrix), m_local)
+
+
+def test_up_axis_follows_render_up_and_the_renderer_rule(bar_path, tmp_path):
+    ed = EditorController.open(bar_path)
+    assert payload.up_axis(ed) == "+y"
+    cfg = {"input": str(bar_path), "output": str(tmp_path / "o.ply"),
+           "regions": {"fixed": [{"box": {"min": [-1, -1, -1], "max": [1, 1, 1]}}],
+                       "handle": [{"box": {"min": [3, -1, -1], "max": [5, 1, 1]}}]},
+           "handle": {"matrix": np.eye(4).tolist()},
+           "render": {"output": str(tmp_path / "o.png"), "up": "+z", "size": [320, 160]}}
+    (tmp_path / "e.yaml").write_text(yaml.safe_dump(cfg))
+    ed = EditorController.open(tmp_path / "e.yaml")
+    assert payload.up_axis(ed) == "+z"
+    info = payload.scene_info(ed)
+    assert info["up_vector"] == [0, 0, 1] and info["normals"] == "file"
+
+
+def test_display_normals_are_estimated_only_for_clouds(bar_path, tmp_path):
+    bar = bumpy_bar(500, seed=1)
+    bare = sd.PointModel(positions=bar.positions)
+    sd.save(bare, tmp_path / "bare.ply")
+    normals, source = payload.display_normals(EditorController.open(tmp_path / "bare.ply"))
+    assert source == "estimated"
+    assert np.allclose(np.linalg.norm(normals, axis=1), 1, atol=1e-5)
+    # estimated normals agree with the true ones up to sign on most points
+    assert np.median(np.abs(np.sum(normals * bar.normals, axis=1))) > 0.9
+
+
+# ---- the page in a real headless chromium ---------------------------------------------------
+@pytest.fixture()
+def page_server(bar_path):
+    srv = make_server(bar_path, port=0)
+    thread = threading.Thread(target=srv.serve_forever, daemon=True)
+    thread.start()
+    yield srv
+    srv.shutdown()
+    srv.server_close()
+
+
+def _open(tab: Chromium, url: str) -> None:
+    tab.open(url)
+    tab.wait("window.sdReady === true || !!window.sdError", 90)
+    assert tab.eval("window.sdError || ''") == "", tab.console
+
+
+def _polar(j: np.ndarray) -> np.ndarray:
+    u, _, vt = np.linalg.svd(j)
+    return u @ vt
+
+
+@pytest.mark.parametrize("handles", [1, 2])
+def test_page_shader_math_matches_the_reference(page_server, handles):
+    ed = page_server.session.ed
+    ed.settings.fit.tolerance = 1e-3
+    ed.add_selector("fixed", Box((-1, -1, -1), (1, 1, 1)))
+    ed.add_selector("handle", Box((3, -1, -1), (5, 1, 1)))
+    ed.fit()
+    rng = np.random.default_rng(3)
+    n = 300
+    pts = rng.uniform(ed.model.bbox()[0], ed.model.bbox()[1], (n, 3))
+    ref = reference.compute_basis(pts, ed.deformation.fit)          # float64 oracle
+    values, gradients = ref.values, ref.gradients
+    if handles == 2:  # k = 8 (two handles): the general path of deform.glsl
+        values = np.concatenate([values, 0.5 * values[:, ::-1]], axis=1)
+        gradients = np.concatenate([gradients, 0.5 * gradients[:, ::-1]], axis=1)
+    k = values.shape[1]
+    basis = np.concatenate([values, gradients.reshape(n, 3 * k)], axis=1)
+    delta = rng.normal(scale=0.3 * 4 / k, size=(k, 3))   # deformations of the same size
+    normals = rng.normal(size=(n, 3))
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    a = rng.normal(size=(n, 3, 3)) * 0.05
+    cov = a @ a.transpose(0, 2, 1) + 1e-4 * np.eye(3)
+    cov6 = cov.reshape(n, 9)[:, [0, 1, 2, 4, 5, 8]]
+    local = pts - ed.origin
+    with Chromium() as tab:
+        _open(tab, page_server.url())
+        arg = {"k": k, "positions": local.ravel().tolist(), "normals": normals.ravel().tolist(),
+               "cov6": cov6.ravel().tolist(), "basis": basis.ravel().tolist(),
+               "delta": delta.ravel().tolist()}
+        got = np.asarray(tab.eval(f"sdParity({__import__('json').dumps(arg)})")).reshape(n, 21)
+        page_delta = np.asarray(tab.eval(
+            f"sdDelta([{np.eye(4).tolist()}], {np.zeros((4, 3)).tolist()})"))
+    assert np.allclose(page_delta, 0)
+    # the float64 maths of shaders/deform.glsl from the reference basis
+    p = local + values @ delta
+    jac = np.eye(3) + np.einsum("ka,nkb->nab", delta, gradients)
+    cof = np.linalg.inv(jac).transpose(0, 2, 1) * np.linalg.det(jac)[:, None, None]
+    nrm = np.einsum("nab,nb->na", cof, normals)
+    nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
+    sig = jac @ cov @ jac.transpose(0, 2, 1)
+    rot = np.stack([_polar(j) for j in jac])
+    scale = np.abs(p).max()
+    assert np.abs(got[:, 0:3] - p).max() < 1e-5 * scale
+    assert np.abs(got[:, 3:6] - nrm).max() < 1e-4
+    s6 = sig.reshape(n, 9)[:, [0, 1, 2, 4, 5, 8]]
+    assert np.abs(got[:, 6:12] - s6).max() < 1e-4 * np.abs(s6).max()
+    r_cols = got[:, 12:21].reshape(n, 3, 3).transpose(0, 2, 1)   # the shader writes columns
+    # 12 Newton steps converge for the Jacobians of editing (condition number below ~20)
+    ok = np.linalg.cond(jac) < 20
+    assert ok.mean() > 0.9
+    assert np.abs(r_cols - rot)[ok].max() < 1e-4
+
+
+def test_page_edit_end_to_end_matches_the_cli(bar_path, tmp_path):
+    work = tmp_path / "w"
+    work.mkdir()
+    src = work / "bar.ply"
+    shutil.copy(bar_path, src)
+    proc = subprocess.Popen([sys.executable, "-m", "splatdeform.cli", "edit", str(src),
+                             "--port", "0"], stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                            text=True)
+    url = None
+    for line in proc.stdout:
+        if "splatdeform editor: http://" in line:
+            url = line.split()[2]
+            break
+    assert url, "the editor printed no URL"
+    try:
+        with Chromium(size=(1100, 750)) as tab:
+            _open(tab, url)
+            origin = np.asarray(tab.eval(
+                "fetch('/api/scene', {headers: {'X-Editor-Token': new URLSearchParams("
+                "location.search).get('t')}}).then(r => r.json()).then(s => s.origin)"))
+
+            def place(role: str, kind: str, model_point) -> dict:
+                tab.eval(f"document.querySelector('[data-add=\"{role} {kind}\"]').click()")
+                x, y = tab.eval(f"sdScreenOf({_as_list(np.asarray(model_point) - origin)})")
+                tab.mouse("mousePressed", x, y, button="left", clickCount=1)
+                tab.mouse("mouseReleased", x, y, button="left", clickCount=1)
+                return tab.wait(f"sdState().selectors.filter(s => s.role === '{role}').length"
+                                " && sdState()")
+
+            # a surface point near each end of the bar, clicked on screen
+            bar = sd.load(src)
+            ends = [bar.positions[np.argmin(np.abs(bar.positions[:, 0] - x) +
+                                            3 * np.abs(bar.positions[:, 2] - 0.5))]
+                    for x in (0.0, 4.0)]
+            st = place("fixed", "box", ends[0])
+            assert st["counts"]["fixed"] > 0
+            st = place("handle", "box", ends[1])
+            assert st["counts"]["handle"] > 0
+            # the new handle box is the selected item: the numeric size field edits it
+            tab.eval("(() => { for (const id of ['sx', 'sy', 'sz']) { const e = "
+                     "document.getElementById(id); e.value = 2.0; e.dispatchEvent(new "
+                     "Event('change')); } })()")
+            tab.wait("sdState().selectors.find(s => s.role === 'handle').size[1] === 2")
+            fixed_before = tab.eval("sdState().selectors.find(s => s.role === 'fixed').size")
+            assert fixed_before[1] != 2.0
+            tab.eval("document.getElementById('fit').click()")
+            tab.wait("sdState().fit && !sdState().stale", 120)
+            # drag the pose gizmo's centre handle on screen
+            x, y = tab.eval("sdGizmoScreen()")
+            tab.mouse("mouseMoved", x, y)
+            tab.mouse("mousePressed", x, y, button="left", clickCount=1)
+            for step in range(1, 6):
+                tab.mouse("mouseMoved", x + 4 * step, y - 12 * step, button="left")
+            tab.mouse("mouseReleased", x + 20, y - 60, button="left", clickCount=1)
+            tab.wait("sdState().can_undo && sdState().poses[0][1][3] !== 0")
+            moved = tab.eval("sdState().poses[0]")
+            assert tab.eval("sdStats.poseBytes") <= 1024
+            assert tab.eval("sdStats.poses") >= 1
+            tab.eval("document.getElementById('undo').click()")
+            tab.wait("sdState().poses[0][1][3] === 0")
+            tab.eval("document.getElementById('redo').click()")
+            tab.wait("sdState().poses[0][1][3] !== 0")
+            assert np.allclose(tab.eval("sdState().poses[0]"), moved)
+            # the drawn points moved where the page's own P + B dC says
+            shown = np.asarray(tab.eval("sdDeformedPositions()")).reshape(-1, 3)
+            tab.eval("document.getElementById('save').click()")
+            tab.wait("window.sdLastSave && window.sdLastSave.message", 120)
+            assert tab.eval("window.sdLastSave.error || ''") == ""
+    finally:
+        proc.terminate()
+        proc.communicate(timeout=30)
+    saved_yaml = work / "bar_edit.yaml"
+    data = yaml.safe_load(saved_yaml.read_text())
+    assert data["backend"] == "auto"
+    assert (work / "bar_edit.png").is_file()
+    saved = sd.load(work / "bar_edited.ply")
+    assert np.abs(saved.positions - origin - shown).max() < 1e-3 * bar.diagonal()
+    data["output"] = "again.ply"
+    (work / "again.yaml").write_text(yaml.safe_dump(data))
+    run = subprocess.run([sys.executable, "-m", "splatdeform.cli", "deform", "again.yaml"],
+                         cwd=work, capture_output=True, text=True, timeout=300)
+    assert run.returncode == 0, run.stderr
+    assert (work / "again.ply").read_bytes() == (work / "bar_edited.ply").read_bytes()
+
+
+def _as_list(v) -> str:
+    return str([float(x) for x in v])
+
+
+def test_scanned_mesh_without_normals_is_shaded(tmp_path):
+    from io import BytesIO
+
+    from PIL import Image
+
+    path = shared_file("scans/bunny_res2.ply")
+    srv = make_server(path, port=0)
+    threading.Thread(target=srv.serve_forever, daemon=True).start()
+    try:
+        assert srv.scene["kind"] == "mesh" and srv.scene["normals"] == "none"
+        with Chromium(size=(900, 600)) as tab:
+            _open(tab, srv.url())
+            time.sleep(0.5)
+            img = np.asarray(Image.open(BytesIO(tab.screenshot())).convert("L")).astype(int)
+    finally:
+        srv.shutdown()
+        srv.server_close()
+    view_area = img[:, :560]
+    bg = np.bincount(view_area.ravel()).argmax()
+    model = view_area[np.abs(view_area - bg) > 12]
+    assert model.size > 0.03 * view_area.size, "the mesh is not drawn"
+    # shaded, not one flat grey: many grey levels with a wide spread
+    assert len(np.unique(model)) > 40 and model.std() > 15
+
+
+def test_splat_scene_is_drawn_sorted_by_the_page(tmp_path):
+    from io import BytesIO
+
+    from PIL import Image
+
+    path = shared_file("splats/tile_3dgs_sh3.ply")
+    srv = make_server(path, port=0)
+    threading.Thread(target=srv.serve_forever, daemon=True).start()
+    try:
+        assert srv.scene["kind"] == "splats" and srv.scene["sh_degree"] == 3
+        assert srv.scene["up"] == "-y"   # the renderer's rule for 3DGS files
+        with Chromium(size=(900, 600)) as tab:
+            _open(tab, srv.url())
+            img = np.asarray(Image.open(BytesIO(tab.screenshot())).convert("RGB")).astype(int)
+            # the page's back-to-front order is a permutation of all splats
+            order = tab.eval(f"Array.from(sdDebug.order().slice(0, {srv.scene['n']}))")
+    finally:
+        srv.shutdown()
+        srv.server_close()
+    assert sorted(int(i) for i in order) == list(range(srv.scene["n"]))
+    view_area = img[:, :560]
+    bg = view_area[2, 2]
+    drawn = (np.abs(view_area - bg).sum(axis=2) > 40).mean()
+    assert drawn > 0.05, f"the splats are not drawn ({drawn:.3f})"
+
+
+def test_png_uses_render_size_of_the_loaded_yaml(bar_path, tmp_path):
+    from PIL import Image
+
+    work = tmp_path
+    shutil.copy(bar_path, work / "bar.ply")
+    cfg = {"input": "bar.ply", "output": "bent.ply",
+           "regions": {"fixed": [{"box": {"min": [-1, -1, -1], "max": [1, 1, 1]}}],
+                       "handle": [{"box": {"min": [3, -1, -1], "max": [5, 1, 1]}}]},
+           "handle": {"matrix": np.eye(4).tolist()}, "fit": {"tolerance": 1e-3},
+           "render": {"output": "bent.png", "size": [320, 160]}}
+    (work / "e.yaml").write_text(yaml.safe_dump(cfg))
+    s = Session(EditorController.open(work / "e.yaml"))
+    s.act({"op": "fit"})
+    st = s.act({"op": "save", "model": "out.ply", "yaml": "out.yaml", "png": "out.png"})
+    assert "wrote" in st["message"]
+    image = Image.open(work / "out.png")
+    assert image.size[0] == 320 and image.size[1] >= 160
+    assert yaml.safe_load((work / "out.yaml").read_text())["backend"] == "auto"
+
+
+def test_api_needs_the_printed_token(page_server):
+    import urllib.error
+    import urllib.request
+
+    host, port = page_server.server_address[:2]
+    opener = urllib.request.build_opener(urllib.request.ProxyHandler({}))
+    with pytest.raises(urllib.error.HTTPError) as err:
+        opener.open(f"http://{host}:{port}/api/state", timeout=10)
+    assert err.value.code == 403
+    assert b"<html" in opener.open(page_server.url(), timeout=10).read().lower()
+    req = urllib.request.Request(f"http://{host}:{port}/api/state",
+                                 headers={"X-Editor-Token": page_server.token,
+                                          "Origin": "http://evil.example"})
+    with pytest.raises(urllib.error.HTTPError) as err:
+        opener.open(req, timeout=10)
+    assert err.value.code == 403
+
+
+def test_bad_requests_are_one_line_answers(bar_path):
+    s = Session(EditorController.open(bar_path))
+    for req in ({"op": "pose", "matrix": np.eye(4).tolist()},             # no fit yet
+                {"op": "move_selector", "role": "fixed", "index": 3},    # no such selector
+                {"op": "add_selector", "role": "fixed", "kind": "box", "center": [1, 2]}):
+        with pytest.raises(InputError) as err:
+            s.act(req)
+        assert "\n" not in str(err.value)
+    from splatdeform.editor.session import error_line
+
+    assert error_line(KeyError("role")).startswith("bad request")
+
+
+@pytest.mark.parametrize("shape", ["rect", "lasso", "brush"])
+def test_screen_selection_becomes_an_indices_selector(page_server, shape):
+    path = {"rect": [(250, 250), (325, 350), (400, 450)],
+            "lasso": [(250, 250), (450, 260), (420, 460), (260, 420), (250, 250)],
+            "brush": [(250, 300), (300, 320), (350, 340), (400, 360)]}[shape]
+    with Chromium(size=(1000, 700)) as tab:
+        _open(tab, page_server.url())
+        tab.eval(f"document.getElementById('select-shape').value = '{shape}'; "
+                 "document.querySelector('[data-select=\"fixed\"]').click()")
+        tab.mouse("mouseMoved", *path[0])
+        tab.mouse("mousePressed", *path[0], button="left", clickCount=1)
+        for x, y in path[1:]:
+            tab.mouse("mouseMoved", x, y, button="left")
+        tab.mouse("mouseReleased", *path[-1], button="left", clickCount=1)
+        st = tab.wait("sdState().selectors.length && sdState()")
+        sel = st["selectors"][0]
+        assert sel["type"] == "indices" and sel["role"] == "fixed"
+        picked = sel["yaml"]["indices"]
+        assert 0 < len(picked) < N and st["counts"]["fixed"] == len(picked)
+        positions = np.asarray(tab.eval("sdDeformedPositions()")).reshape(-1, 3)
+        screen = np.asarray(tab.eval(f"{positions.tolist()}.map(p => sdScreenOf(p))"))
+    # exactly the points drawn inside the shape (oracles: a box test, the winding number,
+    # the distance to the stroke's samples)
+    if shape == "rect":
+        (x0, y0), (x1, y1) = path[0], path[-1]
+        inside = ((screen[:, 0] >= x0) & (screen[:, 0] <= x1) & (screen[:, 1] >= y0) &
+                  (screen[:, 1] <= y1))
+    elif shape == "lasso":
+        inside = _winding(np.asarray(path, float), screen) != 0
+    else:
+        d = np.linalg.norm(screen[:, None, :] - np.asarray(path, float)[None], axis=2)
+        inside = d.min(axis=1) <= 20
+    expected = np.flatnonzero(inside)
+    # points within a hair of the boundary may fall either way (float32 vs float64)
+    assert len(set(picked) ^ set(expected.tolist())) <= 2
+
+
+def _winding(poly: np.ndarray, pts: np.ndarray) -> np.ndarray:
+    """(M,) winding numbers of points (M, 2) about the closed polygon (P, 2), by summed angles."""
+    a = poly[None, :, :] - pts[:, None, :]
+    b = np.roll(poly, -1, axis=0)[None, :, :] - pts[:, None, :]
+    ang = np.arctan2(a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0], (a * b).sum(-1))
+    return np.rint(ang.sum(axis=1) / (2 * np.pi)).astype(int)
