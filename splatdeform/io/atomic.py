@@ -25,6 +25,7 @@ from collections.abc import Iterable, Iterator
 from pathlib import Path
 
 from ..errors import InputError
+from ..interrupts import deferred_signals
 
 PathLike = str | os.PathLike
 Named = tuple[str, PathLike | None]  # (what it is, e.g. "input model", path)
@@ -221,23 +222,30 @@ def atomic_path(out: PathLike) -> Iterator[Path]:
     _check_chars("output", out)
     out.parent.mkdir(parents=True, exist_ok=True)
     remove_stale_temps(out)
-    fd, tmp = tempfile.mkstemp(dir=out.parent, prefix=f".{out.stem}.{os.getpid()}-",
-                               suffix=f".tmp{out.suffix}")
-    os.close(fd)
-    tmp_path = Path(tmp)
+    tmp_path: Path | None = None
     try:
+        # Ctrl-C / SIGTERM between creating the temporary file and knowing its name would leave
+        # it behind: held for those few lines, delivered inside the try (which removes it)
+        with deferred_signals():
+            fd, tmp = tempfile.mkstemp(dir=out.parent, prefix=f".{out.stem}.{os.getpid()}-",
+                                       suffix=f".tmp{out.suffix}")
+            os.close(fd)
+            tmp_path = Path(tmp)
         yield tmp_path
         os.chmod(tmp_path, normal_mode(out))
         os.replace(tmp_path, out)
     except OSError as exc:  # name the output, not the temporary file that is gone now
+        if tmp_path is None:
+            raise
         with contextlib.suppress(OSError):
             tmp_path.unlink()
         if exc.filename not in (str(tmp_path), tmp_path) and exc.filename is not None:
             raise
         raise OSError(exc.errno, exc.strerror or str(exc), str(out)) from exc
     except BaseException:
-        with contextlib.suppress(OSError):
-            tmp_path.unlink()
+        if tmp_path is not None:
+            with contextlib.suppress(OSError):
+                tmp_path.unlink()
         raise
 
 
