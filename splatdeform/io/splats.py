@@ -107,6 +107,34 @@ def fields_of(model: PointModel, path: str | Path, fmt: str) -> SplatFields:
                        sh_rest=rest.reshape(n, 3, -1).astype(np.float32, copy=False))
 
 
+def unchanged_rows(model: PointModel, fields: SplatFields) -> np.ndarray | None:
+    """(N,) bool: splats whose fields still equal the values decoded from the model's quantised
+    input (its PLY source's vertex element, same count and order); None when the model has no
+    quantised input or a different count or SH layout."""
+    source = model.source
+    decoded = None if source is None else source.element("vertex")
+    if getattr(source, "quantised", None) is None or decoded is None or \
+            decoded.count != fields.count:
+        return None
+    data = decoded.data
+    names = data.dtype.names or ()
+    n = fields.count
+    rest = fields.sh_rest.reshape(n, -1)
+    n_rest = sum(1 for m in names if m.startswith("f_rest_"))
+    if n_rest != rest.shape[1]:
+        return None
+    same = np.ones(n, dtype=bool)
+    for cols, values in ((list("xyz"), fields.positions.astype(np.float32)),
+                         ([f"scale_{i}" for i in range(3)], fields.scale_log),
+                         ([f"rot_{i}" for i in range(4)], fields.rotation),
+                         (["opacity"], fields.opacity[:, None]),
+                         ([f"f_dc_{i}" for i in range(3)], fields.sh_dc),
+                         ([f"f_rest_{i}" for i in range(n_rest)], rest)):
+        for j, name in enumerate(cols):
+            same &= data[name] == values[:, j]
+    return same
+
+
 def dropped_properties(model: PointModel) -> list[str]:
     """Vertex properties of the model's source that no splat format holds (named in the
     lossy-write note: normals, colours, custom fields ...)."""
