@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import numpy as np
 
-SAMPLE_PER_CENTRE = 64
+SAMPLE_PER_CENTRE = 16
 BLOCK = 4096
 
 
