@@ -262,8 +262,9 @@ def _sh_rest(path: Path, files: _Files, meta: dict, n: int, codes: SogCodes) -> 
         raise FormatError(f"{path}: SOG shN label {int(labels.max())} outside the "
                           f"{count}-entry palette")
     codes.labels, codes.centroids = labels, centroids.copy()
-    # (N, K, 3) -> (N, 3, K): PLY's channel-major f_rest order
-    return np.ascontiguousarray(book[centroids[labels]].transpose(0, 2, 1))
+    # the palette's values in PLY's channel-major f_rest order (P, 3, K), then one gather
+    values = np.ascontiguousarray(book[centroids].transpose(0, 2, 1))
+    return values[labels]
 
 
 def read_info(path: str | Path) -> dict:
