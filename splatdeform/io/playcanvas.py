@@ -126,7 +126,7 @@ def decompress(source: PlySource, path: str | Path) -> PlySource:
                          opacity=(-np.log(1 / alpha - 1)).astype(np.float32),
                          sh_dc=dc.astype(np.float32), sh_rest=rest.reshape(n, 3, -1))
     comments = [*source.comments, "decompressed from a PlayCanvas .compressed.ply by splatdeform"]
-    return replace(gaussian_source(fields, comments), obj_info=list(source.obj_info),
+    return replace(gaussian_source(fields, comments, release=True), obj_info=list(source.obj_info),
                    quantised=source)
 
 
