@@ -50,6 +50,10 @@ def main() -> None:
     parser = argparse.ArgumentParser()
     parser.add_argument("--n", type=int, default=1_000_000)
     parser.add_argument("--formats", nargs="*", default=FORMATS)
+    parser.add_argument("--their-sog-write", action="store_true",
+                        help="also time splat-transform's SOG write (-g cpu: over 7 min at 200k "
+                             "Gaussians on the development machine); without it, its SOG read "
+                             "decodes our .sog")
     args = parser.parse_args()
     from splat_oracle import write_scene
 
@@ -69,11 +73,11 @@ def main() -> None:
             ours_out, theirs_out = tmp / f"ours{ext}", tmp / f"theirs{ext}"
             rows = []
             w_ours = timed([sys.executable, "-c", OURS, str(src), str(ours_out)])
-            w_theirs = (timed([*st, *extra, str(src), str(theirs_out)]) if ext != ".splat"
-                        else None)
+            their_write = ext != ".splat" and (ext != ".sog" or args.their_sog_write)
+            w_theirs = timed([*st, *extra, str(src), str(theirs_out)]) if their_write else None
             rows.append(("write", w_ours, w_theirs))
             r_ours = timed([sys.executable, "-c", OURS_READ, str(ours_out)])
-            r_theirs = (timed([*st, str(ours_out if ext == ".splat" else theirs_out), "null"])
+            r_theirs = (timed([*st, str(theirs_out if their_write else ours_out), "null"])
                         if ext != ".glb" else None)
             rows.append(("read", r_ours, r_theirs))
             for step, ours, theirs in rows:
