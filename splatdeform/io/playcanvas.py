@@ -116,9 +116,12 @@ def decompress(source: PlySource, path: str | Path) -> PlySource:
         if len(names) % 3:
             raise FormatError(f"{path}: PlayCanvas compressed file: {len(names)} f_rest "
                               "values per splat (a multiple of 3 expected)")
-        codes = np.stack([sh.data[name] for name in names], axis=1).astype(np.float32)
-        rest = ((codes + np.float32(0.5)) / np.float32(256) - np.float32(0.5)) \
-            * np.float32(SH_RANGE)
+        rest = np.empty((n, len(names)), dtype=np.float32)  # decoded in place, column by column
+        for j, name in enumerate(names):
+            rest[:, j] = sh.data[name]
+        rest += np.float32(0.5)  # ((v + 0.5) / 256 - 0.5) * 8, exact in float32
+        rest *= np.float32(SH_RANGE / 256)
+        rest -= np.float32(SH_RANGE / 2)
     from .splats import SplatFields, gaussian_source
 
     fields = SplatFields(positions=positions, scale_log=scale_log.astype(np.float32),

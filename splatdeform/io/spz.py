@@ -174,11 +174,14 @@ def decode(raw: bytes, path: str | Path) -> tuple[SplatFields, dict]:
     else:
         q = _v3_rotations(take(4 * n).view("<u4").copy())
     rotation = np.stack([q[:, 3], q[:, 0], -q[:, 1], -q[:, 2]], axis=1)
-    sh = (take(3 * k * n).reshape(n, k, 3).astype(np.float32) - 128) / 128
-    sh_rest = np.ascontiguousarray(sh.transpose(0, 2, 1)) * SH_FLIP[:k]
+    # SH rest in place in one (N, 3, K) float32 array (the largest decoded field: no temporaries)
+    sh_rest = np.empty((n, 3, k), dtype=np.float32)
+    np.subtract(take(3 * k * n).reshape(n, k, 3).transpose(0, 2, 1), np.float32(128),
+                out=sh_rest)
+    sh_rest *= SH_FLIP[:k] / np.float32(128)
     return SplatFields(positions=positions, scale_log=scale_log.astype(np.float32),
                        rotation=rotation.astype(np.float32), opacity=opacity.astype(np.float32),
-                       sh_dc=dc.astype(np.float32), sh_rest=sh_rest.astype(np.float32)), info
+                       sh_dc=dc.astype(np.float32), sh_rest=sh_rest), info
 
 
 def _fractional_bits(positions: np.ndarray) -> int:
