@@ -420,8 +420,9 @@ def test_sog_folder_reads_and_writes_like_the_bundle(tmp_path, oracle):
 
 
 def test_sog_untouched_splats_keep_their_codes(tmp_path):
-    """Re-saving an edited SOG: splats that kept their decoded values keep every code, and the
-    codebook entries they use keep their values; the edited splats are re-quantised."""
+    """Re-saving an edited SOG: splats that kept their decoded values keep every code (pixel),
+    and the codebook and palette entries they use keep their index and value; the edited
+    splats are re-quantised."""
     src = _sog_scene(tmp_path, 1500, 30, seed=3)
     first = tmp_path / "first.sog"
     _save_quiet(load(src), first)
@@ -435,20 +436,23 @@ def test_sog_untouched_splats_keep_their_codes(tmp_path):
     _save_quiet(model, second)
     a, b = _sog_members(first), _sog_members(second)
     assert a["meta"]["means"] == b["meta"]["means"]  # the moved splats stay inside its range
-    for key in ("scales", "sh0", "shN"):
-        book_a = np.asarray(a["meta"][key]["codebook"])
-        book_b = np.asarray(b["meta"][key]["codebook"])
-        if key == "shN":
-            continue  # palette entries move; compared through the decoded values below
-        image = key + ".webp"
-        used = np.unique(a[image].reshape(-1, 4)[:1500][~moved, :3])
-        new_codes = b[image].reshape(-1, 4)[:1500][~moved, :3]
-        old_codes = a[image].reshape(-1, 4)[:1500][~moved, :3]
-        np.testing.assert_array_equal(book_b[new_codes], book_a[old_codes])
-        assert np.isin(book_a[used], book_b).all()
-    for image in ("means_l.webp", "means_u.webp", "quats.webp"):
+    for image in ("means_l.webp", "means_u.webp", "quats.webp", "scales.webp", "sh0.webp",
+                  "shN_labels.webp"):  # every per-splat code of the untouched splats
         np.testing.assert_array_equal(a[image].reshape(-1, 4)[:1500][~moved],
                                       b[image].reshape(-1, 4)[:1500][~moved])
+    for key, image in (("scales", "scales.webp"), ("sh0", "sh0.webp")):
+        used = np.unique(a[image].reshape(-1, 4)[:1500][~moved, :3])
+        np.testing.assert_array_equal(np.asarray(b["meta"][key]["codebook"])[used],
+                                      np.asarray(a["meta"][key]["codebook"])[used])
+    labels = a["shN_labels.webp"].reshape(-1, 4)[:1500][~moved]
+    used = np.unique(labels[:, 0].astype(int) | labels[:, 1].astype(int) << 8)
+    k = 15
+    pa = a["shN_centroids.webp"].reshape(-1, 64 * k, 4)[:, :, :3].reshape(-1, k, 3)
+    pb = b["shN_centroids.webp"].reshape(-1, 64 * k, 4)[:, :, :3].reshape(-1, k, 3)
+    np.testing.assert_array_equal(pb[used], pa[used])  # the palette entries they use
+    sh_used = np.unique(pa[used])
+    np.testing.assert_array_equal(np.asarray(b["meta"]["shN"]["codebook"])[sh_used],
+                                  np.asarray(a["meta"]["shN"]["codebook"])[sh_used])
     before, after = fields(load(first)), fields(load(second))
     for name in ("positions", "scale_log", "rotation", "opacity", "sh_dc", "sh_rest"):
         np.testing.assert_array_equal(getattr(after, name)[~moved],

@@ -345,7 +345,8 @@ def encode(f: SplatFields, *, keep: SogCodes | None = None, same: np.ndarray | N
 
     keep/same: the codes of the scene the fields were read from and (N,) bool of the splats
     still holding their decoded values: those splats keep their codes, and the codebook entries
-    they use keep their values (the k-means fits the other entries to the changed splats)."""
+    and palette entries they use keep their index and value (the k-means fits the other
+    entries to the changed splats)."""
     n = f.count
     width, height = _size(n)
     reuse = keep is not None and same is not None and same.any()
@@ -417,21 +418,31 @@ def _codebook_codes(values: np.ndarray, old_codes: np.ndarray | None,
         data = values[~same]
     book = kmeans_1d(np.asarray(data, dtype=np.float32).ravel(), CODEBOOK, fixed=fixed,
                      fill=np.asarray(values, dtype=np.float32).ravel())
-    codes = nearest_1d(book, values)
-    if old_codes is not None:
-        # the fixed entries sit where the old book had them? no: map old index -> new index
-        remap = nearest_1d(book, old_book[used])
-        table = np.zeros(CODEBOOK, dtype=np.uint8)
-        table[used] = remap
-        codes[same] = table[old_codes[same]]
-    return codes, book
+    if old_codes is None:
+        return nearest_1d(book, values), book
+    # the kept entries stay at their old indices (same value, same code); the k-means' other
+    # centres fill the free slots
+    free_values = list(book)
+    for value in np.unique(fixed):
+        free_values.remove(value)
+    final = np.empty(CODEBOOK, dtype=np.float32)
+    final[used] = old_book[used]
+    slots = np.setdiff1d(np.arange(CODEBOOK), used)
+    final[slots] = np.sort(np.asarray(free_values, dtype=np.float32))[:len(slots)] \
+        if free_values else old_book[used][0]
+    codes = nearest_1d(final, values)
+    codes[same] = old_codes[same]
+    return codes, final
 
 
 def nearest_1d(book: np.ndarray, values: np.ndarray) -> np.ndarray:
-    """Index of the nearest entry of a sorted (256,) book for each value (uint8, same shape)."""
+    """Index of the nearest entry of a (256,) book (any order) for each value (uint8, the
+    values' shape)."""
     values = np.asarray(values, dtype=np.float32)
-    mid = (book[1:] + book[:-1]) * np.float32(0.5)
-    return np.searchsorted(mid, values).astype(np.uint8)
+    order = np.argsort(book, kind="stable")
+    ordered = book[order]
+    mid = (ordered[1:] + ordered[:-1]) * np.float32(0.5)
+    return order[np.searchsorted(mid, values)].astype(np.uint8)
 
 
 def _encode_sh(f: SplatFields, keep: SogCodes | None, same: np.ndarray | None,
@@ -445,14 +456,24 @@ def _encode_sh(f: SplatFields, keep: SogCodes | None, same: np.ndarray | None,
         palette_n = max(palette_n, min(MAX_PALETTE, len(used) + palette_n // 2))
         old_book = _old_book(keep, "shN")
         fixed_rows = old_book[keep.centroids[used]].reshape(len(used), 3 * k)
-        centres, labels = kmeans_rows(rows[~same], palette_n, fixed=fixed_rows,
-                                      iterations=iterations, seed=SEED)
+        found, labels = kmeans_rows(rows[~same], palette_n, fixed=fixed_rows,
+                                    iterations=iterations, seed=SEED)
+        # kept palette entries stay at their old labels; the new ones fill the free slots
+        total = max(len(found), int(used.max()) + 1 if len(used) else 0)
+        slot = np.empty(len(found), dtype=np.int64)
+        slot[:len(used)] = used
+        slot[len(used):] = np.setdiff1d(np.arange(total), used)[:len(found) - len(used)]
+        centres = np.zeros((total, 3 * k), dtype=np.float32)
+        centres[slot] = found
+        kept = np.zeros(total, dtype=bool)
+        kept[used] = True
+        old_codes = np.zeros((total, 3 * k), dtype=np.uint8)
+        old_codes[used] = keep.centroids[used].reshape(len(used), -1)
         all_labels = np.empty(n, dtype=np.int64)
-        all_labels[~same] = labels
-        all_labels[same] = np.searchsorted(used, keep.labels[same])
-        # centroid values: the kept entries keep their codes and the old codebook entries
-        codes, book = _codebook_codes(centres, None, None, None) if len(used) == 0 else \
-            _kept_centroid_codes(centres, len(used), keep.centroids[used], old_book)
+        all_labels[~same] = slot[labels]
+        all_labels[same] = keep.labels[same]
+        codes, book = _codebook_codes(centres, old_codes if len(used) else None,
+                                      old_book if len(used) else None, kept)
     else:
         centres, all_labels = kmeans_rows(rows, palette_n, iterations=iterations, seed=SEED)
         codes, book = _codebook_codes(centres, None, None, None)
@@ -470,16 +491,6 @@ def _encode_sh(f: SplatFields, keep: SogCodes | None, same: np.ndarray | None,
     shn = {"count": count, "bands": {3: 1, 8: 2, 15: 3}[k], "codebook": book.tolist(),
            "files": FILES["shN"]}
     return shn, members
-
-
-def _kept_centroid_codes(centres: np.ndarray, n_fixed: int, old_codes: np.ndarray,
-                         old_book: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Codes of the palette (the first ``n_fixed`` entries keep their old codebook values)."""
-    same = np.zeros(len(centres), dtype=bool)
-    same[:n_fixed] = True
-    flat_old = np.zeros((len(centres), old_codes.shape[1] * 3), dtype=np.uint8)
-    flat_old[:n_fixed] = old_codes.reshape(n_fixed, -1)
-    return _codebook_codes(centres, flat_old, old_book, same)
 
 
 def write_model(model: PointModel, path: Path, stream) -> None:
