@@ -117,8 +117,8 @@ class PlySource:
 
     elements: in file order; comments / obj_info: header lines in order; text: ascii format;
     byte_order: '<' or '>' for binary files. quantised: the quantised file this source was
-    decoded from (a PlayCanvas compressed PlySource), so a re-quantising save keeps the codes
-    of untouched chunks; None otherwise.
+    decoded from (a PlayCanvas compressed PlySource, or a SOG's codes), so a re-quantising save
+    keeps the codes of untouched chunks or splats; None otherwise.
     """
 
     elements: list[PlyElementData]
@@ -126,7 +126,7 @@ class PlySource:
     obj_info: list[str] = field(default_factory=list)
     text: bool = False
     byte_order: str = "<"
-    quantised: PlySource | None = None
+    quantised: PlySource | object | None = None
 
     def element(self, name: str) -> PlyElementData | None:
         for element in self.elements:

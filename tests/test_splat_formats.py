@@ -1,4 +1,4 @@
-"""Splat formats in and out (.compressed.ply, .splat, .spz), cross-checked against PlayCanvas
+"""Splat formats in and out (.compressed.ply, .splat, .spz, .sog), cross-checked against PlayCanvas
 splat-transform (pinned, installed by ``make test`` into .cache/; a missing oracle fails).
 
 Directions per format (splat-transform 3.7.0 reads .ply .compressed.ply .splat .ksplat .spz .sog
@@ -27,12 +27,18 @@ ORACLE = {
     ".compressed.ply": (True, True, ()),
     ".splat": (True, False, ()),
     ".spz": (True, True, ("--spz-version", "3")),
+    ".sog": (True, True, ("-g", "cpu")),
 }
 # our decode vs the original scene: the format's quantisation step (see each module)
 ROUND_TRIP = {
     ".compressed.ply": dict(pos=0.006, scale=0.004, rot=2e-5, alpha=2.5e-3, dc=0.02, rest=0.016),
     ".splat": dict(pos=1e-6, scale=1e-6, rot=1e-4, alpha=2.5e-3, dc=0.008, rest=0.0),
     ".spz": dict(pos=1.3e-4, scale=0.032, rot=5e-6, alpha=2.5e-3, dc=0.0131, rest=0.067),
+    # SOG: 16-bit log-spaced positions (5 m from the origin: 2^-16 of the log range, times
+    # e^|n|), 8-bit rotation, codebooks of 256 entries for the 2100 scale and dc values; random
+    # SH rows (incompressible) through a 64-entry palette: only bounded here, the palette and
+    # its codebook are checked in test_sog_sh_palette_is_exact_for_few_distinct_rows
+    ".sog": dict(pos=4e-4, scale=0.03, rot=2e-4, alpha=2.5e-3, dc=0.02, rest=1.0),
 }
 SAME = dict(pos=1e-5, scale=1e-5, rot=1e-6, alpha=1e-5, dc=1e-5, rest=1e-5)
 # where the two decoders differ within one quantisation step: .splat rotation bytes are centred
@@ -51,7 +57,7 @@ def oracle():
 
 
 def _their_decode(src: Path, out: Path):
-    splat_transform.run("-w", "-q", str(src), str(out))
+    splat_transform.run("-w", "-q", "-g", "cpu", str(src), str(out))
     return fields(load(out))
 
 
@@ -263,7 +269,9 @@ def test_info_reports_sh_degree_and_format_fields(tmp_path):
     _save_quiet(load(src), tmp_path / "x.spz")
     save(load(src), tmp_path / "x.glb")
     _save_quiet(load(src), tmp_path / "x.compressed.ply")
-    expect = {"x.spz": ("SPZ v3", "version"), "x.glb": ("glTF 2.0", "extensions"),
+    _save_quiet(load(src), tmp_path / "x.sog")
+    expect = {"x.sog": ("PlayCanvas SOG v2 bundle", "sh_bands"),
+              "x.spz": ("SPZ v3", "version"), "x.glb": ("glTF 2.0", "extensions"),
               "x.compressed.ply": ("PlayCanvas compressed", "sh_bands"),
               "scene.ply": ("binary_little_endian", None)}
     for name, (fmt, key) in expect.items():
@@ -303,7 +311,8 @@ def test_compressed_untouched_chunks_keep_their_codes(tmp_path):
     np.testing.assert_allclose(back.positions[300:310], model.positions[300:310], atol=0.01)
 
 
-@pytest.mark.parametrize("ext", [".spz", ".splat", ".glb", ".gltf", ".compressed.ply", ".pcd"])
+@pytest.mark.parametrize("ext", [".spz", ".splat", ".glb", ".gltf", ".compressed.ply", ".pcd",
+                                 ".sog"])
 def test_mutated_files_give_one_line_errors(tmp_path, ext):
     """Truncations and byte flips of each format: a clean FormatError/InputError naming the
     file, or a successful load; never another exception (seeded, bounded)."""
@@ -329,3 +338,149 @@ def test_mutated_files_give_one_line_errors(tmp_path, ext):
                 load(bad)
         except (FormatError, InputError) as exc:
             assert str(bad) in str(exc) and "\n" not in str(exc)
+
+
+def _sog_scene(tmp_path: Path, n: int, prototypes: int, seed: int = 4) -> Path:
+    """A SH3 scene whose SH rest rows are ``prototypes`` distinct rows (a palette can hold them)."""
+    from splat_oracle import scene_source
+
+    from splatdeform.io.ply_format import write_ply
+
+    source = scene_source(n, 3, seed)
+    data = source.element("vertex").data
+    rng = np.random.default_rng(seed)
+    table = rng.uniform(-0.5, 0.5, (prototypes, 45)).astype(np.float32)
+    pick = rng.integers(0, prototypes, n)
+    for i in range(45):
+        data[f"f_rest_{i}"] = table[pick, i]
+    path = tmp_path / "protos.ply"
+    with open(path, "wb") as f:
+        write_ply(source, f)
+    return path
+
+
+def _sog_members(path: Path) -> dict:
+    import io
+    import json
+    import zipfile
+
+    from PIL import Image
+
+    with zipfile.ZipFile(path) as z:
+        out = {name: z.read(name) for name in z.namelist()}
+    meta = json.loads(out.pop("meta.json"))
+    return {"meta": meta, **{name: np.asarray(Image.open(io.BytesIO(raw)).convert("RGBA"))
+                             for name, raw in out.items()}}
+
+
+def test_sog_sh_palette_is_exact_for_few_distinct_rows(tmp_path):
+    """Fewer distinct SH rows than palette entries: every splat gets its own row back, to half
+    the largest gap of the 256-entry SH codebook; the lossless WebP keeps every code."""
+    src = _sog_scene(tmp_path, 2000, 40)
+    original = fields(load(src))
+    out = tmp_path / "x.sog"
+    _save_quiet(load(src), out)
+    members = _sog_members(out)
+    book = np.asarray(members["meta"]["shN"]["codebook"])
+    assert members["meta"]["shN"]["count"] == 40 and members["meta"]["shN"]["bands"] == 3
+    back = fields(load(out))
+    err = np.abs(back.sh_rest - original.sh_rest).max()
+    assert err <= np.diff(book).max() / 2 + 1e-6
+    assert len(np.unique(back.sh_rest.reshape(2000, -1), axis=0)) == 40
+
+
+def test_sog_is_lossless_webp_in_a_zip_and_deterministic(tmp_path):
+    src = write_scene(tmp_path / "scene.ply", 500, 1, seed=8)
+    a, b = tmp_path / "a.sog", tmp_path / "b.sog"
+    _save_quiet(load(src), a)
+    _save_quiet(load(src), b)
+    assert a.read_bytes() == b.read_bytes()  # seeded k-means, fixed ZIP dates
+    import zipfile
+    with zipfile.ZipFile(a) as z:
+        names = z.namelist()
+        assert names[0] == "meta.json"
+        for name in names[1:]:
+            assert z.read(name)[8:16] == b"WEBPVP8L"  # the lossless WebP bitstream
+
+
+def test_sog_folder_reads_and_writes_like_the_bundle(tmp_path, oracle):
+    src = write_scene(tmp_path / "scene.ply", 400, 2, seed=6)
+    folder = tmp_path / "scene_sog"
+    folder.mkdir()
+    _save_quiet(load(src), folder / "meta.json")
+    _save_quiet(load(src), tmp_path / "x.sog")
+    for name in ("means_l.webp", "quats.webp", "shN_labels.webp"):
+        assert (folder / name).is_file()
+    by_dir, by_meta = fields(load(folder)), fields(load(folder / "meta.json"))
+    bundle = fields(load(tmp_path / "x.sog"))
+    compare(by_dir, bundle, **{k: 0.0 for k in SAME})
+    compare(by_meta, bundle, **{k: 0.0 for k in SAME})
+    theirs = _their_decode(folder / "meta.json", tmp_path / "theirs.ply")
+    compare(by_meta, theirs, **SAME)
+
+
+def test_sog_untouched_splats_keep_their_codes(tmp_path):
+    """Re-saving an edited SOG: splats that kept their decoded values keep every code (pixel),
+    and the codebook and palette entries they use keep their index and value; the edited
+    splats are re-quantised."""
+    src = _sog_scene(tmp_path, 1500, 30, seed=3)
+    first = tmp_path / "first.sog"
+    _save_quiet(load(src), first)
+    model = load(first)
+    moved = np.zeros(1500, dtype=bool)
+    moved[100:160] = True
+    model.positions[moved] *= 0.8  # inside the input's range: its mins/maxs are kept
+    model.gaussians.scale_log[moved] += 0.5
+    model.gaussians.sh_rest[moved] *= 0.5
+    second = tmp_path / "second.sog"
+    _save_quiet(model, second)
+    a, b = _sog_members(first), _sog_members(second)
+    assert a["meta"]["means"] == b["meta"]["means"]  # the moved splats stay inside its range
+    for image in ("means_l.webp", "means_u.webp", "quats.webp", "scales.webp", "sh0.webp",
+                  "shN_labels.webp"):  # every per-splat code of the untouched splats
+        np.testing.assert_array_equal(a[image].reshape(-1, 4)[:1500][~moved],
+                                      b[image].reshape(-1, 4)[:1500][~moved])
+    for key, image in (("scales", "scales.webp"), ("sh0", "sh0.webp")):
+        used = np.unique(a[image].reshape(-1, 4)[:1500][~moved, :3])
+        np.testing.assert_array_equal(np.asarray(b["meta"][key]["codebook"])[used],
+                                      np.asarray(a["meta"][key]["codebook"])[used])
+    labels = a["shN_labels.webp"].reshape(-1, 4)[:1500][~moved]
+    used = np.unique(labels[:, 0].astype(int) | labels[:, 1].astype(int) << 8)
+    k = 15
+    pa = a["shN_centroids.webp"].reshape(-1, 64 * k, 4)[:, :, :3].reshape(-1, k, 3)
+    pb = b["shN_centroids.webp"].reshape(-1, 64 * k, 4)[:, :, :3].reshape(-1, k, 3)
+    np.testing.assert_array_equal(pb[used], pa[used])  # the palette entries they use
+    sh_used = np.unique(pa[used])
+    np.testing.assert_array_equal(np.asarray(b["meta"]["shN"]["codebook"])[sh_used],
+                                  np.asarray(a["meta"]["shN"]["codebook"])[sh_used])
+    before, after = fields(load(first)), fields(load(second))
+    for name in ("positions", "scale_log", "rotation", "opacity", "sh_dc", "sh_rest"):
+        np.testing.assert_array_equal(getattr(after, name)[~moved],
+                                      getattr(before, name)[~moved])
+    np.testing.assert_allclose(after.positions[moved], model.positions[moved], atol=1e-3)
+
+
+def test_sog_bad_meta_is_one_line(tmp_path):
+    import json
+    import zipfile
+
+    src = write_scene(tmp_path / "scene.ply", 60, 1)
+    good = tmp_path / "good.sog"
+    _save_quiet(load(src), good)
+    with zipfile.ZipFile(good) as z:
+        members = {name: z.read(name) for name in z.namelist()}
+    meta = json.loads(members["meta.json"])
+    cases = {"version": (dict(meta, version=3), "SOG version 3 is not supported"),
+             "count": (dict(meta, count=10**6), "pixels for 1,000,000 splats"),
+             "codebook": (dict(meta, scales={**meta["scales"], "codebook": [0.0] * 5}),
+                          "'scales.codebook' must be 256"),
+             "missing": (dict(meta, quats={"files": ["nope.webp"]}), "has no nope.webp"),
+             "escape": (dict(meta, quats={"files": ["../x.webp"]}), "not a plain file name")}
+    for name, (bad_meta, message) in cases.items():
+        path = tmp_path / f"{name}.sog"
+        with zipfile.ZipFile(path, "w") as z:
+            for member, raw in members.items():
+                z.writestr(member, json.dumps(bad_meta) if member == "meta.json" else raw)
+        with pytest.raises(FormatError, match=message) as info:
+            load(path)
+        assert str(path) in str(info.value) and "\n" not in str(info.value)

@@ -19,7 +19,7 @@ from splatdeform.edit import plain
 from splatdeform.edit.config import EditConfig, input_paths
 from splatdeform.edit.plain import control_displacement, metaphors, transform_matrix  # noqa: F401
 from splatdeform.errors import InputError, ProcessingError
-from splatdeform.io import SUPPORTED, load, save
+from splatdeform.io import SUPPORTED, extension_of, load, save
 from splatdeform.io.atomic import check_io_paths
 from splatdeform.model import MAX_COORDINATE, PointModel
 from splatdeform.rbf import RbfFit
@@ -115,7 +115,7 @@ def run_edit(cfg: EditConfig, base_dir: str | Path = ".", *, output: str | Path 
     out_path = Path(output) if output is not None else base_dir / cfg.output
     in_path = base_dir / cfg.input
     if save_output:
-        if out_path.suffix.lower() not in SUPPORTED:
+        if extension_of(out_path) not in SUPPORTED:  # a SOG folder's meta.json too
             raise InputError(f"{out_path}: unknown output extension {out_path.suffix!r}; "
                              f"expected one of {', '.join(SUPPORTED)}")
         check_io_paths(input_paths(cfg, base_dir),

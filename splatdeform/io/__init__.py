@@ -13,7 +13,7 @@ from pathlib import Path
 
 from ..errors import FormatError, InputError
 from ..model import PointModel
-from . import gltf, las, open3d_io, pcd, playcanvas, ply, splat, spz
+from . import gltf, las, open3d_io, pcd, playcanvas, ply, sog, splat, spz
 from .atomic import atomic_path, atomic_write, check_output_path
 from .regular import require_regular
 
@@ -45,6 +45,10 @@ def _write_open3d(model: PointModel, path: Path, text: bool | None) -> None:
         open3d_io.write_model(model, tmp)
 
 
+def _write_sog_folder(model: PointModel, path: Path, text: bool | None) -> None:
+    sog.write_folder(model, path)
+
+
 def _streamed_writer(module) -> Callable[[PointModel, Path, bool | None], None]:
     def write(model: PointModel, path: Path, text: bool | None) -> None:
         with atomic_write(path) as stream:
@@ -53,13 +57,16 @@ def _streamed_writer(module) -> Callable[[PointModel, Path, bool | None], None]:
 
 
 #: Readers and writers in one table by extension: a new format is one module plus one line.
-#: A double extension (``.compressed.ply``) is matched before the plain one.
+#: A double extension (``.compressed.ply``) is matched before the plain one; a key without a
+#: leading dot (``meta.json``: a SOG folder) is a whole file name.
 FORMATS: dict[str, Format] = {
     ".ply": Format(ply.read_model, _write_ply, stream=True),
     ".compressed.ply": Format(ply.read_model, _streamed_writer(playcanvas), lossy=True),
     **{ext: Format(splat.read_model, _streamed_writer(splat), lossy=True)
        for ext in splat.EXTENSIONS},
     **{ext: Format(spz.read_model, _streamed_writer(spz), lossy=True) for ext in spz.EXTENSIONS},
+    **{ext: Format(sog.read_model, _streamed_writer(sog), lossy=True) for ext in sog.EXTENSIONS},
+    sog.META_NAME: Format(sog.read_model, _write_sog_folder, lossy=True),
     **{ext: Format(gltf.read_model, _streamed_writer(gltf)) for ext in gltf.EXTENSIONS},
     **{ext: Format(pcd.read_model, _streamed_writer(pcd)) for ext in pcd.EXTENSIONS},
     **{ext: Format(open3d_io.read_model, _write_open3d) for ext in open3d_io.EXTENSIONS},
@@ -78,6 +85,8 @@ def extension_of(path: str | Path) -> str:
     """The table key of ``path``: its double extension when the table has it, else its
     suffix (lower case; '' when none)."""
     name = Path(path).name.lower()
+    if name in FORMATS:
+        return name
     for ext in FORMATS:
         if ext.count(".") > 1 and name.endswith(ext) and len(name) > len(ext):
             return ext
@@ -116,7 +125,16 @@ def _pcd_fields(path: Path) -> dict:
         "height": source.height, "fields": " ".join(source.fields)}}
 
 
-_FIELDS = {".compressed.ply": _compressed_ply_fields, ".spz": _spz_fields, ".glb": _gltf_fields,
+def _sog_fields(path: Path) -> dict:
+    h = sog.read_info(path)
+    return {"format": f"PlayCanvas SOG v{h['version']} "
+            + ("bundle (.sog)" if path.suffix.lower() == ".sog" else "folder (meta.json)"),
+            "format_fields": {"sh_bands": h["sh_bands"], "palette": h["palette"],
+                              "antialias": h["antialias"], "generator": h["generator"]}}
+
+
+_FIELDS = {".sog": _sog_fields, sog.META_NAME: _sog_fields,
+           ".compressed.ply": _compressed_ply_fields, ".spz": _spz_fields, ".glb": _gltf_fields,
            ".gltf": _gltf_fields, ".pcd": _pcd_fields,
            ".splat": lambda path: {"format": ".splat (32-byte records)"}}
 
@@ -126,6 +144,8 @@ def format_fields(path: str | Path) -> dict:
     glTF extensions, compressed-PLY chunks and SH bands, PCD encoding); {} for formats whose
     header ``describe`` already shows."""
     path = Path(path)
+    if path.is_dir() and (path / sog.META_NAME).is_file():
+        path = path / sog.META_NAME
     reader = _FIELDS.get(extension_of(path))
     return {} if reader is None else reader(path)
 
@@ -150,6 +170,8 @@ def load(path: str | Path, *, drop_nonfinite: bool = False) -> PointModel:
             raise InputError(f"{path}: is a symbolic link to nothing (dangling, or a loop); "
                              "expected a model file")
         raise InputError(f"{path}: no such file")
+    if path.is_dir() and (path / sog.META_NAME).is_file():
+        path = path / sog.META_NAME  # a SOG folder
     if path.is_dir():
         raise InputError(f"{path}: is a directory; expected a model file")
     require_regular(path)  # a FIFO or a device would block or never end

@@ -242,6 +242,7 @@ def read_model(path: str | Path, *, drop_nonfinite: bool = False) -> PointModel:
         raise FormatError(f"{path}: {EXT} primitives with different SH degrees")
     f = SplatFields(*(np.concatenate([getattr(p, a) for p in parts]) for a in (
         "positions", "scale_log", "rotation", "opacity", "sh_dc", "sh_rest")))
+    del parts  # the concatenation is the copy the model is built from
     used = ", ".join(doc.get("extensionsUsed", []))
     return to_model(f, path, [f"read from glTF ({used}) by splatdeform"],
                     drop_nonfinite=drop_nonfinite)

@@ -116,9 +116,12 @@ def decompress(source: PlySource, path: str | Path) -> PlySource:
         if len(names) % 3:
             raise FormatError(f"{path}: PlayCanvas compressed file: {len(names)} f_rest "
                               "values per splat (a multiple of 3 expected)")
-        codes = np.stack([sh.data[name] for name in names], axis=1).astype(np.float32)
-        rest = ((codes + np.float32(0.5)) / np.float32(256) - np.float32(0.5)) \
-            * np.float32(SH_RANGE)
+        rest = np.empty((n, len(names)), dtype=np.float32)  # decoded in place, column by column
+        for j, name in enumerate(names):
+            rest[:, j] = sh.data[name]
+        rest += np.float32(0.5)  # ((v + 0.5) / 256 - 0.5) * 8, exact in float32
+        rest *= np.float32(SH_RANGE / 256)
+        rest -= np.float32(SH_RANGE / 2)
     from .splats import SplatFields, gaussian_source
 
     fields = SplatFields(positions=positions, scale_log=scale_log.astype(np.float32),
@@ -126,7 +129,7 @@ def decompress(source: PlySource, path: str | Path) -> PlySource:
                          opacity=(-np.log(1 / alpha - 1)).astype(np.float32),
                          sh_dc=dc.astype(np.float32), sh_rest=rest.reshape(n, 3, -1))
     comments = [*source.comments, "decompressed from a PlayCanvas .compressed.ply by splatdeform"]
-    return replace(gaussian_source(fields, comments), obj_info=list(source.obj_info),
+    return replace(gaussian_source(fields, comments, release=True), obj_info=list(source.obj_info),
                    quantised=source)
 
 
@@ -215,27 +218,14 @@ def compress(fields, comments: list[str]) -> PlySource:
 def _untouched_chunks(model, fields) -> np.ndarray | None:
     """(chunks,) bool: chunks whose every splat still has the values decoded from the model's
     compressed input (same count and order); None when the model has no such input."""
-    source = model.source
-    original = getattr(source, "quantised", None)
-    decoded = None if source is None else source.element("vertex")
-    if original is None or decoded is None or decoded.count != fields.count:
+    from .splats import unchanged_rows
+
+    if not isinstance(getattr(model.source, "quantised", None), PlySource):
         return None
-    data = decoded.data
-    names = data.dtype.names or ()
+    same = unchanged_rows(model, fields)
+    if same is None:
+        return None
     n = fields.count
-    rest = fields.sh_rest.reshape(n, -1)
-    n_rest = sum(1 for m in names if m.startswith("f_rest_"))
-    if n_rest != rest.shape[1]:
-        return None
-    same = np.ones(n, dtype=bool)
-    for cols, values in ((list("xyz"), fields.positions.astype(np.float32)),
-                         ([f"scale_{i}" for i in range(3)], fields.scale_log),
-                         ([f"rot_{i}" for i in range(4)], fields.rotation),
-                         (["opacity"], fields.opacity[:, None]),
-                         ([f"f_dc_{i}" for i in range(3)], fields.sh_dc),
-                         ([f"f_rest_{i}" for i in range(n_rest)], rest)):
-        for j, name in enumerate(cols):
-            same &= data[name] == values[:, j]
     chunks = -(-n // SPLATS_PER_CHUNK)
     pad = np.concatenate([same, np.ones(chunks * SPLATS_PER_CHUNK - n, dtype=bool)])
     return pad.reshape(chunks, -1).all(axis=1)

@@ -114,10 +114,30 @@ def _nonfinite_splat_rows(data: np.ndarray) -> np.ndarray | None:
              if (n.startswith(SPLAT_PREFIXES) or n == "opacity") and data.dtype[n].kind == "f"]
     if not any(n.startswith("scale_") for n in names):
         return None
+    run = _float_run(data, names)
+    if run is not None:  # one pass: a float64 row sum is finite iff every term is
+        with np.errstate(invalid="ignore", over="ignore"):
+            return ~np.isfinite(run.sum(axis=1, dtype=np.float64))
     bad = np.zeros(data.shape[0], dtype=bool)
     for n in names:
         bad |= ~np.isfinite(data[n])
     return bad
+
+
+def _float_run(data: np.ndarray, names: list[str]) -> np.ndarray | None:
+    """(N, len(names)) float32 strided view of ``names`` when they are consecutive float32
+    fields of a packed record (the 3DGS layout); None otherwise."""
+    dtype = data.dtype
+    if not names or any(dtype[n] != np.dtype("<f4") for n in names) or \
+            not data.flags.c_contiguous or dtype.itemsize % 4:
+        return None
+    offsets = [dtype.fields[n][1] for n in names]
+    if offsets != list(range(offsets[0], offsets[0] + 4 * len(names), 4)) or \
+            any(dtype.fields[n][0].itemsize != 4 or dtype.fields[n][1] % 4 for n in dtype.names):
+        return None
+    table = data.view(np.uint8).reshape(len(data), dtype.itemsize)
+    start = offsets[0]
+    return table[:, start:start + 4 * len(names)].view("<f4")
 
 
 def _require_list(path: str | Path, element: str, prop) -> None:

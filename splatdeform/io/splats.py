@@ -107,6 +107,34 @@ def fields_of(model: PointModel, path: str | Path, fmt: str) -> SplatFields:
                        sh_rest=rest.reshape(n, 3, -1).astype(np.float32, copy=False))
 
 
+def unchanged_rows(model: PointModel, fields: SplatFields) -> np.ndarray | None:
+    """(N,) bool: splats whose fields still equal the values decoded from the model's quantised
+    input (its PLY source's vertex element, same count and order); None when the model has no
+    quantised input or a different count or SH layout."""
+    source = model.source
+    decoded = None if source is None else source.element("vertex")
+    if getattr(source, "quantised", None) is None or decoded is None or \
+            decoded.count != fields.count:
+        return None
+    data = decoded.data
+    names = data.dtype.names or ()
+    n = fields.count
+    rest = fields.sh_rest.reshape(n, -1)
+    n_rest = sum(1 for m in names if m.startswith("f_rest_"))
+    if n_rest != rest.shape[1]:
+        return None
+    same = np.ones(n, dtype=bool)
+    for cols, values in ((list("xyz"), fields.positions.astype(np.float32)),
+                         ([f"scale_{i}" for i in range(3)], fields.scale_log),
+                         ([f"rot_{i}" for i in range(4)], fields.rotation),
+                         (["opacity"], fields.opacity[:, None]),
+                         ([f"f_dc_{i}" for i in range(3)], fields.sh_dc),
+                         ([f"f_rest_{i}" for i in range(n_rest)], rest)):
+        for j, name in enumerate(cols):
+            same &= data[name] == values[:, j]
+    return same
+
+
 def dropped_properties(model: PointModel) -> list[str]:
     """Vertex properties of the model's source that no splat format holds (named in the
     lossy-write note: normals, colours, custom fields ...)."""
@@ -137,19 +165,30 @@ def note_lossy(path: str | Path, fmt: str, losses: str | None, model: PointModel
     warnings.warn(text, LossyWriteWarning, stacklevel=3)
 
 
-def gaussian_source(fields: SplatFields, comments: list[str]) -> PlySource:
-    """The standard 3DGS PlySource (x y z f_dc_* f_rest_* opacity scale_* rot_*, float)."""
+FIELD_ORDER = ("positions", "sh_dc", "sh_rest", "opacity", "scale_log", "rotation")
+
+
+def gaussian_source(fields: SplatFields, comments: list[str], *,
+                    release: bool = False) -> PlySource:
+    """The standard 3DGS PlySource (x y z f_dc_* f_rest_* opacity scale_* rot_*, float).
+
+    release: drop each of ``fields``' arrays once copied (a reader's decode is not needed
+    after this, so its memory is free before the model copies the Gaussian columns)."""
     n = fields.count
-    rest = fields.sh_rest.reshape(n, -1)
+    k = fields.sh_rest.shape[1] * fields.sh_rest.shape[2] if fields.sh_rest.ndim == 3 else \
+        fields.sh_rest.shape[1]
     names = [*"xyz", *(f"f_dc_{i}" for i in range(3)),
-             *(f"f_rest_{i}" for i in range(rest.shape[1])), "opacity",
+             *(f"f_rest_{i}" for i in range(k)), "opacity",
              *(f"scale_{i}" for i in range(3)), *(f"rot_{i}" for i in range(4))]
     table = np.empty((n, len(names)), dtype="<f4")  # filled by contiguous blocks, then viewed
     at = 0
-    for block in (fields.positions, fields.sh_dc, rest, fields.opacity[:, None],
-                  fields.scale_log, fields.rotation):
+    for name in FIELD_ORDER:
+        block = getattr(fields, name).reshape(n, -1)
         table[:, at:at + block.shape[1]] = block
         at += block.shape[1]
+        del block
+        if release:
+            setattr(fields, name, np.empty((0,) * getattr(fields, name).ndim, np.float32))
     data = table.view([(name, "<f4") for name in names]).reshape(n)
     props = [PlyProperty(name, "f4", "float") for name in names]
     return PlySource(elements=[PlyElementData("vertex", props, data)], comments=comments,
@@ -158,12 +197,13 @@ def gaussian_source(fields: SplatFields, comments: list[str]) -> PlySource:
 
 def to_model(fields: SplatFields, path: str | Path, comments: list[str], *,
              drop_nonfinite: bool = False) -> PointModel:
-    """A PointModel (kind gaussians) whose PLY source is the standard 3DGS vertex element."""
+    """A PointModel (kind gaussians) whose PLY source is the standard 3DGS vertex element.
+    ``fields`` is emptied on the way (its arrays are released once copied)."""
     from .ply import model_from_source  # ply imports playcanvas, which imports this module
 
     if fields.count == 0:
         raise FormatError(f"{path}: the file holds no splats")
-    return model_from_source(gaussian_source(fields, comments), path,
+    return model_from_source(gaussian_source(fields, comments, release=True), path,
                              drop_nonfinite=drop_nonfinite)
 
 

@@ -1,0 +1,528 @@
+"""PlayCanvas SOG (version 2): ``meta.json`` plus 8-bit WebP images, bundled as a ZIP (``.sog``)
+or as a folder (a ``meta.json`` with its images beside it), from the format's specification.
+
+Per splat, pixel i (row-major, top-left origin) of every per-splat image:
+positions: 16 bits per axis (``means_u`` high byte, ``means_l`` low byte, RGB = x y z) of the
+symmetric log n = sign(p) ln(1 + |p|) between ``means.mins`` and ``means.maxs``;
+rotation (``quats``): smallest-three, RGB the kept components as c / 255 in [-1/sqrt2, 1/sqrt2]
+(c = (v sqrt2 / 2 + 0.5) * 255), A = 252 + the index (w x y z) of the dropped largest one;
+log scales (``scales``, RGB): indices into a 256-entry codebook; ``sh0``: RGB indices into a
+256-entry codebook of f_dc, A the opacity after the sigmoid (a / 255); SH rest (``shN``): a
+16-bit palette label (``shN_labels`` R + 256 G) and a palette image of 64 entries per row, each
+entry K pixels (one per coefficient) whose RGB index a third 256-entry codebook.
+The codebooks are seeded, deterministic k-means (:mod:`.kmeans`); the images are written as
+lossless, exact WebP (Pillow) so the stored codes are the codes.
+
+Axes: the SOG specification states x right, y up, z back; the pinned splat-transform writes and
+reads SOG in PLY space (no flip; a PLY converted to SOG and back keeps its coordinates), and a
+reader cannot tell the two apart, so SOG is read and written in PLY space (as splat-transform).
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import math
+import zipfile
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import FormatError
+from ..model import PointModel
+from .kmeans import kmeans_1d, kmeans_rows
+from .splats import (
+    SH_COEFFS,
+    SplatFields,
+    fields_of,
+    logit,
+    normalised_quaternions,
+    note_lossy,
+    to_model,
+)
+
+EXTENSIONS = (".sog",)
+META_NAME = "meta.json"  # a SOG folder's file (the table's whole-name key)
+VERSION = 2
+CODEBOOK = 256
+PALETTE_ROW = 64
+MAX_PALETTE = 65536  # the format's limit (16-bit labels)
+PALETTE_CAP = 4096  # what this writer uses at most: the k-means cost grows with N x entries
+ALPHA_EPS = 0.5 / 255
+MAX_MEMBER = 1 << 31  # bytes of one image or meta.json in a bundle
+MAX_PIXELS = 1 << 28
+SEED = 0
+LOSSES = ("positions 16 bits per axis (log-spaced), rotation 8 bits per component, log "
+          "scales and colour through 256-entry k-means codebooks, opacity 8 bits, SH rest "
+          "through a k-means palette (at most 4096 entries) of 256 codebook values")
+FILES = {"means": ["means_l.webp", "means_u.webp"], "scales": ["scales.webp"],
+         "quats": ["quats.webp"], "sh0": ["sh0.webp"],
+         "shN": ["shN_centroids.webp", "shN_labels.webp"]}
+
+
+@dataclass
+class SogCodes:
+    """The stored codes of one SOG scene (what a re-write keeps for untouched splats).
+
+    means: (N, 3) uint16; quats: (N, 4) uint8; scales: (N, 3) uint8; sh0: (N, 4) uint8;
+    labels: (N,) int64 or None; centroids: (P, K, 3) uint8 or None; meta: the meta.json dict.
+    """
+
+    meta: dict
+    means: np.ndarray
+    quats: np.ndarray
+    scales: np.ndarray
+    sh0: np.ndarray
+    labels: np.ndarray | None = None
+    centroids: np.ndarray | None = None
+
+
+# --------------------------------------------------------------------------------------------
+# containers
+
+
+class _Files:
+    """The SOG members by name: a ZIP bundle's entries or the files beside a meta.json."""
+
+    def __init__(self, path: Path):
+        self.path = path
+        self.zip: zipfile.ZipFile | None = None
+        if path.suffix.lower() in EXTENSIONS:
+            try:
+                self.zip = zipfile.ZipFile(path)
+            except (zipfile.BadZipFile, OSError, EOFError, ValueError) as exc:
+                raise FormatError(f"{path}: not a SOG bundle (a ZIP archive expected): "
+                                  f"{exc}") from exc
+
+    def read(self, name: str) -> bytes:
+        if not isinstance(name, str) or not name or "/" in name or "\\" in name or \
+                name.startswith("."):
+            raise FormatError(f"{self.path}: SOG file name {name!r} is not a plain file name")
+        try:
+            if self.zip is not None:
+                info = self.zip.getinfo(name)
+                if info.file_size > MAX_MEMBER:
+                    raise FormatError(f"{self.path}: SOG member {name} declares "
+                                      f"{info.file_size:,} bytes, more than this reader's limit")
+                return self.zip.read(name)
+            return (self.path.parent / name).read_bytes()
+        except KeyError as exc:
+            raise FormatError(f"{self.path}: the SOG bundle has no {name}") from exc
+        except FileNotFoundError as exc:
+            raise FormatError(f"{self.path}: the SOG file {name} is missing beside it") from exc
+        except (zipfile.BadZipFile, OSError, EOFError, ValueError, RuntimeError) as exc:
+            raise FormatError(f"{self.path}: cannot read SOG member {name}: {exc}") from exc
+
+    def close(self) -> None:
+        if self.zip is not None:
+            self.zip.close()
+
+
+def _meta(path: Path, files: _Files) -> dict:
+    try:
+        meta = json.loads(files.read("meta.json") if files.zip is not None
+                          else path.read_bytes())
+    except (ValueError, UnicodeDecodeError) as exc:
+        raise FormatError(f"{path}: SOG meta.json is not valid JSON: {exc}") from exc
+    if not isinstance(meta, dict) or "means" not in meta:
+        raise FormatError(f"{path}: not a SOG meta.json (no 'means' entry)")
+    if meta.get("version") != VERSION:
+        raise FormatError(f"{path}: SOG version {meta.get('version')!r} is not supported "
+                          f"(version {VERSION} is)")
+    count = meta.get("count")
+    if not isinstance(count, int) or isinstance(count, bool) or count < 1:
+        raise FormatError(f"{path}: SOG meta.json count {count!r}; expected a positive integer")
+    return meta
+
+
+def _entry(path: Path, meta: dict, key: str, files: int) -> dict:
+    entry = meta.get(key)
+    if not isinstance(entry, dict) or not isinstance(entry.get("files"), list) or \
+            len(entry["files"]) != files:
+        raise FormatError(f"{path}: SOG meta.json '{key}' needs a 'files' list of {files}")
+    return entry
+
+
+def _floats(path: Path, entry: dict, key: str, name: str, size: int) -> np.ndarray:
+    value = entry.get(name)
+    try:
+        out = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        out = np.zeros(0)
+    if out.shape != (size,) or not np.isfinite(out).all():
+        raise FormatError(f"{path}: SOG meta.json '{key}.{name}' must be {size} finite numbers")
+    return out
+
+
+def _image(path: Path, files: _Files, name: str, pixels: int | None) -> np.ndarray:
+    """(H, W, 4) uint8 of one WebP (or other 8-bit) member; at least ``pixels`` pixels."""
+    from PIL import Image
+
+    raw = files.read(name)
+    try:
+        with Image.open(io.BytesIO(raw)) as img:
+            if img.width * img.height > MAX_PIXELS:
+                raise FormatError(f"{path}: SOG image {name} is {img.width}x{img.height}, "
+                                  "larger than this reader's limit")
+            rgba = np.asarray(img.convert("RGBA"))
+    except FormatError:
+        raise
+    except (OSError, ValueError, SyntaxError, Image.DecompressionBombError) as exc:
+        raise FormatError(f"{path}: SOG image {name} cannot be decoded: {exc}") from exc
+    if pixels is not None and rgba.shape[0] * rgba.shape[1] < pixels:
+        raise FormatError(f"{path}: SOG image {name} has {rgba.shape[0] * rgba.shape[1]:,} "
+                          f"pixels for {pixels:,} splats")
+    return rgba
+
+
+def _per_splat(path: Path, files: _Files, name: str, n: int) -> np.ndarray:
+    return _image(path, files, name, n).reshape(-1, 4)[:n]
+
+
+# --------------------------------------------------------------------------------------------
+# decoding
+
+
+def unlog(n: np.ndarray) -> np.ndarray:
+    return np.sign(n) * np.expm1(np.abs(n))
+
+
+def quats_from_codes(codes: np.ndarray) -> np.ndarray:
+    """(N, 4) uint8 RGBA -> (N, 4) float64 w x y z."""
+    n = len(codes)
+    kept = (codes[:, :3].astype(np.float64) / 255 - 0.5) * math.sqrt(2.0)
+    mode = codes[:, 3].astype(np.int64) - 252
+    largest = np.sqrt(np.maximum(0.0, 1.0 - (kept**2).sum(axis=1)))
+    q = np.empty((n, 4))
+    for m in range(4):
+        rows = mode == m
+        others = [i for i in range(4) if i != m]
+        q[np.ix_(rows, others)] = kept[rows]
+        q[rows, m] = largest[rows]
+    return q
+
+
+def decode(path: str | Path) -> tuple[SplatFields, SogCodes]:
+    """The splat fields (PLY space) and the stored codes of a SOG bundle or meta.json."""
+    path = Path(path)
+    files = _Files(path)
+    try:
+        meta = _meta(path, files)
+        n = meta["count"]
+        means = _entry(path, meta, "means", 2)
+        mins = _floats(path, means, "means", "mins", 3)
+        maxs = _floats(path, means, "means", "maxs", 3)
+        lo = _per_splat(path, files, means["files"][0], n)[:, :3].astype(np.uint16)
+        hi = _per_splat(path, files, means["files"][1], n)[:, :3].astype(np.uint16)
+        q16 = (hi << np.uint16(8)) | lo
+        positions = unlog(mins + (maxs - mins) * (q16.astype(np.float64) / 65535))
+        quats = _per_splat(path, files, _entry(path, meta, "quats", 1)["files"][0], n)
+        if not np.isin(quats[:, 3], (252, 253, 254, 255)).all():
+            raise FormatError(f"{path}: SOG quats alpha outside 252..255 (the reserved modes)")
+        entry = _entry(path, meta, "scales", 1)
+        book = _floats(path, entry, "scales", "codebook", CODEBOOK).astype(np.float32)
+        scales = _per_splat(path, files, entry["files"][0], n)
+        entry = _entry(path, meta, "sh0", 1)
+        dc_book = _floats(path, entry, "sh0", "codebook", CODEBOOK).astype(np.float32)
+        sh0 = _per_splat(path, files, entry["files"][0], n)
+        codes = SogCodes(meta=meta, means=q16, quats=quats.copy(), scales=scales[:, :3].copy(),
+                         sh0=sh0.copy())
+        rest = np.zeros((n, 3, 0), np.float32)
+        if "shN" in meta:
+            rest = _sh_rest(path, files, meta, n, codes)
+    finally:
+        files.close()
+    fields = SplatFields(positions=positions, scale_log=book[scales[:, :3]],
+                         rotation=quats_from_codes(quats).astype(np.float32),
+                         opacity=logit(sh0[:, 3].astype(np.float64) / 255, ALPHA_EPS)
+                         .astype(np.float32),
+                         sh_dc=dc_book[sh0[:, :3]], sh_rest=rest)
+    return fields, codes
+
+
+def _sh_rest(path: Path, files: _Files, meta: dict, n: int, codes: SogCodes) -> np.ndarray:
+    entry = _entry(path, meta, "shN", 2)
+    bands, count = entry.get("bands"), entry.get("count")
+    if bands not in (1, 2, 3) or not isinstance(count, int) or not 1 <= count <= MAX_PALETTE:
+        raise FormatError(f"{path}: SOG shN needs bands 1..3 and count 1..{MAX_PALETTE} "
+                          f"(got {bands!r}, {count!r})")
+    k = SH_COEFFS[bands]
+    book = _floats(path, entry, "shN", "codebook", CODEBOOK).astype(np.float32)
+    palette = _image(path, files, entry["files"][0], None)
+    rows = -(-count // PALETTE_ROW)
+    if palette.shape[0] < rows or palette.shape[1] < PALETTE_ROW * k:
+        raise FormatError(f"{path}: SOG {entry['files'][0]} is {palette.shape[1]}x"
+                          f"{palette.shape[0]}; {count} entries of {k} coefficients need "
+                          f"{PALETTE_ROW * k}x{rows}")
+    centroids = palette[:rows, :PALETTE_ROW * k, :3].reshape(-1, k, 3)[:count]
+    label_px = _per_splat(path, files, entry["files"][1], n)
+    labels = label_px[:, 0].astype(np.int64) | (label_px[:, 1].astype(np.int64) << 8)
+    if labels.max() >= count:
+        raise FormatError(f"{path}: SOG shN label {int(labels.max())} outside the "
+                          f"{count}-entry palette")
+    codes.labels, codes.centroids = labels, centroids.copy()
+    # the palette's values in PLY's channel-major f_rest order (P, 3, K), then one gather
+    values = np.ascontiguousarray(book[centroids].transpose(0, 2, 1))
+    return values[labels]
+
+
+def read_info(path: str | Path) -> dict:
+    path = Path(path)
+    files = _Files(path)
+    try:
+        meta = _meta(path, files)
+    finally:
+        files.close()
+    shn = meta.get("shN") if isinstance(meta.get("shN"), dict) else {}
+    return {"version": meta["version"], "count": meta["count"],
+            "sh_bands": shn.get("bands", 0), "palette": shn.get("count", 0),
+            "antialias": bool(meta.get("antialias", False)),
+            "generator": (meta.get("asset") or {}).get("generator", "?")
+            if isinstance(meta.get("asset"), dict) else "?"}
+
+
+def read_model(path: str | Path, *, drop_nonfinite: bool = False) -> PointModel:
+    fields, codes = decode(path)
+    model = to_model(fields, path, ["read from a PlayCanvas SOG by splatdeform"],
+                     drop_nonfinite=drop_nonfinite)
+    if model.source is not None:
+        model.source.quantised = codes  # a re-write keeps the untouched splats' codes
+    return model
+
+
+# --------------------------------------------------------------------------------------------
+# encoding
+
+
+def log_transform(p: np.ndarray) -> np.ndarray:
+    return np.sign(p) * np.log1p(np.abs(p))
+
+
+def quat_codes(q_wxyz: np.ndarray) -> np.ndarray:
+    """(N, 4) quaternions -> (N, 4) uint8 RGBA smallest-three codes."""
+    q = normalised_quaternions(q_wxyz)
+    n = len(q)
+    largest = np.argmax(np.abs(q), axis=1)
+    q *= np.where(q[np.arange(n), largest] < 0, -1.0, 1.0)[:, None]
+    keep = np.ones((n, 4), dtype=bool)
+    keep[np.arange(n), largest] = False
+    others = q[keep].reshape(n, 3)
+    out = np.empty((n, 4), dtype=np.uint8)
+    out[:, :3] = np.clip(np.round((others / math.sqrt(2.0) + 0.5) * 255), 0, 255)
+    out[:, 3] = 252 + largest
+    return out
+
+
+def _size(n: int) -> tuple[int, int]:
+    """(width, height) of the per-splat images: a multiple-of-4 width near sqrt(n)."""
+    width = max(4, -(-math.ceil(math.sqrt(n)) // 4) * 4)
+    return width, -(-n // width)
+
+
+def _webp(pixels: np.ndarray, width: int, height: int, effort: int) -> bytes:
+    """Lossless, exact WebP of (M, 4) uint8 pixels (padded with zeros to width x height)."""
+    from PIL import Image
+
+    full = np.zeros((width * height, 4), dtype=np.uint8)
+    full[:len(pixels), :pixels.shape[1]] = pixels
+    if pixels.shape[1] < 4:
+        full[:, 3] = 255
+    buf = io.BytesIO()
+    Image.fromarray(full.reshape(height, width, 4), "RGBA").save(
+        buf, "WEBP", lossless=True, exact=True, quality=effort, method=min(6, effort // 17))
+    return buf.getvalue()
+
+
+def _palette_size(n: int) -> int:
+    """SH palette entries for ``n`` splats: a power of two near n / 16, 64 .. PALETTE_CAP."""
+    return int(min(PALETTE_CAP, max(64, 2 ** round(math.log2(max(n, 1) / 16)))))
+
+
+def encode(f: SplatFields, *, keep: SogCodes | None = None, same: np.ndarray | None = None,
+           iterations: int = 10, effort: int = 25) -> dict[str, bytes]:
+    """The SOG members (``meta.json`` and the images) of ``f``, splats in their given order.
+
+    keep/same: the codes of the scene the fields were read from and (N,) bool of the splats
+    still holding their decoded values: those splats keep their codes, and the codebook entries
+    and palette entries they use keep their index and value (the k-means fits the other
+    entries to the changed splats)."""
+    n = f.count
+    width, height = _size(n)
+    reuse = keep is not None and same is not None and same.any()
+    meta: dict = {"version": VERSION, "asset": {"generator": "splatdeform"}, "count": n,
+                  "antialias": bool(keep.meta.get("antialias", False)) if keep else False}
+    out: dict[str, bytes] = {}
+    # positions
+    logp = log_transform(f.positions)
+    mins, maxs = logp.min(axis=0), logp.max(axis=0)
+    if reuse:
+        old_min = np.asarray(keep.meta["means"]["mins"], dtype=np.float64)
+        old_max = np.asarray(keep.meta["means"]["maxs"], dtype=np.float64)
+        if (mins >= old_min).all() and (maxs <= old_max).all():
+            mins, maxs = old_min, old_max
+    span = np.where(maxs > mins, maxs - mins, 1.0)
+    q16 = np.clip(np.round((logp - mins) / span * 65535), 0, 65535).astype(np.uint16)
+    if reuse and np.array_equal(mins, keep.meta["means"]["mins"]) and \
+            np.array_equal(maxs, keep.meta["means"]["maxs"]):
+        q16[same] = keep.means[same]
+    meta["means"] = {"mins": mins.tolist(), "maxs": maxs.tolist(), "files": FILES["means"]}
+    out[FILES["means"][0]] = _webp((q16 & 0xFF).astype(np.uint8), width, height, effort)
+    out[FILES["means"][1]] = _webp((q16 >> 8).astype(np.uint8), width, height, effort)
+    # rotations
+    quats = quat_codes(f.rotation)
+    if reuse:
+        quats[same] = keep.quats[same]
+    meta["quats"] = {"files": FILES["quats"]}
+    out[FILES["quats"][0]] = _webp(quats, width, height, effort)
+    # log scales and sh0 through 256-entry codebooks
+    scales, book = _codebook_codes(f.scale_log, keep.scales if reuse else None,
+                                   _old_book(keep, "scales") if reuse else None, same)
+    meta["scales"] = {"codebook": book.tolist(), "files": FILES["scales"]}
+    out[FILES["scales"][0]] = _webp(scales, width, height, effort)
+    dc, book = _codebook_codes(f.sh_dc, keep.sh0[:, :3] if reuse else None,
+                               _old_book(keep, "sh0") if reuse else None, same)
+    from .splats import sigmoid
+
+    alpha = np.clip(np.round(sigmoid(f.opacity) * 255), 0, 255).astype(np.uint8)
+    if reuse:
+        alpha[same] = keep.sh0[same, 3]
+    meta["sh0"] = {"codebook": book.tolist(), "files": FILES["sh0"]}
+    out[FILES["sh0"][0]] = _webp(np.concatenate([dc, alpha[:, None]], axis=1), width, height,
+                                 effort)
+    k = f.sh_rest.shape[2]
+    if k:
+        shn, members = _encode_sh(f, keep if reuse and keep.labels is not None and
+                                  keep.centroids.shape[1] == k else None, same, iterations,
+                                  width, height, effort)
+        meta["shN"] = shn
+        out.update(members)
+    out["meta.json"] = json.dumps(meta, separators=(",", ":")).encode()
+    return out
+
+
+def _old_book(keep: SogCodes, key: str) -> np.ndarray:
+    return np.asarray(keep.meta[key]["codebook"], dtype=np.float32)
+
+
+def _codebook_codes(values: np.ndarray, old_codes: np.ndarray | None,
+                    old_book: np.ndarray | None, same: np.ndarray | None
+                    ) -> tuple[np.ndarray, np.ndarray]:
+    """(N, 3) values -> (N, 3) uint8 codes and the (256,) float32 codebook (1-D k-means over
+    every value; with old codes, the entries the unchanged rows use stay fixed)."""
+    fixed = None
+    data = values
+    if old_codes is not None:
+        used = np.unique(old_codes[same])
+        fixed = old_book[used]
+        data = values[~same]
+    book = kmeans_1d(np.asarray(data, dtype=np.float32).ravel(), CODEBOOK, fixed=fixed,
+                     fill=np.asarray(values, dtype=np.float32).ravel())
+    if old_codes is None:
+        return nearest_1d(book, values), book
+    # the kept entries stay at their old indices (same value, same code); the k-means' other
+    # centres fill the free slots
+    free_values = list(book)
+    for value in np.unique(fixed):
+        free_values.remove(value)
+    final = np.empty(CODEBOOK, dtype=np.float32)
+    final[used] = old_book[used]
+    slots = np.setdiff1d(np.arange(CODEBOOK), used)
+    final[slots] = np.sort(np.asarray(free_values, dtype=np.float32))[:len(slots)] \
+        if free_values else old_book[used][0]
+    codes = nearest_1d(final, values)
+    codes[same] = old_codes[same]
+    return codes, final
+
+
+def nearest_1d(book: np.ndarray, values: np.ndarray) -> np.ndarray:
+    """Index of the nearest entry of a (256,) book (any order) for each value (uint8, the
+    values' shape)."""
+    values = np.asarray(values, dtype=np.float32)
+    order = np.argsort(book, kind="stable")
+    ordered = book[order]
+    mid = (ordered[1:] + ordered[:-1]) * np.float32(0.5)
+    return order[np.searchsorted(mid, values)].astype(np.uint8)
+
+
+def _encode_sh(f: SplatFields, keep: SogCodes | None, same: np.ndarray | None,
+               iterations: int, width: int, height: int, effort: int
+               ) -> tuple[dict, dict[str, bytes]]:
+    n, k = f.count, f.sh_rest.shape[2]
+    rows = f.sh_rest.transpose(0, 2, 1).reshape(n, 3 * k)  # (N, K*3): coefficient-major, rgb
+    palette_n = _palette_size(n)
+    if keep is not None:
+        used = np.unique(keep.labels[same])
+        palette_n = max(palette_n, min(MAX_PALETTE, len(used) + palette_n // 2))
+        old_book = _old_book(keep, "shN")
+        fixed_rows = old_book[keep.centroids[used]].reshape(len(used), 3 * k)
+        found, labels = kmeans_rows(rows[~same], palette_n, fixed=fixed_rows,
+                                    iterations=iterations, seed=SEED)
+        # kept palette entries stay at their old labels; the new ones fill the free slots
+        total = max(len(found), int(used.max()) + 1 if len(used) else 0)
+        slot = np.empty(len(found), dtype=np.int64)
+        slot[:len(used)] = used
+        slot[len(used):] = np.setdiff1d(np.arange(total), used)[:len(found) - len(used)]
+        centres = np.zeros((total, 3 * k), dtype=np.float32)
+        centres[slot] = found
+        kept = np.zeros(total, dtype=bool)
+        kept[used] = True
+        old_codes = np.zeros((total, 3 * k), dtype=np.uint8)
+        old_codes[used] = keep.centroids[used].reshape(len(used), -1)
+        all_labels = np.empty(n, dtype=np.int64)
+        all_labels[~same] = slot[labels]
+        all_labels[same] = keep.labels[same]
+        codes, book = _codebook_codes(centres, old_codes if len(used) else None,
+                                      old_book if len(used) else None, kept)
+    else:
+        centres, all_labels = kmeans_rows(rows, palette_n, iterations=iterations, seed=SEED)
+        codes, book = _codebook_codes(centres, None, None, None)
+    count = len(centres)
+    grid_rows = -(-count // PALETTE_ROW)
+    palette = np.zeros((grid_rows * PALETTE_ROW, k, 4), dtype=np.uint8)
+    palette[:count, :, :3] = codes.reshape(count, k, 3)
+    palette[:, :, 3] = 255
+    members = {FILES["shN"][0]: _webp(palette.reshape(-1, 4), PALETTE_ROW * k, grid_rows,
+                                      effort)}
+    label_px = np.zeros((n, 2), dtype=np.uint8)
+    label_px[:, 0] = all_labels & 0xFF
+    label_px[:, 1] = all_labels >> 8
+    members[FILES["shN"][1]] = _webp(label_px, width, height, effort)
+    shn = {"count": count, "bands": {3: 1, 8: 2, 15: 3}[k], "codebook": book.tolist(),
+           "files": FILES["shN"]}
+    return shn, members
+
+
+def write_model(model: PointModel, path: Path, stream) -> None:
+    """Write ``model`` (3D Gaussian splats) as a SOG ZIP bundle to ``stream``."""
+    fields = fields_of(model, path, ".sog")
+    note_lossy(path, ".sog", LOSSES, model)
+    members = encode(fields, **_kept(model, fields))
+    with zipfile.ZipFile(stream, "w", compression=zipfile.ZIP_STORED) as bundle:
+        for name in ("meta.json", *[m for m in members if m != "meta.json"]):
+            info = zipfile.ZipInfo(name, date_time=(2020, 1, 1, 0, 0, 0))
+            bundle.writestr(info, members[name])
+
+
+def write_folder(model: PointModel, path: Path) -> None:
+    """Write ``model`` as a SOG folder: ``path`` (the meta.json) and its images beside it, each
+    file atomically, the meta.json last."""
+    from .atomic import atomic_write
+
+    fields = fields_of(model, path, "SOG (meta.json)")
+    note_lossy(path, "SOG", LOSSES, model)
+    members = encode(fields, **_kept(model, fields))
+    for name in [m for m in members if m != "meta.json"] + ["meta.json"]:
+        with atomic_write(path if name == "meta.json" else path.parent / name) as stream:
+            stream.write(members[name])
+
+
+def _kept(model: PointModel, fields: SplatFields) -> dict:
+    """encode()'s keep/same for a model read from a SOG (untouched splats keep their codes)."""
+    from .splats import unchanged_rows
+
+    codes = getattr(model.source, "quantised", None)
+    if not isinstance(codes, SogCodes) or codes.means.shape[0] != fields.count:
+        return {}
+    same = unchanged_rows(model, fields)
+    return {} if same is None else {"keep": codes, "same": same}
