@@ -443,3 +443,97 @@ def _winding(poly: np.ndarray, pts: np.ndarray) -> np.ndarray:
     b = np.roll(poly, -1, axis=0)[None, :, :] - pts[:, None, :]
     ang = np.arctan2(a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0], (a * b).sum(-1))
     return np.rint(ang.sum(axis=1) / (2 * np.pi)).astype(int)
+
+
+# ---- gaussians.covariance in the page's Gaussian vertex stage ---------------------------------
+@pytest.mark.parametrize("mode", ["jacobian", "rotation", "limited"])
+def test_page_covariance_modes_match_numpy(page_server, mode):
+    """The page's vertex stage (deform.glsl's J from a basis texture, then shaders/covariance.glsl
+    as the page compiles it) against splatdeform/deform/gaussians.py (float64), for mild,
+    strongly stretching and folded Jacobians; SH follow the polar rotation in every mode."""
+    from test_covariance_modes import random_jacobians, random_splats
+
+    from splatdeform.deform.gaussians import deform_gaussians, polar_rotation
+    from splatdeform.render.gaussian_data import covariances, log_scale_shape
+
+    n = 400
+    scale_log, quat = random_splats(n)
+    jac = random_jacobians(n)
+    # a basis (k = 4) whose J is the given one: delta C = (e0, e1, e2, 0), gradient k = row k
+    # of J - I, values 0 (the position does not move)
+    k = 4
+    grads = np.zeros((n, k, 3))
+    grads[:, :3, :] = jac - np.eye(3)
+    basis = np.concatenate([np.zeros((n, k)), grads.reshape(n, 3 * k)], axis=1)
+    delta = np.vstack([np.eye(3), np.zeros((1, 3))])
+    sigma = covariances(scale_log, quat)
+    cov6 = sigma.reshape(n, 9)[:, [0, 1, 2, 4, 5, 8]]
+    arg = {"k": k, "mode": mode, "positions": np.zeros(3 * n).tolist(),
+           "normals": np.tile([0.0, 0.0, 1.0], n).tolist(), "cov6": cov6.ravel().tolist(),
+           "shape": log_scale_shape(scale_log).astype(np.float64).ravel().tolist(),
+           "basis": basis.ravel().tolist(), "delta": delta.ravel().tolist()}
+    assert page_server.scene["covariance"] == "limited"   # the edit's default
+    with Chromium() as tab:
+        _open(tab, page_server.url())
+        got = np.asarray(tab.eval(f"sdParity({__import__('json').dumps(arg)})")).reshape(n, 21)
+    new = deform_gaussians(scale_log, quat, None, jac, covariance=mode)
+    want = covariances(new.scale_log, new.rotation)
+    g6 = got[:, 6:12]
+    a, b, c, d, e, f = g6.T
+    page = np.stack([np.stack([a, b, c], -1), np.stack([b, d, e], -1),
+                     np.stack([c, e, f], -1)], axis=1)
+    err = np.linalg.norm(page - want, axis=(1, 2)) / np.linalg.norm(want, axis=(1, 2))
+    ev = np.linalg.eigvalsh(jac @ sigma @ jac.transpose(0, 2, 1))
+    cond = ev[:, 2] / np.maximum(np.abs(ev[:, 0]), 1e-300)
+    assert err[cond < 1e4].max() <= 2e-4, f"{mode}: page vs numpy {err[cond < 1e4].max():.3g}"
+    assert (err <= 2e-4 + 1e-8 * cond).all(), f"{mode}: page vs numpy {err.max():.3g}"
+    folded = np.linalg.det(jac) <= 0
+    assert folded.sum() >= 8
+    if mode == "rotation":   # refused: the covariance is kept
+        assert np.allclose(page[folded], sigma[folded], rtol=1e-5)
+    # the limited mode changed what jacobian would draw (needles exist to be limited)
+    if mode == "limited":
+        plain = jac @ sigma @ jac.transpose(0, 2, 1)
+        changed = np.linalg.norm(page - plain, axis=(1, 2)) > 1e-3 * np.linalg.norm(plain,
+                                                                                    axis=(1, 2))
+        assert changed.sum() > n // 10
+    rot = polar_rotation(jac)
+    r_cols = got[:, 12:21].reshape(n, 3, 3).transpose(0, 2, 1)
+    ok = (np.linalg.cond(jac) < 20) & ~folded
+    assert np.abs(r_cols - rot)[ok].max() < 1e-4
+
+
+def test_splat_save_keeps_the_covariance_mode_and_deform_reproduces_it(tmp_path):
+    """The saved YAML names gaussians.covariance and the editor's model used that mode:
+    ``deform`` of the saved YAML writes the same bytes."""
+    src = shared_file("splats/tile_3dgs_sh3.ply")
+    shutil.copy(src, tmp_path / "tile.ply")
+    ed = EditorController.open(tmp_path / "tile.ply")
+    ed.settings.fit.tolerance = 1e-3
+    ed.settings.gaussians.covariance = "jacobian"   # not the default: it must reach the YAML
+    lo, hi = ed.model.bbox()
+    ext = hi - lo
+    ed.add_selector("fixed", Box(tuple(lo - ext), tuple(lo + ext * [0.3, 2, 2])))
+    ed.add_selector("handle", Box(tuple(lo + ext * [0.75, -1, -1]), tuple(hi + ext)))
+    s = Session(ed)
+    s.act({"op": "fit"})
+    pose = np.eye(4)
+    pose[:3, :3] = [[1, 0, 0], [0, 0.8, -0.6], [0, 0.6, 0.8]]
+    pose[:3, 3] = 0.1 * ext
+    s.act({"op": "pose", "matrix": pose.tolist(), "commit": True})
+    s.act({"op": "save", "model": "out.ply", "yaml": "out.yaml", "png": "out.png"})
+    data = yaml.safe_load((tmp_path / "out.yaml").read_text())
+    assert data["gaussians"] == {"covariance": "jacobian"}
+    data["output"] = "again.ply"
+    (tmp_path / "again.yaml").write_text(yaml.safe_dump(data))
+    run = subprocess.run([sys.executable, "-m", "splatdeform.cli", "deform", "again.yaml"],
+                         cwd=tmp_path, capture_output=True, text=True, timeout=300)
+    assert run.returncode == 0, run.stderr
+    assert (tmp_path / "again.ply").read_bytes() == (tmp_path / "out.ply").read_bytes()
+    # and the mode matters here: the default (limited) gives other splats
+    data["gaussians"] = {"covariance": "limited"}
+    data["output"] = "limited.ply"
+    (tmp_path / "limited.yaml").write_text(yaml.safe_dump(data))
+    subprocess.run([sys.executable, "-m", "splatdeform.cli", "deform", "limited.yaml"],
+                   cwd=tmp_path, capture_output=True, text=True, timeout=300, check=True)
+    assert (tmp_path / "limited.ply").read_bytes() != (tmp_path / "out.ply").read_bytes()

@@ -516,6 +516,8 @@ class EditorController:
         })
         if s.device is not None:
             data["device"] = s.device
+        if self.model.gaussians is not None or "gaussians" in s.model_fields_set:
+            data["gaussians"] = s.gaussians.model_dump()  # the mode the saved splats used
         if s.render is not None:
             render = s.render.model_dump()
             if s.render.output is not None:
@@ -545,7 +547,8 @@ class EditorController:
                                 " fit again before saving")
         cfg = self.to_config()
         delta_c, matrix = control_displacement(cfg, self.model, self.deformation)
-        deformed = df.apply(self.deformation, self.model, delta_c, moving_matrix=matrix)
+        deformed = df.apply(self.deformation, self.model, delta_c, moving_matrix=matrix,
+                            covariance=cfg.gaussians.covariance)
         if not np.isfinite(deformed.positions).all():
             raise InputError("the deformation produced non-finite positions; check the regions "
                              "and the transform")

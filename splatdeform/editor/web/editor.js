@@ -36,7 +36,11 @@ async function loadShaders() {
     const r = await fetch(`/web/shaders/${name}`);
     shaderText[name] = await r.text();
   }
+  // the covariance modes come from shaders/covariance.glsl itself (the renderer's source)
+  shaderText['covariance.glsl'] = await (await fetch('/web/shared/covariance.glsl')).text();
 }
+const COVARIANCE_MODES = ['jacobian', 'rotation', 'limited'];  // gaussians.covariance
+const covarianceDefine = (mode) => Math.max(COVARIANCE_MODES.indexOf(mode || 'limited'), 0);
 
 function source(defines, ...names) {
   const head = Object.entries(defines).map(([k, v]) => `#define ${k} ${v}`).join('\n');
@@ -121,8 +125,9 @@ function makeMaterial() {
   let vert, frag, extra = {};
   if (kind === 'splats') {
     const deg = S.scene.sh_degree;
-    const defs = { K, SH_DEGREE: deg, SH_REST: Math.max((deg + 1) ** 2 - 1, 1), SH_TEXELS: Math.max(shTexels(), 1) };
-    vert = source(defs, 'deform.glsl', 'shading.glsl', 'gauss.vert');
+    const defs = { K, SH_DEGREE: deg, SH_REST: Math.max((deg + 1) ** 2 - 1, 1), SH_TEXELS: Math.max(shTexels(), 1),
+      COVARIANCE: covarianceDefine(S.scene.covariance) };
+    vert = source(defs, 'deform.glsl', 'covariance.glsl', 'shading.glsl', 'gauss.vert');
     frag = source({}, 'gauss.frag');
     extra = { transparent: true, depthWrite: false, depthTest: false, blending: THREE.CustomBlending,
       blendSrc: THREE.OneFactor, blendDst: THREE.OneMinusSrcAlphaFactor };
@@ -147,7 +152,9 @@ function splatTextureData() {
     out[o + 3] = a.colors[4 * i + 3] / 255;
     for (let j = 0; j < 6; j++) out[o + 4 + j] = a.cov6[6 * i + j];
     out[o + 10] = S.labels ? S.labels[i] : 0;
+    out[o + 11] = a.shape[2 * i];  // log-scale spread and mean (covariance.glsl's shape)
     for (let j = 0; j < 3; j++) out[o + 12 + j] = a.colors[4 * i + j] / 255;
+    out[o + 15] = a.shape[2 * i + 1];
   }
   return out;
 }
@@ -712,8 +719,10 @@ function background() {
 window.sdParity = (input) => {
   const { k, positions, normals, cov6, basis } = input;
   const n = positions.length / 3;
+  const shape = input.shape || new Array(2 * n).fill(0);
   const g2 = document.createElement('canvas').getContext('webgl2');
-  const vs = `#version 300 es\n${source({ K: k }, 'deform.glsl', 'parity.vert')}`;
+  const vs = `#version 300 es\n${source({ K: k, COVARIANCE: covarianceDefine(input.mode || 'jacobian') },
+    'deform.glsl', 'covariance.glsl', 'parity.vert')}`;
   const fs = '#version 300 es\nprecision highp float;\nout vec4 o;\nvoid main() { o = vec4(0.0); }';
   const prog = g2.createProgram();
   for (const [type, src] of [[g2.VERTEX_SHADER, vs], [g2.FRAGMENT_SHADER, fs]]) {
@@ -726,16 +735,16 @@ window.sdParity = (input) => {
   g2.linkProgram(prog);
   if (!g2.getProgramParameter(prog, g2.LINK_STATUS)) throw new Error(g2.getProgramInfoLog(prog));
   g2.useProgram(prog);
-  const attr = (name, data) => {
+  const attr = (name, data, size = 3) => {
     const loc = g2.getAttribLocation(prog, name);
     if (loc < 0) return;
     const b = g2.createBuffer(); g2.bindBuffer(g2.ARRAY_BUFFER, b);
     g2.bufferData(g2.ARRAY_BUFFER, new Float32Array(data), g2.STATIC_DRAW);
-    g2.enableVertexAttribArray(loc); g2.vertexAttribPointer(loc, 3, g2.FLOAT, false, 0, 0);
+    g2.enableVertexAttribArray(loc); g2.vertexAttribPointer(loc, size, g2.FLOAT, false, 0, 0);
   };
   const ca = [], cb = [];
   for (let i = 0; i < n; i++) { ca.push(cov6[6 * i], cov6[6 * i + 1], cov6[6 * i + 2]); cb.push(cov6[6 * i + 3], cov6[6 * i + 4], cov6[6 * i + 5]); }
-  attr('position', positions); attr('normal', normals); attr('cov_a', ca); attr('cov_b', cb);
+  attr('position', positions); attr('normal', normals); attr('cov_a', ca); attr('cov_b', cb); attr('shape', shape, 2);
   const texels = n * k, width = Math.min(4096, texels), height = Math.ceil(texels / width);
   const data = new Float32Array(width * height * 4); data.set(basis);
   const tex = g2.createTexture(); g2.bindTexture(g2.TEXTURE_2D, tex);
