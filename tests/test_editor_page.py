@@ -537,3 +537,79 @@ def test_splat_save_keeps_the_covariance_mode_and_deform_reproduces_it(tmp_path)
     subprocess.run([sys.executable, "-m", "splatdeform.cli", "deform", "limited.yaml"],
                    cwd=tmp_path, capture_output=True, text=True, timeout=300, check=True)
     assert (tmp_path / "limited.ply").read_bytes() != (tmp_path / "out.ply").read_bytes()
+
+
+# ---- selectors of every kind, nested all / not --------------------------------------------------
+def _nested_edit(work: Path) -> dict:
+    """An EDIT.yaml beside work/bar.ply whose regions use every selector kind, all / not
+    nested (written as nested.yaml; returns its mapping)."""
+    bar = sd.load(work / "bar.ply")
+    far = [int(i) for i in np.flatnonzero(bar.positions[:, 0] > 3.8)[:5]]
+    cfg = {
+        "input": "bar.ply", "output": "bent.ply",
+        "regions": {"units": "model",
+                    "fixed": [{"all": [{"box": {"min": [-1.0, -1.0, -1.0], "max": [1.2, 1.0, 1.0]}},
+                                       {"not": {"sphere": {"center": [1.2, 0.0, 0.5],
+                                                           "radius": 0.3}}}]},
+                              {"property": {"name": "x", "max": 0.2}}],
+                    "handle": [{"all": [{"plane": {"point": [3.0, 0.0, 0.0],
+                                                   "normal": [1.0, 0.0, 0.0]}},
+                                        {"not": {"all": [
+                                            {"sphere": {"center": [4.0, 0.0, 0.0], "radius": 0.2}},
+                                            {"property": {"name": "x", "in": [9.0, 10.0],
+                                                          "min": 3.9}}]}}]},
+                               {"indices": far}]},
+        "handle": {"matrix": [[1, 0, 0, 0.1], [0, 1, 0, 0.3], [0, 0, 1, 0], [0, 0, 0, 1]]},
+        "fit": {"tolerance": 1e-3},
+    }
+    (work / "nested.yaml").write_text(yaml.safe_dump(cfg, sort_keys=False))
+    return cfg
+
+
+def test_nested_selectors_are_a_tree_and_survive_the_saved_yaml(bar_path, tmp_path):
+    shutil.copy(bar_path, tmp_path / "bar.ply")
+    cfg = _nested_edit(tmp_path)
+    srv = make_server(tmp_path / "nested.yaml", port=0)
+    threading.Thread(target=srv.serve_forever, daemon=True).start()
+    try:
+        with Chromium(size=(1100, 750)) as tab:
+            _open(tab, srv.url())
+            rows = tab.eval("Array.from(document.querySelectorAll('#tree .node')).map("
+                            "d => [Number(d.dataset.depth), d.textContent])")
+            # a selector of any kind typed as YAML joins a region (and is undone again)
+            tab.eval("document.getElementById('sel-text').value = "
+                     "'{not: {not: {box: {min: [3.5, -1, -1], max: [5, 1, 1]}}}}'; "
+                     "document.querySelector('[data-text=\"handle\"]').click()")
+            st = tab.wait("sdState().selectors.length === 5 && sdState()")
+            assert st["selectors"][-1]["yaml"] == {"not": {"not": {"box": {
+                "min": [3.5, -1.0, -1.0], "max": [5.0, 1.0, 1.0]}}}}
+            typed = tab.eval("Array.from(document.querySelectorAll('#tree .node')).slice(-3)"
+                             ".map(d => Number(d.dataset.depth))")
+            tab.eval("document.getElementById('undo').click()")
+            tab.wait("sdState().selectors.length === 4")
+            tab.eval("sdAct({op: 'fit'})")
+            tab.wait("sdState().fit && !sdState().stale", 120)
+            tab.eval("sdAct({op: 'save', model: 'out.ply', yaml: 'out.yaml', png: 'out.png'})"
+                     ".then(s => { window.sdLastSave = s; })")
+            tab.wait("window.sdLastSave && window.sdLastSave.message", 120)
+            assert tab.eval("window.sdLastSave.error || ''") == ""
+    finally:
+        srv.shutdown()
+        srv.server_close()
+    texts = [t.strip() for _, t in rows]
+    assert rows[0] == [0, "fixed (union)"]
+    assert [d for d, _ in rows[1:5]] == [1, 2, 2, 3]          # all > box, not > sphere
+    assert texts[1:3] == ["all (intersection)", 'box {"min":[-1,-1,-1],"max":[1.2,1,1]}']
+    assert texts[3] == "not (complement)" and texts[4].startswith("sphere")
+    assert [d for d, _ in rows[7:]] == [1, 2, 2, 3, 4, 4, 1]  # handle: all > plane, not > all
+    assert texts[-1] == "indices (5 points)" and typed == [1, 2, 3]
+    saved = yaml.safe_load((tmp_path / "out.yaml").read_text())
+    assert saved["regions"]["fixed"] == cfg["regions"]["fixed"]
+    assert saved["regions"]["handle"] == cfg["regions"]["handle"]
+    assert saved["regions"]["units"] == "model"
+    saved["output"] = "again.ply"
+    (tmp_path / "again.yaml").write_text(yaml.safe_dump(saved))
+    run = subprocess.run([sys.executable, "-m", "splatdeform.cli", "deform", "again.yaml"],
+                         cwd=tmp_path, capture_output=True, text=True, timeout=300)
+    assert run.returncode == 0, run.stderr
+    assert (tmp_path / "again.ply").read_bytes() == (tmp_path / "out.ply").read_bytes()

@@ -112,6 +112,17 @@ class Session:
         self.ed.add_selector(req["role"], Indices(tuple(int(i) for i in idx)),
                              handle=int(req.get("handle", 0)))
 
+    def _op_add_selector_text(self, req: dict[str, Any]) -> None:
+        """A selector of any kind typed as YAML (all / not nest freely)."""
+        sel = sl.from_text(req.get("text", ""), self.ed.model, self.ed.units, self.ed.base_dir)
+        self.ed.add_selector(req["role"], sel, handle=int(req.get("handle", 0)))
+
+    def _op_set_selector_text(self, req: dict[str, Any]) -> None:
+        """Replace selector ``index`` of a region by one typed as YAML."""
+        sel = sl.from_text(req.get("text", ""), self.ed.model, self.ed.units, self.ed.base_dir)
+        self.ed.set_selector(req["role"], int(req["index"]), sel,
+                             handle=int(req.get("handle", 0)))
+
     def _op_move_selector(self, req: dict[str, Any]) -> None:
         size = req.get("size")
         if size is not None:

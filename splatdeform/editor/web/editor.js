@@ -376,30 +376,54 @@ function findSelector(ref) {
   return S.state.selectors.find((s) => s.role === ref.role && s.handle === ref.handle && s.index === ref.index);
 }
 
+// One selector's YAML as tree rows [depth, text]: all / not are inner nodes, the rest leaves.
+function selectorRows(y, depth, out) {
+  const [key, v] = Object.entries(y)[0];
+  if (key === 'all') {
+    out.push([depth, 'all (intersection)']);
+    for (const part of v) selectorRows(part, depth + 1, out);
+  } else if (key === 'not') {
+    out.push([depth, 'not (complement)']);
+    selectorRows(v, depth + 1, out);
+  } else if (key === 'indices' && Array.isArray(v)) {
+    out.push([depth, `indices (${v.length} points)`]);
+  } else {
+    out.push([depth, `${key} ${JSON.stringify(v)}`]);
+  }
+  return out;
+}
+
 function renderTree() {
   const tree = $('tree');
   tree.innerHTML = '';
-  const add = (text, ref) => {
+  const row = (depth, text, ref) => {
     const div = document.createElement('div');
+    div.className = 'node';
+    div.dataset.depth = depth;
+    div.style.paddingLeft = `${12 * depth}px`;
     div.textContent = text;
-    if (S.selected && ref.type === S.selected.type && ref.role === S.selected.role &&
-        ref.handle === S.selected.handle && ref.index === S.selected.index) div.className = 'sel';
-    div.onclick = () => { S.selected = ref; renderTree(); attachGizmo(); };
+    if (ref) {
+      if (S.selected && ref.type === S.selected.type && ref.role === S.selected.role &&
+          ref.handle === S.selected.handle && ref.index === S.selected.index) div.classList.add('sel');
+      div.onclick = () => { S.selected = ref; renderTree(); attachGizmo(); };
+    }
     tree.appendChild(div);
   };
-  const fixed = S.state.selectors.filter((s) => s.role === 'fixed');
-  const div = document.createElement('div');
-  div.textContent = 'fixed (union)';
-  tree.appendChild(div);
-  for (const s of fixed) add(`  ${JSON.stringify(s.yaml)}`, { type: 'selector', role: s.role, handle: s.handle, index: s.index });
-  for (let h = 0; h < S.state.handles; h++) {
-    if (S.state.fit && !S.state.stale) add(`handle ${h} (union) · pose gizmo`, { type: 'pose', handle: h });
-    else { const d = document.createElement('div'); d.textContent = `handle ${h} (union)`; tree.appendChild(d); }
-    for (const s of S.state.selectors.filter((x) => x.role === 'handle' && x.handle === h)) {
-      add(`  ${JSON.stringify(s.yaml)}`, { type: 'selector', role: s.role, handle: s.handle, index: s.index });
+  const selectors = (list) => {
+    for (const s of list) {
+      const ref = { type: 'selector', role: s.role, handle: s.handle, index: s.index };
+      for (const [depth, text] of selectorRows(s.yaml, 1, [])) row(depth, text, ref);
     }
+  };
+  row(0, 'fixed (union)');
+  selectors(S.state.selectors.filter((s) => s.role === 'fixed'));
+  for (let h = 0; h < S.state.handles; h++) {
+    if (S.state.fit && !S.state.stale) row(0, `handle ${h} (union) · pose gizmo`, { type: 'pose', handle: h });
+    else row(0, `handle ${h} (union)`);
+    selectors(S.state.selectors.filter((x) => x.role === 'handle' && x.handle === h));
   }
   const s = S.selected && S.selected.type === 'selector' ? findSelector(S.selected) : null;
+  if (s && document.activeElement !== $('sel-text')) $('sel-text').value = JSON.stringify(s.yaml);
   for (const [i, id] of ['cx', 'cy', 'cz'].entries()) { $(id).value = s ? +s.center[i].toPrecision(6) : ''; $(id).disabled = !s; }
   for (const [i, id] of ['sx', 'sy', 'sz'].entries()) {
     $(id).value = s ? +s.size[i].toPrecision(6) : ''; $(id).disabled = !s || s.kind === 'plane' || (s.kind === 'sphere' && i > 0);
@@ -637,6 +661,22 @@ for (const b of document.querySelectorAll('[data-select]')) {
 for (const b of document.querySelectorAll('[data-add]')) {
   b.onclick = () => { S.placing = b.dataset.add.split(' '); $('status').textContent = `click on the model to place the ${b.dataset.add}`; };
 }
+// a selector of any kind typed as YAML: added to a region, or replacing the selected one
+for (const b of document.querySelectorAll('[data-text]')) {
+  b.onclick = async () => {
+    const role = b.dataset.text, handle = role === 'handle' ? Number($('active-handle').value || 0) : 0;
+    const st = await act({ op: 'add_selector_text', role, handle, text: $('sel-text').value });
+    const mine = (st.selectors || []).filter((s) => s.role === role && s.handle === handle);
+    if (!st.error && mine.length) S.selected = { type: 'selector', role, handle, index: mine[mine.length - 1].index };
+    await applyState(st);
+  };
+}
+$('text-replace').onclick = async () => {
+  const s = S.selected && S.selected.type === 'selector' ? findSelector(S.selected) : null;
+  if (!s) { $('status').textContent = 'select a selector in the tree first'; return; }
+  await applyState(await act({ op: 'set_selector_text', role: s.role, index: s.index, handle: s.handle,
+    text: $('sel-text').value }));
+};
 $('active-handle').onchange = () => { S.activeHandle = Number($('active-handle').value); };
 $('new-handle').onclick = async () => { const st = await act({ op: 'add_handle' }); S.activeHandle = st.handles - 1; applyState(st); };
 $('fit').onclick = async () => {
