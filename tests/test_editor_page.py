@@ -613,3 +613,122 @@ def test_nested_selectors_are_a_tree_and_survive_the_saved_yaml(bar_path, tmp_pa
                          cwd=tmp_path, capture_output=True, text=True, timeout=300)
     assert run.returncode == 0, run.stderr
     assert (tmp_path / "again.ply").read_bytes() == (tmp_path / "out.ply").read_bytes()
+
+
+# ---- curve edits ---------------------------------------------------------------------------------
+def _curve_edit(work: Path, units: str = "model") -> dict:
+    """configs/curve_bar.yaml's curve edit beside work/bar.ply (written as curve.yaml)."""
+    cfg = {"input": "bar.ply", "output": "bent.ply",
+           "regions": {"units": "model",
+                       "fixed": [{"box": {"min": [-1.0, -1.0, -1.0], "max": [0.6, 1.0, 1.0]}},
+                                 {"box": {"min": [3.4, -1.0, -1.0], "max": [5.0, 1.0, 1.0]}}]},
+           "curve": {"control_points": [[1.2, 0.5, 0.0], [1.7, 0.5, 0.0], [2.3, 0.5, 0.0],
+                                        [2.8, 0.5, 0.0]],
+                     "moved_to": [[1.2, 0.5, 0.0], [1.7, 0.85, 0.0], [2.3, 0.85, 0.0],
+                                  [2.8, 0.5, 0.0]],
+                     "degree": 3, "parametrization": "chord", "capture_radius": 0.12},
+           "fit": {"tolerance": 2e-3}}
+    (work / "curve.yaml").write_text(yaml.safe_dump(cfg, sort_keys=False))
+    return cfg
+
+
+def _deform_again(work: Path, saved_yaml: str, saved_model: str) -> None:
+    data = yaml.safe_load((work / saved_yaml).read_text())
+    data["output"] = "again.ply"
+    (work / "again.yaml").write_text(yaml.safe_dump(data))
+    run = subprocess.run([sys.executable, "-m", "splatdeform.cli", "deform", "again.yaml"],
+                         cwd=work, capture_output=True, text=True, timeout=300)
+    assert run.returncode == 0, run.stderr
+    assert (work / "again.ply").read_bytes() == (work / saved_model).read_bytes()
+
+
+def test_curve_edit_loads_drags_fits_and_saves_what_deform_reproduces(bar_path, tmp_path):
+    shutil.copy(bar_path, tmp_path / "bar.ply")
+    cfg = _curve_edit(tmp_path)
+    s = Session(EditorController.open(tmp_path / "curve.yaml"))
+    st = s.state()
+    curve = st["curve"]
+    o = s.ed.origin
+    assert np.allclose(np.asarray(curve["control"]) + o, cfg["curve"]["control_points"])
+    assert np.allclose(np.asarray(curve["moved"]) + o, cfg["curve"]["moved_to"])
+    assert curve["band"] > 0 and curve["problem"] is None and st["problem"] is None
+    assert st["counts"]["handle"] == curve["band"]            # the band is the moving region
+    assert (s.ed.labels() == 2).sum() == curve["band"]
+    # the drawn curve runs through the snapped control points' spline: its ends are on them
+    samples = np.asarray(curve["samples"])
+    assert np.allclose(np.asarray(curve["weights"]).sum(axis=1), 1)
+    assert np.linalg.norm(samples[0] - np.asarray(curve["control"][0])) < 0.05
+    # saved unchanged (no fit yet needed for the YAML): the curve keeps the YAML's numbers
+    assert s.ed.to_yaml_dict()["curve"] == cfg["curve"]
+    assert "handle" not in s.ed.to_yaml_dict() and "handles" not in s.ed.to_yaml_dict()
+    st = s.act({"op": "fit"})
+    assert not st["stale"] and st["fit"]["k"] == 4 and st["fit"]["control"] == []
+    # the page's delta (moved - control) is the controller's
+    assert np.allclose(s.ed.delta_c(), np.subtract(cfg["curve"]["moved_to"],
+                                                   cfg["curve"]["control_points"]))
+    # drag control point 2's moved point (steps not recorded, the end committed), then undo
+    target = np.asarray(st["curve"]["moved"][2]) + [0.0, 0.1, 0.2]
+    assert s.act({"op": "move_curve_point", "index": 2, "center": (target - 0.05).tolist(),
+                  "moved": True}) == {"ok": 1}
+    st = s.act({"op": "move_curve_point", "index": 2, "center": target.tolist(),
+                "moved": True, "commit": True})
+    assert np.allclose(st["curve"]["moved"][2], target) and not st["stale"]
+    st = s.act({"op": "undo"})
+    assert np.allclose(np.asarray(st["curve"]["moved"][2]) + o, cfg["curve"]["moved_to"][2])
+    st = s.act({"op": "redo"})
+    assert np.allclose(st["curve"]["moved"][2], target)
+    # moving a control point itself (not its moved point) changes the fit: stale
+    st = s.act({"op": "move_curve_point", "index": 1,
+                "center": (np.asarray(st["curve"]["control"][1]) + [0.05, 0, 0]).tolist()})
+    assert st["stale"]
+    st = s.act({"op": "undo"})
+    assert not st["stale"]
+    st = s.act({"op": "save", "model": "out.ply", "yaml": "out.yaml", "png": "out.png"})
+    assert "wrote" in st["message"], st
+    saved = yaml.safe_load((tmp_path / "out.yaml").read_text())
+    assert saved["curve"]["control_points"] == cfg["curve"]["control_points"]
+    assert np.allclose(np.asarray(saved["curve"]["moved_to"][2]) - o, target)
+    _deform_again(tmp_path, "out.yaml", "out.ply")
+    # the saved model moved where the page's P + B dC puts it (float32 basis upload)
+    basis = s.basis()
+    k = st["fit"]["k"]
+    delta = s.ed.delta_c()
+    local = (s.ed.model.positions - o).astype(np.float32) + basis[:, :k] @ delta
+    out = sd.load(tmp_path / "out.ply").positions - o
+    free = ~s.ed.deformation.fixed
+    assert np.abs(out[free] - local[free]).max() < 1e-3 * s.ed.model.diagonal()
+
+
+def test_curve_drawn_on_a_bare_model_with_a_handle(bar_path, tmp_path):
+    """Click control points on the model, fit with a handle too (the handles: form), save."""
+    shutil.copy(bar_path, tmp_path / "bar.ply")
+    s = Session(EditorController.open(tmp_path / "bar.ply"))
+    s.ed.settings.fit.tolerance = 2e-3
+    with pytest.raises(InputError, match="curve"):
+        s.act({"op": "move_curve_point", "index": 0, "center": [0, 0, 0]})
+    s.act({"op": "add_selector", "role": "fixed", "kind": "box",
+           "center": _local(s.ed, (0, 0, 0)), "size": [1.2, 2, 2]})
+    bar = s.ed.model.positions
+    for x in (1.2, 1.7, 2.3):
+        p = bar[np.argmin(np.abs(bar[:, 0] - x) + np.abs(bar[:, 1] - 0.5) + np.abs(bar[:, 2]))]
+        st = s.act({"op": "add_curve_point", "center": _local(s.ed, p)})
+    assert "needs at least 4 control points, got 3" in st["problem"]
+    p = bar[np.argmin(np.abs(bar[:, 0] - 2.8) + np.abs(bar[:, 1] - 0.5) + np.abs(bar[:, 2]))]
+    st = s.act({"op": "add_curve_point", "center": _local(s.ed, p)})
+    st = s.act({"op": "curve_settings", "capture_radius": 0.12})
+    assert st["curve"]["band"] > 0 and st["problem"] is None, st["problem"]
+    assert "handles" not in s.ed.to_yaml_dict()        # the empty handle is not an edit's
+    s.act({"op": "add_selector", "role": "handle", "kind": "box",
+           "center": _local(s.ed, (4, 0, 0)), "size": [1.0, 2, 2]})
+    st = s.act({"op": "fit"})
+    assert st["fit"]["k"] == 8 and len(st["fit"]["control"]) == 4
+    pose = np.eye(4)
+    pose[:3, 3] = (0, 0.3, 0)
+    s.act({"op": "pose", "matrix": pose.tolist(), "commit": True})
+    s.act({"op": "move_curve_point", "index": 1, "moved": True, "commit": True,
+           "center": (np.asarray(st["curve"]["moved"][1]) + [0, 0.3, 0]).tolist()})
+    st = s.act({"op": "save", "model": "out.ply", "yaml": "out.yaml", "png": "out.png"})
+    assert "wrote" in st["message"], st
+    saved = yaml.safe_load((tmp_path / "out.yaml").read_text())
+    assert len(saved["handles"]) == 1 and "curve" in saved
+    _deform_again(tmp_path, "out.yaml", "out.ply")

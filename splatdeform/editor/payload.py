@@ -122,9 +122,11 @@ def basis_arrays(ed: EditorController) -> tuple[np.ndarray, np.ndarray]:
 
 
 def basis_arrays_meta(ed: EditorController) -> tuple[int, list[list[float]]]:
-    """(k, control points (K, 3) local as lists) without building the basis."""
+    """(k, the handles' control points (4 per handle, local) as lists) without building the
+    basis; the columns after them are the curve's (delta = moved_to - control_points)."""
     d = ed.deformation
-    control = np.vstack([g.frame.control_points for g in d.handle_groups()]) - ed.origin
+    frames = [g.frame.control_points for g in d.handle_groups()]
+    control = np.vstack(frames) - ed.origin if frames else np.zeros((0, 3))
     return int(d.k), control.tolist()
 
 

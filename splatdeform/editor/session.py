@@ -59,6 +59,7 @@ class Session:
                              for k, v in self.last_fit.items()}}
         return {
             "selectors": sels, "handles": len(ed.handles), "fit": fit, "stale": ed.stale,
+            "curve": self._curve_info(),
             "poses": [payload.model_to_local(ed, h.matrix).tolist() for h in ed.handles],
             "counts": ed.counts(), "problem": ed.problem(),
             "can_undo": bool(self.history.undo_stack), "can_redo": bool(self.history.redo_stack),
@@ -66,6 +67,21 @@ class Session:
             "defaults": [p.name for p in ed.default_paths()],
             "save_folder": str(self.save_folder.root),
         }
+
+    def _curve_info(self) -> dict[str, Any] | None:
+        """The curve for the page (local coordinates): control points, moved points, settings,
+        band size, and the snapped curve's samples with their spline weights (the page draws
+        the moved curve as samples + weights . delta)."""
+        ed = self.ed
+        if ed.curve is None:
+            return None
+        given, moved, radius = ed.curve.model_points(ed.model, ed.units)
+        view = ed.curve_view()
+        return {"control": (given - ed.origin).tolist(), "moved": (moved - ed.origin).tolist(),
+                "degree": ed.curve.degree, "parametrization": ed.curve.parametrization,
+                "capture_radius": radius, "band": int(view.band.sum()),
+                "samples": (view.samples - ed.origin).tolist(), "weights": view.weights.tolist(),
+                "problem": view.problem, "yaml": ed.curve.to_yaml()}
 
     # ---- actions ------------------------------------------------------------------------
     def act(self, req: dict[str, Any]) -> dict[str, Any]:
@@ -155,6 +171,53 @@ class Session:
         self.ed._region("handle", h)
         self.ed.handles[h].matrix = payload.local_to_model(self.ed, m)
         return None if req.get("commit") else {"ok": 1}
+
+    # ---- the curve ----------------------------------------------------------------------
+    def _curve(self):
+        if self.ed.curve is None:
+            raise InputError("curve: there is none; click control points on the model first")
+        return self.ed.curve
+
+    def _op_add_curve_point(self, req: dict[str, Any]) -> None:
+        """A control point at the picked point (the first one starts the curve)."""
+        from .curve import CurveState
+
+        at = self._center(req)
+        if at is None:
+            raise InputError("center: expected 3 finite numbers")
+        ed = self.ed
+        ed.set_curve(CurveState.new(ed.model, ed.units, at) if ed.curve is None
+                     else ed.curve.appended(ed.model, ed.units, at))
+
+    def _op_move_curve_point(self, req: dict[str, Any]) -> dict[str, Any] | None:
+        """Control point ``index`` to ``center``; ``moved``: its moved_to (the pose, needs a
+        current fit; without ``commit`` a drag step, not recorded), else the point itself."""
+        curve, index = self._curve(), int(req["index"])
+        at = self._center(req)
+        if at is None:
+            raise InputError("center: expected 3 finite numbers")
+        moved = bool(req.get("moved"))
+        if moved and self.ed.stale:
+            raise InputError("fit: the regions changed since the last fit (or there is none); "
+                             "fit again before moving the curve")
+        self.ed.set_curve(curve.with_point(self.ed.model, self.ed.units, index, at,
+                                           moved=moved))
+        return None if (not moved or req.get("commit")) else {"ok": 1}
+
+    def _op_remove_curve_point(self, req: dict[str, Any]) -> None:
+        self.ed.set_curve(self._curve().without(int(req["index"])))
+
+    def _op_remove_curve(self, req: dict[str, Any]) -> None:
+        self.ed.set_curve(None)
+
+    def _op_curve_settings(self, req: dict[str, Any]) -> None:
+        """capture_radius (model units), degree, parametrization: any of them."""
+        self.ed.set_curve(self._curve().with_settings(
+            self.ed.model, self.ed.units, capture_radius=req.get("capture_radius"),
+            degree=req.get("degree"), parametrization=req.get("parametrization")))
+
+    def _op_reset_curve(self, req: dict[str, Any]) -> None:
+        self.ed.set_curve(self._curve().reset())
 
     def _op_reset_pose(self, req: dict[str, Any]) -> None:
         self.ed.reset_pose(int(req.get("handle", 0)))
