@@ -732,3 +732,49 @@ def test_curve_drawn_on_a_bare_model_with_a_handle(bar_path, tmp_path):
     saved = yaml.safe_load((tmp_path / "out.yaml").read_text())
     assert len(saved["handles"]) == 1 and "curve" in saved
     _deform_again(tmp_path, "out.yaml", "out.ply")
+
+
+def test_page_curve_edit_drag_and_save(bar_path, tmp_path):
+    """The page shows a loaded curve edit (points, band), fits, drags a control point's moved
+    point with the gizmo, and saves a YAML that deform reproduces byte for byte."""
+    shutil.copy(bar_path, tmp_path / "bar.ply")
+    cfg = _curve_edit(tmp_path)
+    srv = make_server(tmp_path / "curve.yaml", port=0)
+    threading.Thread(target=srv.serve_forever, daemon=True).start()
+    try:
+        with Chromium(size=(1100, 750)) as tab:
+            _open(tab, srv.url())
+            rows = tab.eval("Array.from(document.querySelectorAll('#tree .node'))"
+                            ".map(d => d.textContent.trim())")
+            assert rows[-5].startswith("curve (degree 3, band") and rows[-1].startswith("point 3")
+            assert tab.eval("sdDebug.curve().children.length") == 3   # points, moved, line
+            tab.eval("document.getElementById('fit').click()")
+            tab.wait("sdState().fit && !sdState().stale", 120)
+            tab.eval("sdSelect({type: 'curve', index: 2})")
+            before = tab.eval("sdState().curve.moved[2]")
+            x, y = tab.eval("sdGizmoScreen()")
+            tab.mouse("mouseMoved", x, y)
+            tab.mouse("mousePressed", x, y, button="left", clickCount=1)
+            for step in range(1, 6):
+                tab.mouse("mouseMoved", x + 3 * step, y - 10 * step, button="left")
+            tab.mouse("mouseReleased", x + 15, y - 50, button="left", clickCount=1)
+            tab.wait(f"sdState().can_undo && sdState().curve.moved[2][1] !== {before[1]}")
+            moved = tab.eval("sdState().curve.moved[2]")
+            assert tab.eval("sdStats.poses") >= 1
+            shown = np.asarray(tab.eval("sdDeformedPositions()")).reshape(-1, 3)
+            tab.eval("sdAct({op: 'save', model: 'out.ply', yaml: 'out.yaml', png: 'out.png'})"
+                     ".then(s => { window.sdLastSave = s; })")
+            tab.wait("window.sdLastSave && window.sdLastSave.message", 120)
+            assert tab.eval("window.sdLastSave.error || ''") == ""
+            assert tab.eval("window.sdError || ''") == ""
+    finally:
+        srv.shutdown()
+        srv.server_close()
+    o = srv.session.ed.origin
+    saved = yaml.safe_load((tmp_path / "out.yaml").read_text())
+    assert saved["curve"]["control_points"] == cfg["curve"]["control_points"]
+    assert np.allclose(np.asarray(saved["curve"]["moved_to"][2]) - o, moved)
+    assert not np.allclose(saved["curve"]["moved_to"][2], cfg["curve"]["moved_to"][2])
+    out = sd.load(tmp_path / "out.ply").positions - o
+    assert np.abs(out - shown).max() < 1e-3 * srv.session.ed.model.diagonal()
+    _deform_again(tmp_path, "out.yaml", "out.ply")

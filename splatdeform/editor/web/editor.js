@@ -218,14 +218,47 @@ function computeDelta() {
   const K = S.fit.k, d = new Float32Array(3 * K);
   const live = S.state && !S.state.stale && S.fit.basis;
   if (live) {
-    for (let k = 0; k < K; k++) {
+    const H = S.fit.control.length;  // the handles' columns (4 each), then the curve's
+    for (let k = 0; k < H; k++) {
       const c = S.fit.control[k], t = affine(S.poses[Math.floor(k / 4)], c);
       for (let j = 0; j < 3; j++) d[3 * k + j] = t[j] - c[j];
+    }
+    const cv = S.state.curve;
+    for (let k = H; cv && k < K; k++) {  // delta = moved_to - control point
+      for (let j = 0; j < 3; j++) d[3 * k + j] = cv.moved[k - H][j] - cv.control[k - H][j];
     }
   }
   S.delta = d;
   applyFitUniforms();
   S.needSort = true;
+}
+
+// ---- the curve: control points (blue), their moved points (orange), the moved curve --------
+const curveGroup = new THREE.Group();
+scene3.add(curveGroup);
+function curveDelta() {  // the curve's rows of delta C (k_curve x 3), zeros without a live fit
+  const cv = S.state && S.state.curve, k = cv ? cv.control.length : 0, H = S.fit.control ? S.fit.control.length : 0;
+  const live = S.state && !S.state.stale && S.fit.basis && S.fit.k === H + k;
+  return Array.from({ length: k }, (_, i) => [0, 1, 2].map((j) => (live ? cv.moved[i][j] - cv.control[i][j] : 0)));
+}
+function renderCurve() {
+  for (const o of [...curveGroup.children]) { curveGroup.remove(o); o.geometry.dispose(); o.material.dispose(); }
+  const cv = S.state && S.state.curve;
+  if (!cv) return;
+  const dot = (pts, color) => {
+    const g = new THREE.BufferGeometry();
+    g.setAttribute('position', new THREE.BufferAttribute(new Float32Array(pts.flat()), 3));
+    return new THREE.Points(g, new THREE.PointsMaterial({ color, size: 9, sizeAttenuation: false, depthTest: false }));
+  };
+  curveGroup.add(dot(cv.control, 0x2050ff));
+  curveGroup.add(dot(cv.moved, 0xff781e));
+  if (cv.samples.length) {  // the moved curve: samples + weights . delta
+    const dC = curveDelta();
+    const pts = cv.samples.map((p, s) => [0, 1, 2].map((j) => p[j] + cv.weights[s].reduce((a, w, i) => a + w * dC[i][j], 0)));
+    const g = new THREE.BufferGeometry();
+    g.setAttribute('position', new THREE.BufferAttribute(new Float32Array(pts.flat()), 3));
+    curveGroup.add(new THREE.Line(g, new THREE.LineBasicMaterial({ color: 0xff781e, depthTest: false })));
+  }
 }
 
 // P + B delta C on the CPU (depth-sort keys and picking); positions when there is no fit.
@@ -364,9 +397,18 @@ async function applyState(st) {
   sel.value = Math.min(S.activeHandle, st.handles - 1);
   if (S.selected && S.selected.type === 'selector' && !findSelector(S.selected)) S.selected = null;
   if (S.selected && S.selected.type === 'pose' && (!st.fit || st.stale)) S.selected = null;
-  if (!S.selected && st.fit && !st.stale) S.selected = { type: 'pose', handle: 0 };
+  if (S.selected && S.selected.type === 'curve' && (!st.curve || S.selected.index >= st.curve.control.length)) S.selected = null;
+  if (!S.selected && st.fit && !st.stale) {  // the first handle's pose, else the curve's first point
+    S.selected = st.fit.control.length ? { type: 'pose', handle: 0 } : st.curve ? { type: 'curve', index: 0 } : null;
+  }
   renderTree();
   renderOutlines();
+  renderCurve();
+  const cv = st.curve;
+  $('curveinfo').textContent = !cv ? 'no curve: click control points on the model'
+    : `${cv.control.length} control points · band ${cv.band} points` + (cv.problem ? `\n⚠ ${cv.problem}` : '');
+  if (cv && document.activeElement !== $('curve-radius')) $('curve-radius').value = +cv.capture_radius.toPrecision(6);
+  if (cv) $('curve-degree').value = String(cv.degree);
   attachGizmo();
   requestDraw();
   S.shown = st;  // what sdState() reports: the state once it is on screen
@@ -418,9 +460,17 @@ function renderTree() {
   row(0, 'fixed (union)');
   selectors(S.state.selectors.filter((s) => s.role === 'fixed'));
   for (let h = 0; h < S.state.handles; h++) {
-    if (S.state.fit && !S.state.stale) row(0, `handle ${h} (union) · pose gizmo`, { type: 'pose', handle: h });
+    if (S.state.fit && !S.state.stale && 4 * h < S.state.fit.control.length) row(0, `handle ${h} (union) · pose gizmo`, { type: 'pose', handle: h });
     else row(0, `handle ${h} (union)`);
     selectors(S.state.selectors.filter((x) => x.role === 'handle' && x.handle === h));
+  }
+  const cv = S.state.curve;
+  if (cv) {
+    row(0, `curve (degree ${cv.degree}, band ${cv.band} points)`);
+    const moving = S.state.fit && !S.state.stale;
+    for (let i = 0; i < cv.control.length; i++) {
+      row(1, `point ${i}${moving ? ' · drag its moved point' : ''}`, { type: 'curve', index: i });
+    }
   }
   const s = S.selected && S.selected.type === 'selector' ? findSelector(S.selected) : null;
   if (s && document.activeElement !== $('sel-text')) $('sel-text').value = JSON.stringify(s.yaml);
@@ -455,9 +505,17 @@ function pivotOf(h) {
 
 function attachGizmo() {
   gizmo.detach();
+  requestDraw();  // the gizmo's matrices are updated by the draw (its picking needs them)
   const sel = S.selected;
   if (!sel) return;
   gizmoTarget.quaternion.identity();
+  if (sel.type === 'curve') {  // after a fit the moved point (the pose), before it the point
+    const cv = S.state.curve, moving = S.state.fit && !S.state.stale;
+    gizmoTarget.position.fromArray((moving ? cv.moved : cv.control)[sel.index]);
+    gizmo.setMode('translate');
+    gizmo.attach(gizmoTarget);
+    return;
+  }
   if (sel.type === 'pose') {
     gizmoTarget.position.fromArray(pivotOf(sel.handle));
     gizmo.setMode($('mode').value);
@@ -480,7 +538,10 @@ gizmo.addEventListener('dragging-changed', (e) => {
     return;
   }
   if (!sel || !drag) return;
-  if (sel.type === 'pose') {
+  if (sel.type === 'curve') {
+    act({ op: 'move_curve_point', index: sel.index, center: gizmoTarget.position.toArray(),
+      moved: !!(S.state.fit && !S.state.stale), commit: true }).then(applyState);
+  } else if (sel.type === 'pose') {
     act({ op: 'pose', handle: sel.handle, matrix: S.poses[sel.handle], commit: true }).then(applyState);
   } else {
     const s = findSelector(sel);
@@ -498,7 +559,21 @@ renderer.domElement.addEventListener('pointermove', (e) => { lastInput = perform
 gizmo.addEventListener('objectChange', () => {
   const sel = S.selected;
   if (!sel || !drag) { requestDraw(); return; }
-  if (sel.type === 'pose') {
+  if (sel.type === 'curve') {
+    const cv = S.state.curve, p = gizmoTarget.position.toArray();
+    if (S.state.fit && !S.state.stale) {  // a pose step: new delta C, a draw, 1 point to the server
+      cv.moved[sel.index] = p;
+      computeDelta();
+      renderCurve();
+      pendingInput = lastInput || performance.now();
+      draw();
+      act({ op: 'move_curve_point', index: sel.index, center: p, moved: true }, true);
+    } else {
+      cv.control[sel.index] = p; cv.moved[sel.index] = p;
+      renderCurve();
+      requestDraw();
+    }
+  } else if (sel.type === 'pose') {
     // rotate about the drag's start point, then move: D = T(pos) R T(-start); pose = D base
     const q = gizmoTarget.quaternion.clone().multiply(drag.q0.clone().invert());
     const R = new THREE.Matrix4().makeRotationFromQuaternion(q);
@@ -562,6 +637,10 @@ renderer.domElement.addEventListener('pointerup', async (e) => {
   if (Math.hypot(e.clientX - down[0], e.clientY - down[1]) > 4) return;
   const at = pick(e.clientX, e.clientY);
   if (!at) { $('status').textContent = 'no point under the cursor: click on the model'; return; }
+  if (S.placing[0] === 'curve') {  // stays on: every click adds a control point until "done"
+    await applyState(await act({ op: 'add_curve_point', center: at }));
+    return;
+  }
   const [role, kind] = S.placing;
   S.placing = null;
   const handle = role === 'handle' ? Number($('active-handle').value || 0) : 0;
@@ -677,6 +756,13 @@ $('text-replace').onclick = async () => {
   await applyState(await act({ op: 'set_selector_text', role: s.role, index: s.index, handle: s.handle,
     text: $('sel-text').value }));
 };
+$('curve-add').onclick = () => { S.placing = ['curve']; S.tool = null;
+  $('status').textContent = 'click on the model: each click adds a control point (done ends)'; };
+$('curve-done').onclick = () => { if (S.placing && S.placing[0] === 'curve') S.placing = null; $('status').textContent = ''; };
+$('curve-reset').onclick = async () => applyState(await act({ op: 'reset_curve' }));
+$('curve-remove').onclick = async () => { S.selected = null; applyState(await act({ op: 'remove_curve' })); };
+$('curve-radius').onchange = async () => applyState(await act({ op: 'curve_settings', capture_radius: Number($('curve-radius').value) }));
+$('curve-degree').onchange = async () => applyState(await act({ op: 'curve_settings', degree: Number($('curve-degree').value) }));
 $('active-handle').onchange = () => { S.activeHandle = Number($('active-handle').value); };
 $('new-handle').onclick = async () => { const st = await act({ op: 'add_handle' }); S.activeHandle = st.handles - 1; applyState(st); };
 $('fit').onclick = async () => {
@@ -690,6 +776,12 @@ $('reset').onclick = async () => applyState(await act({ op: 'reset_pose', handle
 $('undo').onclick = async () => applyState(await act({ op: 'undo' }));
 $('redo').onclick = async () => applyState(await act({ op: 'redo' }));
 $('remove').onclick = async () => {
+  if (S.selected && S.selected.type === 'curve') {
+    const index = S.selected.index;
+    S.selected = null;
+    applyState(await act({ op: 'remove_curve_point', index }));
+    return;
+  }
   const s = S.selected && S.selected.type === 'selector' ? findSelector(S.selected) : null;
   if (!s) return;
   S.selected = null;
@@ -828,7 +920,7 @@ async function start() {
 }
 window.sdApply = applyState;
 window.sdGizmo = gizmo;
-window.sdDebug = { model: () => model, outlines, gizmo, order: () => S.order };
+window.sdDebug = { model: () => model, outlines, gizmo, order: () => S.order, curve: () => curveGroup };
 window.sdAct = async (req) => { const st = await act(req); await applyState(st); return st; };
 window.sdState = () => S.shown;
 window.sdSelect = (ref) => { S.selected = ref; renderTree(); attachGizmo(); };
