@@ -339,6 +339,16 @@ def test_splat_scene_is_drawn_sorted_by_the_page(tmp_path):
             img = np.asarray(Image.open(BytesIO(tab.screenshot())).convert("RGB")).astype(int)
             # the page's back-to-front order is a permutation of all splats
             order = tab.eval(f"Array.from(sdDebug.order().slice(0, {srv.scene['n']}))")
+            # the covariance mode is the edit's, and the page's choice recompiles its shader
+            assert tab.eval("document.getElementById('covariance').value") == "limited"
+            tab.eval("(() => { const e = document.getElementById('covariance'); "
+                     "e.value = 'rotation'; e.dispatchEvent(new Event('change')); })()")
+            tab.wait("sdState().covariance === 'rotation'")
+            assert tab.eval("window.sdError || ''") == "" and srv.session.ed.settings.gaussians\
+                .covariance == "rotation"
+            time.sleep(0.5)
+            again = np.asarray(Image.open(BytesIO(tab.screenshot())).convert("RGB")).astype(int)
+            assert not any("rror" in m for m in tab.console), tab.console
     finally:
         srv.shutdown()
         srv.server_close()
@@ -347,6 +357,8 @@ def test_splat_scene_is_drawn_sorted_by_the_page(tmp_path):
     bg = view_area[2, 2]
     drawn = (np.abs(view_area - bg).sum(axis=2) > 40).mean()
     assert drawn > 0.05, f"the splats are not drawn ({drawn:.3f})"
+    redrawn = (np.abs(again[:, :560] - bg).sum(axis=2) > 40).mean()   # the rotation shader
+    assert redrawn > 0.05, f"the splats are not drawn in rotation mode ({redrawn:.3f})"
 
 
 def test_png_uses_render_size_of_the_loaded_yaml(bar_path, tmp_path):
@@ -489,6 +501,8 @@ def test_page_covariance_modes_match_numpy(page_server, mode):
     assert (err <= 2e-4 + 1e-8 * cond).all(), f"{mode}: page vs numpy {err.max():.3g}"
     folded = np.linalg.det(jac) <= 0
     assert folded.sum() >= 8
+    cond_j = np.linalg.cond(jac)   # limited's shortcut (cond J <= 2) and its eigen-solve, both
+    assert (cond_j < 1.9).sum() > n // 10 and (cond_j > 2.1).sum() > n // 10
     if mode == "rotation":   # refused: the covariance is kept
         assert np.allclose(page[folded], sigma[folded], rtol=1e-5)
     # the limited mode changed what jacobian would draw (needles exist to be limited)
@@ -510,13 +524,16 @@ def test_splat_save_keeps_the_covariance_mode_and_deform_reproduces_it(tmp_path)
     shutil.copy(src, tmp_path / "tile.ply")
     ed = EditorController.open(tmp_path / "tile.ply")
     ed.settings.fit.tolerance = 1e-3
-    ed.settings.gaussians.covariance = "jacobian"   # not the default: it must reach the YAML
     lo, hi = ed.model.bbox()
     ext = hi - lo
     ed.add_selector("fixed", Box(tuple(lo - ext), tuple(lo + ext * [0.3, 2, 2])))
     ed.add_selector("handle", Box(tuple(lo + ext * [0.75, -1, -1]), tuple(hi + ext)))
     s = Session(ed)
     s.act({"op": "fit"})
+    with pytest.raises(InputError, match="gaussians.covariance"):
+        s.act({"op": "covariance", "mode": "needles"})
+    st = s.act({"op": "covariance", "mode": "jacobian"})  # not the default: it must reach the YAML
+    assert st["covariance"] == "jacobian" and not st["stale"]
     pose = np.eye(4)
     pose[:3, :3] = [[1, 0, 0], [0, 0.8, -0.6], [0, 0.6, 0.8]]
     pose[:3, 3] = 0.1 * ext

@@ -59,7 +59,7 @@ class Session:
                              for k, v in self.last_fit.items()}}
         return {
             "selectors": sels, "handles": len(ed.handles), "fit": fit, "stale": ed.stale,
-            "curve": self._curve_info(),
+            "curve": self._curve_info(), "covariance": ed.settings.gaussians.covariance,
             "poses": [payload.model_to_local(ed, h.matrix).tolist() for h in ed.handles],
             "counts": ed.counts(), "problem": ed.problem(),
             "can_undo": bool(self.history.undo_stack), "can_redo": bool(self.history.redo_stack),
@@ -218,6 +218,18 @@ class Session:
 
     def _op_reset_curve(self, req: dict[str, Any]) -> None:
         self.ed.set_curve(self._curve().reset())
+
+    def _op_covariance(self, req: dict[str, Any]) -> None:
+        """``gaussians.covariance`` of the edit (jacobian | rotation | limited): what the page's
+        vertex stage draws and what Save writes (the fit does not depend on it)."""
+        from splatdeform.deform.gaussians import COVARIANCE_MODES
+
+        mode = req.get("mode")
+        if mode not in COVARIANCE_MODES:
+            raise InputError(f"gaussians.covariance: expected one of "
+                             f"{', '.join(COVARIANCE_MODES)}, got {mode!r}")
+        self.ed.settings.gaussians.covariance = mode
+        self.message = f"gaussians.covariance: {mode}"
 
     def _op_reset_pose(self, req: dict[str, Any]) -> None:
         self.ed.reset_pose(int(req.get("handle", 0)))

@@ -32,7 +32,7 @@ async function act(req, quiet) {
 const shaderText = {};
 async function loadShaders() {
   for (const name of ['deform.glsl', 'shading.glsl', 'points.vert', 'points.frag', 'mesh.frag',
-                      'gauss.vert', 'gauss.frag', 'parity.vert']) {
+                      'gauss.vert', 'gauss.frag', 'parity.vert', 'covariance_page.glsl']) {
     const r = await fetch(`/web/shaders/${name}`);
     shaderText[name] = await r.text();
   }
@@ -127,7 +127,7 @@ function makeMaterial() {
     const deg = S.scene.sh_degree;
     const defs = { K, SH_DEGREE: deg, SH_REST: Math.max((deg + 1) ** 2 - 1, 1), SH_TEXELS: Math.max(shTexels(), 1),
       COVARIANCE: covarianceDefine(S.scene.covariance) };
-    vert = source(defs, 'deform.glsl', 'covariance.glsl', 'shading.glsl', 'gauss.vert');
+    vert = source(defs, 'deform.glsl', 'covariance.glsl', 'covariance_page.glsl', 'shading.glsl', 'gauss.vert');
     frag = source({}, 'gauss.frag');
     extra = { transparent: true, depthWrite: false, depthTest: false, blending: THREE.CustomBlending,
       blendSrc: THREE.OneFactor, blendDst: THREE.OneMinusSrcAlphaFactor };
@@ -365,6 +365,10 @@ async function applyState(st) {
   if (!st || !st.selectors) return;
   S.state = st;
   S.poses = st.poses;
+  if (S.scene.kind === 'splats' && st.covariance && st.covariance !== S.scene.covariance) {
+    S.scene.covariance = st.covariance;  // gaussians.covariance changed (or undone): recompile
+    makeMaterial();
+  }
   if (st.fit && st.fit.id !== S.fit.id) {
     const buf = await api('/api/basis', true);
     const basis = new Float32Array(buf);
@@ -802,6 +806,7 @@ $('mode').onchange = attachGizmo;
 $('psize').oninput = () => requestDraw();
 $('regions').onchange = () => { material.uniforms.u_show_regions.value = $('regions').checked ? 1 : 0; requestDraw(); };
 $('up').onchange = () => setUp($('up').value);
+$('covariance').onchange = async () => applyState(await act({ op: 'covariance', mode: $('covariance').value }));
 // Saves go into the editor's save folder by file name; an existing file is only replaced
 // after the user presses Replace for the same names (the server asks with `confirm`).
 async function save(replace) {
@@ -854,7 +859,7 @@ window.sdParity = (input) => {
   const shape = input.shape || new Array(2 * n).fill(0);
   const g2 = document.createElement('canvas').getContext('webgl2');
   const vs = `#version 300 es\n${source({ K: k, COVARIANCE: covarianceDefine(input.mode || 'jacobian') },
-    'deform.glsl', 'covariance.glsl', 'parity.vert')}`;
+    'deform.glsl', 'covariance.glsl', 'covariance_page.glsl', 'parity.vert')}`;
   const fs = '#version 300 es\nprecision highp float;\nout vec4 o;\nvoid main() { o = vec4(0.0); }';
   const prog = g2.createProgram();
   for (const [type, src] of [[g2.VERTEX_SHADER, vs], [g2.FRAGMENT_SHADER, fs]]) {
@@ -911,6 +916,8 @@ async function start() {
   buildModel();
   resize();
   $('up').value = S.scene.up;
+  $('covariance-row').hidden = S.scene.kind !== 'splats';
+  $('covariance').value = S.scene.covariance;
   setUp(S.scene.up);
   const st = await api('/api/state');
   [$('out-model').value, $('out-yaml').value, $('out-png').value] = st.defaults;

@@ -5,7 +5,7 @@
 // (f_rest, channel-major). spread, mean: of the splat's float64 log-scales (covariance.glsl's
 // ``shape``). The host prepends "#define K", "#define SH_DEGREE", "#define SH_REST",
 // "#define SH_TEXELS", "#define COVARIANCE m" (the edit's gaussians.covariance), deform.glsl,
-// shaders/covariance.glsl and shading.glsl.
+// shaders/covariance.glsl, covariance_page.glsl and shading.glsl.
 uniform highp sampler2D u_order;
 uniform int u_order_width;
 uniform highp sampler2D u_splat;
@@ -70,7 +70,7 @@ void main() {
     mat3 sigma = mat3(t1.x, t1.y, t1.z, t1.y, t1.w, t2.x, t1.z, t2.x, t2.y);
     mat3 J = deform_point(i, p);
     bool moved = J != mat3(1.0);  // fixed splats (and no fit): Sigma as it is
-    if (moved) sigma = deform_covariance(J, sigma, vec2(t2.w, t3.w));
+    if (moved) sigma = page_covariance(J, sigma, vec2(t2.w, t3.w));
     gl_Position = vec4(0.0, 0.0, 2.0, 1.0);  // culled unless set below
     v_color = vec4(0.0);
     vec3 t = (viewMatrix * vec4(p, 1.0)).xyz;
