@@ -806,3 +806,29 @@ def test_viser_viewer_refuses_curve_edits_in_one_line(bar_path, tmp_path):
     assert run.returncode == 2, run.stderr
     lines = run.stderr.strip().splitlines()
     assert len(lines) == 1 and "--viewer page" in lines[0] and "Traceback" not in run.stderr
+
+
+def test_page_curve_points_are_clicked_on_the_model(page_server):
+    ed = page_server.session.ed
+    bar = ed.model.positions
+    picks = [bar[np.argmin(np.abs(bar[:, 0] - x) + 3 * np.abs(bar[:, 2] - 0.5))]
+             for x in (1.2, 1.7, 2.3, 2.8)]
+    with Chromium(size=(1100, 750)) as tab:
+        _open(tab, page_server.url())
+        tab.eval("document.getElementById('curve-add').click()")
+        for i, p in enumerate(picks):
+            x, y = tab.eval(f"sdScreenOf({_as_list(np.asarray(p) - ed.origin)})")
+            tab.mouse("mousePressed", x, y, button="left", clickCount=1)
+            tab.mouse("mouseReleased", x, y, button="left", clickCount=1)
+            tab.wait(f"sdState().curve && sdState().curve.control.length === {i + 1}")
+        tab.eval("document.getElementById('curve-done').click()")
+        tab.eval("(() => { const e = document.getElementById('curve-radius'); e.value = 0.15; "
+                 "e.dispatchEvent(new Event('change')); })()")
+        st = tab.wait("sdState().curve.capture_radius === 0.15 && sdState()")
+        rows = tab.eval("Array.from(document.querySelectorAll('#tree .node'))"
+                        ".map(d => d.textContent.trim())")
+    control = np.asarray(st["curve"]["control"]) + ed.origin
+    # each click placed the point drawn under it (the nearest drawn point within 12 px)
+    assert np.abs(control - np.asarray(picks)).max() < 0.05 * ed.model.diagonal()
+    assert st["curve"]["band"] > 0 and st["curve"]["problem"] is None
+    assert rows[-5].startswith("curve (degree 3") and rows[-1] == "point 3"
