@@ -275,7 +275,7 @@ def test_page_edit_end_to_end_matches_the_cli(bar_path, tmp_path):
             # the drawn points moved where the page's own P + B dC says
             shown = np.asarray(tab.eval("sdDeformedPositions()")).reshape(-1, 3)
             tab.eval("document.getElementById('save').click()")
-            tab.wait("window.sdLastSave && window.sdLastSave.message", 120)
+            tab.wait("!!window.sdLastSave", 120)
             assert tab.eval("window.sdLastSave.error || ''") == ""
     finally:
         proc.terminate()
@@ -608,7 +608,7 @@ def test_nested_selectors_are_a_tree_and_survive_the_saved_yaml(bar_path, tmp_pa
             tab.wait("sdState().fit && !sdState().stale", 120)
             tab.eval("sdAct({op: 'save', model: 'out.ply', yaml: 'out.yaml', png: 'out.png'})"
                      ".then(s => { window.sdLastSave = s; })")
-            tab.wait("window.sdLastSave && window.sdLastSave.message", 120)
+            tab.wait("!!window.sdLastSave", 120)
             assert tab.eval("window.sdLastSave.error || ''") == ""
     finally:
         srv.shutdown()
@@ -781,7 +781,7 @@ def test_page_curve_edit_drag_and_save(bar_path, tmp_path):
             shown = np.asarray(tab.eval("sdDeformedPositions()")).reshape(-1, 3)
             tab.eval("sdAct({op: 'save', model: 'out.ply', yaml: 'out.yaml', png: 'out.png'})"
                      ".then(s => { window.sdLastSave = s; })")
-            tab.wait("window.sdLastSave && window.sdLastSave.message", 120)
+            tab.wait("!!window.sdLastSave", 120)
             assert tab.eval("window.sdLastSave.error || ''") == ""
             assert tab.eval("window.sdError || ''") == ""
     finally:
@@ -832,3 +832,21 @@ def test_page_curve_points_are_clicked_on_the_model(page_server):
     assert np.abs(control - np.asarray(picks)).max() < 0.05 * ed.model.diagonal()
     assert st["curve"]["band"] > 0 and st["curve"]["problem"] is None
     assert rows[-5].startswith("curve (degree 3") and rows[-1] == "point 3"
+
+
+def test_saves_from_request_threads_render_every_png(bar_path, tmp_path):
+    """The page's server answers each request on a new thread; every Save renders its PNG
+    (the second one failed: an OpenGL context is current in one thread only)."""
+    shutil.copy(bar_path, tmp_path / "bar.ply")
+    s = _fitted_session(tmp_path / "bar.ply")
+    from splatdeform.render import render_comparison  # a render on this thread first
+
+    render_comparison(s.ed.model, s.ed.model, tmp_path / "first.png", size=(32, 32))
+    out = []
+    for i in range(2):
+        t = threading.Thread(target=lambda i=i: out.append(s.act(
+            {"op": "save", "model": f"o{i}.ply", "yaml": f"o{i}.yaml", "png": f"o{i}.png"})))
+        t.start()
+        t.join()
+    assert [o["message"].startswith("wrote") for o in out] == [True, True], out
+    assert (tmp_path / "o1.png").stat().st_size > 0

@@ -8,6 +8,7 @@ draws them. Every change is recorded for undo / redo (:mod:`.history`); a pose d
 
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
@@ -34,6 +35,7 @@ class Session:
         self.fit_id = 0
         self.last_fit: dict[str, Any] = {}
         self.message = ""
+        self._saver = ThreadPoolExecutor(max_workers=1, thread_name_prefix="editor-save")
 
     # ---- state --------------------------------------------------------------------------
     def _selector_info(self, role: str, h: int, i: int, sel: Any) -> dict[str, Any]:
@@ -263,8 +265,11 @@ class Session:
         return self.state()
 
     def save(self, model: Path, config: Path, image: Path):
-        """The controller's save (the PNG at ``render.size`` when the YAML has one)."""
-        return self.ed.save(model, config, image)
+        """The controller's save (the PNG at ``render.size`` when the YAML has one), always on
+        the session's one save thread: the page's server answers each request on a new
+        thread, and an OpenGL context serves only the thread that made it (a second Save
+        failed with "cannot create renderbuffer"); one thread keeps one context."""
+        return self._saver.submit(self.ed.save, model, config, image).result()
 
     # ---- arrays -------------------------------------------------------------------------
     def labels(self) -> np.ndarray:
