@@ -11,6 +11,7 @@ import subprocess
 import sys
 import threading
 import time
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -52,6 +53,26 @@ def _fitted_session(path: Path) -> Session:
            "center": _local(s.ed, (4, 0, 0)), "size": [2, 2, 2]})
     s.act({"op": "fit"})
     return s
+
+
+@contextmanager
+def _serving(path: Path):
+    """The page's server for MODEL or EDIT.yaml ``path`` on a free port, in a thread."""
+    srv = make_server(path, port=0)
+    threading.Thread(target=srv.serve_forever, daemon=True).start()
+    try:
+        yield srv
+    finally:
+        srv.shutdown()
+        srv.server_close()
+
+
+def _page_save(tab: Chromium, stem: str = "out") -> None:
+    """Save through the page's action (model, YAML, PNG named ``stem``); no error."""
+    tab.eval(f"sdAct({{op: 'save', model: '{stem}.ply', yaml: '{stem}.yaml', "
+             f"png: '{stem}.png'}}).then(s => {{ window.sdLastSave = s; }})")
+    tab.wait("!!window.sdLastSave", 120)
+    assert tab.eval("window.sdLastSave.error || ''") == ""
 
 
 # ---- session and payload (no browser) ------------------------------------------------------
@@ -541,12 +562,7 @@ def test_splat_save_keeps_the_covariance_mode_and_deform_reproduces_it(tmp_path)
     s.act({"op": "save", "model": "out.ply", "yaml": "out.yaml", "png": "out.png"})
     data = yaml.safe_load((tmp_path / "out.yaml").read_text())
     assert data["gaussians"] == {"covariance": "jacobian"}
-    data["output"] = "again.ply"
-    (tmp_path / "again.yaml").write_text(yaml.safe_dump(data))
-    run = subprocess.run([sys.executable, "-m", "splatdeform.cli", "deform", "again.yaml"],
-                         cwd=tmp_path, capture_output=True, text=True, timeout=300)
-    assert run.returncode == 0, run.stderr
-    assert (tmp_path / "again.ply").read_bytes() == (tmp_path / "out.ply").read_bytes()
+    _deform_again(tmp_path, "out.yaml", "out.ply")
     # and the mode matters here: the default (limited) gives other splats
     data["gaussians"] = {"covariance": "limited"}
     data["output"] = "limited.ply"
@@ -586,9 +602,7 @@ def _nested_edit(work: Path) -> dict:
 def test_nested_selectors_are_a_tree_and_survive_the_saved_yaml(bar_path, tmp_path):
     shutil.copy(bar_path, tmp_path / "bar.ply")
     cfg = _nested_edit(tmp_path)
-    srv = make_server(tmp_path / "nested.yaml", port=0)
-    threading.Thread(target=srv.serve_forever, daemon=True).start()
-    try:
+    with _serving(tmp_path / "nested.yaml") as srv:
         with Chromium(size=(1100, 750)) as tab:
             _open(tab, srv.url())
             rows = tab.eval("Array.from(document.querySelectorAll('#tree .node')).map("
@@ -606,13 +620,7 @@ def test_nested_selectors_are_a_tree_and_survive_the_saved_yaml(bar_path, tmp_pa
             tab.wait("sdState().selectors.length === 4")
             tab.eval("sdAct({op: 'fit'})")
             tab.wait("sdState().fit && !sdState().stale", 120)
-            tab.eval("sdAct({op: 'save', model: 'out.ply', yaml: 'out.yaml', png: 'out.png'})"
-                     ".then(s => { window.sdLastSave = s; })")
-            tab.wait("!!window.sdLastSave", 120)
-            assert tab.eval("window.sdLastSave.error || ''") == ""
-    finally:
-        srv.shutdown()
-        srv.server_close()
+            _page_save(tab)
     texts = [t.strip() for _, t in rows]
     assert rows[0] == [0, "fixed (union)"]
     assert [d for d, _ in rows[1:5]] == [1, 2, 2, 3]          # all > box, not > sphere
@@ -624,12 +632,7 @@ def test_nested_selectors_are_a_tree_and_survive_the_saved_yaml(bar_path, tmp_pa
     assert saved["regions"]["fixed"] == cfg["regions"]["fixed"]
     assert saved["regions"]["handle"] == cfg["regions"]["handle"]
     assert saved["regions"]["units"] == "model"
-    saved["output"] = "again.ply"
-    (tmp_path / "again.yaml").write_text(yaml.safe_dump(saved))
-    run = subprocess.run([sys.executable, "-m", "splatdeform.cli", "deform", "again.yaml"],
-                         cwd=tmp_path, capture_output=True, text=True, timeout=300)
-    assert run.returncode == 0, run.stderr
-    assert (tmp_path / "again.ply").read_bytes() == (tmp_path / "out.ply").read_bytes()
+    _deform_again(tmp_path, "out.yaml", "out.ply")
 
 
 # ---- curve edits ---------------------------------------------------------------------------------
@@ -756,9 +759,7 @@ def test_page_curve_edit_drag_and_save(bar_path, tmp_path):
     point with the gizmo, and saves a YAML that deform reproduces byte for byte."""
     shutil.copy(bar_path, tmp_path / "bar.ply")
     cfg = _curve_edit(tmp_path)
-    srv = make_server(tmp_path / "curve.yaml", port=0)
-    threading.Thread(target=srv.serve_forever, daemon=True).start()
-    try:
+    with _serving(tmp_path / "curve.yaml") as srv:
         with Chromium(size=(1100, 750)) as tab:
             _open(tab, srv.url())
             rows = tab.eval("Array.from(document.querySelectorAll('#tree .node'))"
@@ -779,14 +780,8 @@ def test_page_curve_edit_drag_and_save(bar_path, tmp_path):
             moved = tab.eval("sdState().curve.moved[2]")
             assert tab.eval("sdStats.poses") >= 1
             shown = np.asarray(tab.eval("sdDeformedPositions()")).reshape(-1, 3)
-            tab.eval("sdAct({op: 'save', model: 'out.ply', yaml: 'out.yaml', png: 'out.png'})"
-                     ".then(s => { window.sdLastSave = s; })")
-            tab.wait("!!window.sdLastSave", 120)
-            assert tab.eval("window.sdLastSave.error || ''") == ""
+            _page_save(tab)
             assert tab.eval("window.sdError || ''") == ""
-    finally:
-        srv.shutdown()
-        srv.server_close()
     o = srv.session.ed.origin
     saved = yaml.safe_load((tmp_path / "out.yaml").read_text())
     assert saved["curve"]["control_points"] == cfg["curve"]["control_points"]
