@@ -10,7 +10,8 @@ Everything goes through the same pipeline as ``splatdeform deform``: the config 
 (:mod:`splatdeform.edit.config`), :func:`splatdeform.edit.precompute` for rings, fit and basis, and
 :func:`splatdeform.deform.apply` for the saved model, so the saved YAML reproduces the saved model
 byte for byte. One or more handles (``handles:`` in the YAML when there are several): one
-fit, one basis, one 4x4 pose per handle.
+fit, one basis, one 4x4 pose per handle; and/or a curve (:mod:`.curve`, ``curve:``), whose pose
+is its moved control points.
 
 Example::
 
@@ -172,7 +173,7 @@ class EditorController:
 
     @classmethod
     def from_config(cls, path: str | Path) -> EditorController:
-        """Load an edit YAML (handle edits) into the editor state."""
+        """Load an edit YAML (handles, a curve, or both) into the editor state."""
         from splatdeform.edit.plain import transform_matrix
         from splatdeform.edit.run import prepare_model
 
