@@ -553,6 +553,8 @@ def test_splat_save_keeps_the_covariance_mode_and_deform_reproduces_it(tmp_path)
     s.act({"op": "fit"})
     with pytest.raises(InputError, match="gaussians.covariance"):
         s.act({"op": "covariance", "mode": "needles"})
+    st = s.act({"op": "covariance", "mode": "rotation"})
+    assert s.act({"op": "undo"})["covariance"] == "limited"    # undoable like any change
     st = s.act({"op": "covariance", "mode": "jacobian"})  # not the default: it must reach the YAML
     assert st["covariance"] == "jacobian" and not st["stale"]
     pose = np.eye(4)
