@@ -18,8 +18,18 @@ async function api(path, asBytes) {
   return asBytes ? r.arrayBuffer() : r.json();
 }
 
-async function act(req, quiet) {
-  const body = JSON.stringify(req);
+// Actions reach the server one at a time, in the order they were made (the server answers each
+// request on its own thread: three quick size edits could otherwise land in any order).
+let actions = Promise.resolve();
+function act(req, quiet) {
+  const body = JSON.stringify(req);  // the request as it is now, whatever runs before it
+  const run = () => send(req, body, quiet);
+  const done = actions.then(run, run);
+  actions = done.catch(() => {});
+  return done;
+}
+
+async function send(req, body, quiet) {
   if (req.op === 'pose') stats.poseBytes = body.length;
   const r = await fetch('/api/action', {
     method: 'POST', body, headers: { 'X-Editor-Token': TOKEN, 'Content-Type': 'application/json' } });
