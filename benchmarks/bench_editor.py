@@ -44,13 +44,17 @@ def _spin(stop) -> None:
         sum(i * i for i in range(10000))
 
 
-def page_case(label: str, path: Path, poses: int) -> dict[str, float]:
-    """Fit end boxes on ``path`` in the page's session, then time poses in chromium."""
+def page_case(label: str, path: Path, poses: int, covariance: str = "limited"
+              ) -> dict[str, float]:
+    """Fit end boxes on ``path`` in the page's session, then time poses in chromium
+    (Gaussians drawn with ``gaussians.covariance`` = ``covariance``)."""
     from splatdeform.editor.browser import Chromium
     from splatdeform.editor.page_server import make_server
 
     srv = make_server(path, port=0)
     ed = srv.session.ed
+    ed.settings.gaussians.covariance = covariance
+    srv.scene["covariance"] = covariance
     lo, hi = ed.model.bbox()
     axis = int(np.argmax(hi - lo))
     ext = hi - lo
@@ -114,8 +118,9 @@ def page_main(poses: int, busy: int) -> None:
             for p in procs:
                 p.start()
             try:
-                rows = [page_case(scan_label, scan, poses),
-                        page_case("generated 3DGS (SH 0)", splats, poses)]
+                rows = [page_case(scan_label, scan, poses)]
+                rows += [page_case(f"generated 3DGS (SH 0), covariance {mode}", splats, poses,
+                                   mode) for mode in ("limited", "jacobian")]
             finally:
                 stop.set()
                 for p in procs:

@@ -11,6 +11,7 @@ import subprocess
 import sys
 import threading
 import time
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -52,6 +53,26 @@ def _fitted_session(path: Path) -> Session:
            "center": _local(s.ed, (4, 0, 0)), "size": [2, 2, 2]})
     s.act({"op": "fit"})
     return s
+
+
+@contextmanager
+def _serving(path: Path):
+    """The page's server for MODEL or EDIT.yaml ``path`` on a free port, in a thread."""
+    srv = make_server(path, port=0)
+    threading.Thread(target=srv.serve_forever, daemon=True).start()
+    try:
+        yield srv
+    finally:
+        srv.shutdown()
+        srv.server_close()
+
+
+def _page_save(tab: Chromium, stem: str = "out") -> None:
+    """Save through the page's action (model, YAML, PNG named ``stem``); no error."""
+    tab.eval(f"sdAct({{op: 'save', model: '{stem}.ply', yaml: '{stem}.yaml', "
+             f"png: '{stem}.png'}}).then(s => {{ window.sdLastSave = s; }})")
+    tab.wait("!!window.sdLastSave", 120)
+    assert tab.eval("window.sdLastSave.error || ''") == ""
 
 
 # ---- session and payload (no browser) ------------------------------------------------------
@@ -275,7 +296,7 @@ def test_page_edit_end_to_end_matches_the_cli(bar_path, tmp_path):
             # the drawn points moved where the page's own P + B dC says
             shown = np.asarray(tab.eval("sdDeformedPositions()")).reshape(-1, 3)
             tab.eval("document.getElementById('save').click()")
-            tab.wait("window.sdLastSave && window.sdLastSave.message", 120)
+            tab.wait("!!window.sdLastSave", 120)
             assert tab.eval("window.sdLastSave.error || ''") == ""
     finally:
         proc.terminate()
@@ -339,6 +360,16 @@ def test_splat_scene_is_drawn_sorted_by_the_page(tmp_path):
             img = np.asarray(Image.open(BytesIO(tab.screenshot())).convert("RGB")).astype(int)
             # the page's back-to-front order is a permutation of all splats
             order = tab.eval(f"Array.from(sdDebug.order().slice(0, {srv.scene['n']}))")
+            # the covariance mode is the edit's, and the page's choice recompiles its shader
+            assert tab.eval("document.getElementById('covariance').value") == "limited"
+            tab.eval("(() => { const e = document.getElementById('covariance'); "
+                     "e.value = 'rotation'; e.dispatchEvent(new Event('change')); })()")
+            tab.wait("sdState().covariance === 'rotation'")
+            assert tab.eval("window.sdError || ''") == "" and srv.session.ed.settings.gaussians\
+                .covariance == "rotation"
+            time.sleep(0.5)
+            again = np.asarray(Image.open(BytesIO(tab.screenshot())).convert("RGB")).astype(int)
+            assert not any("rror" in m for m in tab.console), tab.console
     finally:
         srv.shutdown()
         srv.server_close()
@@ -347,6 +378,8 @@ def test_splat_scene_is_drawn_sorted_by_the_page(tmp_path):
     bg = view_area[2, 2]
     drawn = (np.abs(view_area - bg).sum(axis=2) > 40).mean()
     assert drawn > 0.05, f"the splats are not drawn ({drawn:.3f})"
+    redrawn = (np.abs(again[:, :560] - bg).sum(axis=2) > 40).mean()   # the rotation shader
+    assert redrawn > 0.05, f"the splats are not drawn in rotation mode ({redrawn:.3f})"
 
 
 def test_png_uses_render_size_of_the_loaded_yaml(bar_path, tmp_path):
@@ -443,3 +476,374 @@ def _winding(poly: np.ndarray, pts: np.ndarray) -> np.ndarray:
     b = np.roll(poly, -1, axis=0)[None, :, :] - pts[:, None, :]
     ang = np.arctan2(a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0], (a * b).sum(-1))
     return np.rint(ang.sum(axis=1) / (2 * np.pi)).astype(int)
+
+
+# ---- gaussians.covariance in the page's Gaussian vertex stage ---------------------------------
+@pytest.mark.parametrize("mode", ["jacobian", "rotation", "limited"])
+def test_page_covariance_modes_match_numpy(page_server, mode):
+    """The page's vertex stage (deform.glsl's J from a basis texture, then shaders/covariance.glsl
+    as the page compiles it) against splatdeform/deform/gaussians.py (float64), for mild,
+    strongly stretching and folded Jacobians; SH follow the polar rotation in every mode."""
+    from test_covariance_modes import random_jacobians, random_splats
+
+    from splatdeform.deform.gaussians import deform_gaussians, polar_rotation
+    from splatdeform.render.gaussian_data import covariances, log_scale_shape
+
+    n = 400
+    scale_log, quat = random_splats(n)
+    jac = random_jacobians(n)
+    # a basis (k = 4) whose J is the given one: delta C = (e0, e1, e2, 0), gradient k = row k
+    # of J - I, values 0 (the position does not move)
+    k = 4
+    grads = np.zeros((n, k, 3))
+    grads[:, :3, :] = jac - np.eye(3)
+    basis = np.concatenate([np.zeros((n, k)), grads.reshape(n, 3 * k)], axis=1)
+    delta = np.vstack([np.eye(3), np.zeros((1, 3))])
+    sigma = covariances(scale_log, quat)
+    cov6 = sigma.reshape(n, 9)[:, [0, 1, 2, 4, 5, 8]]
+    arg = {"k": k, "mode": mode, "positions": np.zeros(3 * n).tolist(),
+           "normals": np.tile([0.0, 0.0, 1.0], n).tolist(), "cov6": cov6.ravel().tolist(),
+           "shape": log_scale_shape(scale_log).astype(np.float64).ravel().tolist(),
+           "basis": basis.ravel().tolist(), "delta": delta.ravel().tolist()}
+    assert page_server.scene["covariance"] == "limited"   # the edit's default
+    with Chromium() as tab:
+        _open(tab, page_server.url())
+        got = np.asarray(tab.eval(f"sdParity({__import__('json').dumps(arg)})")).reshape(n, 21)
+    new = deform_gaussians(scale_log, quat, None, jac, covariance=mode)
+    want = covariances(new.scale_log, new.rotation)
+    g6 = got[:, 6:12]
+    a, b, c, d, e, f = g6.T
+    page = np.stack([np.stack([a, b, c], -1), np.stack([b, d, e], -1),
+                     np.stack([c, e, f], -1)], axis=1)
+    err = np.linalg.norm(page - want, axis=(1, 2)) / np.linalg.norm(want, axis=(1, 2))
+    ev = np.linalg.eigvalsh(jac @ sigma @ jac.transpose(0, 2, 1))
+    cond = ev[:, 2] / np.maximum(np.abs(ev[:, 0]), 1e-300)
+    assert err[cond < 1e4].max() <= 2e-4, f"{mode}: page vs numpy {err[cond < 1e4].max():.3g}"
+    assert (err <= 2e-4 + 1e-8 * cond).all(), f"{mode}: page vs numpy {err.max():.3g}"
+    folded = np.linalg.det(jac) <= 0
+    assert folded.sum() >= 8
+    cond_j = np.linalg.cond(jac)   # limited's shortcut (cond J <= 2) and its eigen-solve, both
+    assert (cond_j < 1.9).sum() > n // 10 and (cond_j > 2.1).sum() > n // 10
+    if mode == "rotation":   # refused: the covariance is kept
+        assert np.allclose(page[folded], sigma[folded], rtol=1e-5)
+    # the limited mode changed what jacobian would draw (needles exist to be limited)
+    if mode == "limited":
+        plain = jac @ sigma @ jac.transpose(0, 2, 1)
+        changed = np.linalg.norm(page - plain, axis=(1, 2)) > 1e-3 * np.linalg.norm(plain,
+                                                                                    axis=(1, 2))
+        assert changed.sum() > n // 10
+    rot = polar_rotation(jac)
+    r_cols = got[:, 12:21].reshape(n, 3, 3).transpose(0, 2, 1)
+    ok = (np.linalg.cond(jac) < 20) & ~folded
+    assert np.abs(r_cols - rot)[ok].max() < 1e-4
+
+
+def test_splat_save_keeps_the_covariance_mode_and_deform_reproduces_it(tmp_path):
+    """The saved YAML names gaussians.covariance and the editor's model used that mode:
+    ``deform`` of the saved YAML writes the same bytes."""
+    src = shared_file("splats/tile_3dgs_sh3.ply")
+    shutil.copy(src, tmp_path / "tile.ply")
+    ed = EditorController.open(tmp_path / "tile.ply")
+    ed.settings.fit.tolerance = 1e-3
+    lo, hi = ed.model.bbox()
+    ext = hi - lo
+    ed.add_selector("fixed", Box(tuple(lo - ext), tuple(lo + ext * [0.3, 2, 2])))
+    ed.add_selector("handle", Box(tuple(lo + ext * [0.75, -1, -1]), tuple(hi + ext)))
+    s = Session(ed)
+    s.act({"op": "fit"})
+    with pytest.raises(InputError, match="gaussians.covariance"):
+        s.act({"op": "covariance", "mode": "needles"})
+    st = s.act({"op": "covariance", "mode": "rotation"})
+    assert s.act({"op": "undo"})["covariance"] == "limited"    # undoable like any change
+    st = s.act({"op": "covariance", "mode": "jacobian"})  # not the default: it must reach the YAML
+    assert st["covariance"] == "jacobian" and not st["stale"]
+    pose = np.eye(4)
+    pose[:3, :3] = [[1, 0, 0], [0, 0.8, -0.6], [0, 0.6, 0.8]]
+    pose[:3, 3] = 0.1 * ext
+    s.act({"op": "pose", "matrix": pose.tolist(), "commit": True})
+    s.act({"op": "save", "model": "out.ply", "yaml": "out.yaml", "png": "out.png"})
+    data = yaml.safe_load((tmp_path / "out.yaml").read_text())
+    assert data["gaussians"] == {"covariance": "jacobian"}
+    _deform_again(tmp_path, "out.yaml", "out.ply")
+    # and the mode matters here: the default (limited) gives other splats
+    data["gaussians"] = {"covariance": "limited"}
+    data["output"] = "limited.ply"
+    (tmp_path / "limited.yaml").write_text(yaml.safe_dump(data))
+    subprocess.run([sys.executable, "-m", "splatdeform.cli", "deform", "limited.yaml"],
+                   cwd=tmp_path, capture_output=True, text=True, timeout=300, check=True)
+    assert (tmp_path / "limited.ply").read_bytes() != (tmp_path / "out.ply").read_bytes()
+
+
+# ---- selectors of every kind, nested all / not --------------------------------------------------
+def _nested_edit(work: Path) -> dict:
+    """An EDIT.yaml beside work/bar.ply whose regions use every selector kind, all / not
+    nested (written as nested.yaml; returns its mapping)."""
+    bar = sd.load(work / "bar.ply")
+    far = [int(i) for i in np.flatnonzero(bar.positions[:, 0] > 3.8)[:5]]
+    cfg = {
+        "input": "bar.ply", "output": "bent.ply",
+        "regions": {"units": "model",
+                    "fixed": [{"all": [{"box": {"min": [-1.0, -1.0, -1.0], "max": [1.2, 1.0, 1.0]}},
+                                       {"not": {"sphere": {"center": [1.2, 0.0, 0.5],
+                                                           "radius": 0.3}}}]},
+                              {"property": {"name": "x", "max": 0.2}}],
+                    "handle": [{"all": [{"plane": {"point": [3.0, 0.0, 0.0],
+                                                   "normal": [1.0, 0.0, 0.0]}},
+                                        {"not": {"all": [
+                                            {"sphere": {"center": [4.0, 0.0, 0.0], "radius": 0.2}},
+                                            {"property": {"name": "x", "in": [9.0, 10.0],
+                                                          "min": 3.9}}]}}]},
+                               {"indices": far}]},
+        "handle": {"matrix": [[1, 0, 0, 0.1], [0, 1, 0, 0.3], [0, 0, 1, 0], [0, 0, 0, 1]]},
+        "fit": {"tolerance": 1e-3},
+    }
+    (work / "nested.yaml").write_text(yaml.safe_dump(cfg, sort_keys=False))
+    return cfg
+
+
+def test_nested_selectors_are_a_tree_and_survive_the_saved_yaml(bar_path, tmp_path):
+    shutil.copy(bar_path, tmp_path / "bar.ply")
+    cfg = _nested_edit(tmp_path)
+    with _serving(tmp_path / "nested.yaml") as srv:
+        with Chromium(size=(1100, 750)) as tab:
+            _open(tab, srv.url())
+            rows = tab.eval("Array.from(document.querySelectorAll('#tree .node')).map("
+                            "d => [Number(d.dataset.depth), d.textContent])")
+            # a selector of any kind typed as YAML joins a region (and is undone again)
+            tab.eval("document.getElementById('sel-text').value = "
+                     "'{not: {not: {box: {min: [3.5, -1, -1], max: [5, 1, 1]}}}}'; "
+                     "document.querySelector('[data-text=\"handle\"]').click()")
+            st = tab.wait("sdState().selectors.length === 5 && sdState()")
+            assert st["selectors"][-1]["yaml"] == {"not": {"not": {"box": {
+                "min": [3.5, -1.0, -1.0], "max": [5.0, 1.0, 1.0]}}}}
+            typed = tab.eval("Array.from(document.querySelectorAll('#tree .node')).slice(-3)"
+                             ".map(d => Number(d.dataset.depth))")
+            tab.eval("document.getElementById('undo').click()")
+            tab.wait("sdState().selectors.length === 4")
+            tab.eval("sdAct({op: 'fit'})")
+            tab.wait("sdState().fit && !sdState().stale", 120)
+            _page_save(tab)
+    texts = [t.strip() for _, t in rows]
+    assert rows[0] == [0, "fixed (union)"]
+    assert [d for d, _ in rows[1:5]] == [1, 2, 2, 3]          # all > box, not > sphere
+    assert texts[1:3] == ["all (intersection)", 'box {"min":[-1,-1,-1],"max":[1.2,1,1]}']
+    assert texts[3] == "not (complement)" and texts[4].startswith("sphere")
+    assert [d for d, _ in rows[7:]] == [1, 2, 2, 3, 4, 4, 1]  # handle: all > plane, not > all
+    assert texts[-1] == "indices (5 points)" and typed == [1, 2, 3]
+    saved = yaml.safe_load((tmp_path / "out.yaml").read_text())
+    assert saved["regions"]["fixed"] == cfg["regions"]["fixed"]
+    assert saved["regions"]["handle"] == cfg["regions"]["handle"]
+    assert saved["regions"]["units"] == "model"
+    _deform_again(tmp_path, "out.yaml", "out.ply")
+
+
+# ---- curve edits ---------------------------------------------------------------------------------
+def _curve_edit(work: Path, units: str = "model") -> dict:
+    """configs/curve_bar.yaml's curve edit beside work/bar.ply (written as curve.yaml)."""
+    cfg = {"input": "bar.ply", "output": "bent.ply",
+           "regions": {"units": "model",
+                       "fixed": [{"box": {"min": [-1.0, -1.0, -1.0], "max": [0.6, 1.0, 1.0]}},
+                                 {"box": {"min": [3.4, -1.0, -1.0], "max": [5.0, 1.0, 1.0]}}]},
+           "curve": {"control_points": [[1.2, 0.5, 0.0], [1.7, 0.5, 0.0], [2.3, 0.5, 0.0],
+                                        [2.8, 0.5, 0.0]],
+                     "moved_to": [[1.2, 0.5, 0.0], [1.7, 0.85, 0.0], [2.3, 0.85, 0.0],
+                                  [2.8, 0.5, 0.0]],
+                     "degree": 3, "parametrization": "chord", "capture_radius": 0.12},
+           "fit": {"tolerance": 2e-3}}
+    (work / "curve.yaml").write_text(yaml.safe_dump(cfg, sort_keys=False))
+    return cfg
+
+
+def _deform_again(work: Path, saved_yaml: str, saved_model: str) -> None:
+    data = yaml.safe_load((work / saved_yaml).read_text())
+    data["output"] = "again.ply"
+    (work / "again.yaml").write_text(yaml.safe_dump(data))
+    run = subprocess.run([sys.executable, "-m", "splatdeform.cli", "deform", "again.yaml"],
+                         cwd=work, capture_output=True, text=True, timeout=300)
+    assert run.returncode == 0, run.stderr
+    assert (work / "again.ply").read_bytes() == (work / saved_model).read_bytes()
+
+
+def test_curve_edit_loads_drags_fits_and_saves_what_deform_reproduces(bar_path, tmp_path):
+    shutil.copy(bar_path, tmp_path / "bar.ply")
+    cfg = _curve_edit(tmp_path)
+    s = Session(EditorController.open(tmp_path / "curve.yaml"))
+    st = s.state()
+    curve = st["curve"]
+    o = s.ed.origin
+    assert np.allclose(np.asarray(curve["control"]) + o, cfg["curve"]["control_points"])
+    assert np.allclose(np.asarray(curve["moved"]) + o, cfg["curve"]["moved_to"])
+    assert curve["band"] > 0 and curve["problem"] is None and st["problem"] is None
+    assert st["counts"]["handle"] == curve["band"]            # the band is the moving region
+    assert (s.ed.labels() == 2).sum() == curve["band"]
+    # the drawn curve runs through the snapped control points' spline: its ends are on them
+    samples = np.asarray(curve["samples"])
+    assert np.allclose(np.asarray(curve["weights"]).sum(axis=1), 1)
+    assert np.linalg.norm(samples[0] - np.asarray(curve["control"][0])) < 0.05
+    # saved unchanged (no fit yet needed for the YAML): the curve keeps the YAML's numbers
+    assert s.ed.to_yaml_dict()["curve"] == cfg["curve"]
+    assert "handle" not in s.ed.to_yaml_dict() and "handles" not in s.ed.to_yaml_dict()
+    st = s.act({"op": "fit"})
+    assert not st["stale"] and st["fit"]["k"] == 4 and st["fit"]["control"] == []
+    # the page's delta (moved - control) is the controller's
+    assert np.allclose(s.ed.delta_c(), np.subtract(cfg["curve"]["moved_to"],
+                                                   cfg["curve"]["control_points"]))
+    # drag control point 2's moved point (steps not recorded, the end committed), then undo
+    target = np.asarray(st["curve"]["moved"][2]) + [0.0, 0.1, 0.2]
+    assert s.act({"op": "move_curve_point", "index": 2, "center": (target - 0.05).tolist(),
+                  "moved": True}) == {"ok": 1}
+    st = s.act({"op": "move_curve_point", "index": 2, "center": target.tolist(),
+                "moved": True, "commit": True})
+    assert np.allclose(st["curve"]["moved"][2], target) and not st["stale"]
+    st = s.act({"op": "undo"})
+    assert np.allclose(np.asarray(st["curve"]["moved"][2]) + o, cfg["curve"]["moved_to"][2])
+    st = s.act({"op": "redo"})
+    assert np.allclose(st["curve"]["moved"][2], target)
+    # moving a control point itself (not its moved point) changes the fit: stale
+    st = s.act({"op": "move_curve_point", "index": 1,
+                "center": (np.asarray(st["curve"]["control"][1]) + [0.05, 0, 0]).tolist()})
+    assert st["stale"]
+    st = s.act({"op": "undo"})
+    assert not st["stale"]
+    st = s.act({"op": "save", "model": "out.ply", "yaml": "out.yaml", "png": "out.png"})
+    assert "wrote" in st["message"], st
+    saved = yaml.safe_load((tmp_path / "out.yaml").read_text())
+    assert saved["curve"]["control_points"] == cfg["curve"]["control_points"]
+    assert np.allclose(np.asarray(saved["curve"]["moved_to"][2]) - o, target)
+    _deform_again(tmp_path, "out.yaml", "out.ply")
+    # the saved model moved where the page's P + B dC puts it (float32 basis upload)
+    basis = s.basis()
+    k = st["fit"]["k"]
+    delta = s.ed.delta_c()
+    local = (s.ed.model.positions - o).astype(np.float32) + basis[:, :k] @ delta
+    out = sd.load(tmp_path / "out.ply").positions - o
+    free = ~s.ed.deformation.fixed
+    assert np.abs(out[free] - local[free]).max() < 1e-3 * s.ed.model.diagonal()
+
+
+def test_curve_drawn_on_a_bare_model_with_a_handle(bar_path, tmp_path):
+    """Click control points on the model, fit with a handle too (the handles: form), save."""
+    shutil.copy(bar_path, tmp_path / "bar.ply")
+    s = Session(EditorController.open(tmp_path / "bar.ply"))
+    s.ed.settings.fit.tolerance = 2e-3
+    with pytest.raises(InputError, match="curve"):
+        s.act({"op": "move_curve_point", "index": 0, "center": [0, 0, 0]})
+    s.act({"op": "add_selector", "role": "fixed", "kind": "box",
+           "center": _local(s.ed, (0, 0, 0)), "size": [1.2, 2, 2]})
+    bar = s.ed.model.positions
+    for x in (1.2, 1.7, 2.3):
+        p = bar[np.argmin(np.abs(bar[:, 0] - x) + np.abs(bar[:, 1] - 0.5) + np.abs(bar[:, 2]))]
+        st = s.act({"op": "add_curve_point", "center": _local(s.ed, p)})
+    assert "needs at least 4 control points, got 3" in st["problem"]
+    p = bar[np.argmin(np.abs(bar[:, 0] - 2.8) + np.abs(bar[:, 1] - 0.5) + np.abs(bar[:, 2]))]
+    st = s.act({"op": "add_curve_point", "center": _local(s.ed, p)})
+    st = s.act({"op": "curve_settings", "capture_radius": 0.12})
+    assert st["curve"]["band"] > 0 and st["problem"] is None, st["problem"]
+    assert "handles" not in s.ed.to_yaml_dict()        # the empty handle is not an edit's
+    s.act({"op": "add_selector", "role": "handle", "kind": "box",
+           "center": _local(s.ed, (4, 0, 0)), "size": [1.0, 2, 2]})
+    st = s.act({"op": "fit"})
+    assert st["fit"]["k"] == 8 and len(st["fit"]["control"]) == 4
+    pose = np.eye(4)
+    pose[:3, 3] = (0, 0.3, 0)
+    s.act({"op": "pose", "matrix": pose.tolist(), "commit": True})
+    s.act({"op": "move_curve_point", "index": 1, "moved": True, "commit": True,
+           "center": (np.asarray(st["curve"]["moved"][1]) + [0, 0.3, 0]).tolist()})
+    st = s.act({"op": "save", "model": "out.ply", "yaml": "out.yaml", "png": "out.png"})
+    assert "wrote" in st["message"], st
+    saved = yaml.safe_load((tmp_path / "out.yaml").read_text())
+    assert len(saved["handles"]) == 1 and "curve" in saved
+    _deform_again(tmp_path, "out.yaml", "out.ply")
+
+
+def test_page_curve_edit_drag_and_save(bar_path, tmp_path):
+    """The page shows a loaded curve edit (points, band), fits, drags a control point's moved
+    point with the gizmo, and saves a YAML that deform reproduces byte for byte."""
+    shutil.copy(bar_path, tmp_path / "bar.ply")
+    cfg = _curve_edit(tmp_path)
+    with _serving(tmp_path / "curve.yaml") as srv:
+        with Chromium(size=(1100, 750)) as tab:
+            _open(tab, srv.url())
+            rows = tab.eval("Array.from(document.querySelectorAll('#tree .node'))"
+                            ".map(d => d.textContent.trim())")
+            assert rows[-5].startswith("curve (degree 3, band") and rows[-1].startswith("point 3")
+            assert tab.eval("sdDebug.curve().children.length") == 3   # points, moved, line
+            tab.eval("document.getElementById('fit').click()")
+            tab.wait("sdState().fit && !sdState().stale", 120)
+            tab.eval("sdSelect({type: 'curve', index: 2})")
+            before = tab.eval("sdState().curve.moved[2]")
+            x, y = tab.eval("sdGizmoScreen()")
+            tab.mouse("mouseMoved", x, y)
+            tab.mouse("mousePressed", x, y, button="left", clickCount=1)
+            for step in range(1, 6):
+                tab.mouse("mouseMoved", x + 3 * step, y - 10 * step, button="left")
+            tab.mouse("mouseReleased", x + 15, y - 50, button="left", clickCount=1)
+            tab.wait(f"sdState().can_undo && sdState().curve.moved[2][1] !== {before[1]}")
+            moved = tab.eval("sdState().curve.moved[2]")
+            assert tab.eval("sdStats.poses") >= 1
+            shown = np.asarray(tab.eval("sdDeformedPositions()")).reshape(-1, 3)
+            _page_save(tab)
+            assert tab.eval("window.sdError || ''") == ""
+    o = srv.session.ed.origin
+    saved = yaml.safe_load((tmp_path / "out.yaml").read_text())
+    assert saved["curve"]["control_points"] == cfg["curve"]["control_points"]
+    assert np.allclose(np.asarray(saved["curve"]["moved_to"][2]) - o, moved)
+    assert not np.allclose(saved["curve"]["moved_to"][2], cfg["curve"]["moved_to"][2])
+    out = sd.load(tmp_path / "out.ply").positions - o
+    assert np.abs(out - shown).max() < 1e-3 * srv.session.ed.model.diagonal()
+    _deform_again(tmp_path, "out.yaml", "out.ply")
+
+
+def test_viser_viewer_refuses_curve_edits_in_one_line(bar_path, tmp_path):
+    shutil.copy(bar_path, tmp_path / "bar.ply")
+    _curve_edit(tmp_path)
+    run = subprocess.run([sys.executable, "-m", "splatdeform.cli", "edit", "curve.yaml",
+                          "--viewer", "viser", "--port", "0"], cwd=tmp_path,
+                         capture_output=True, text=True, timeout=120)
+    assert run.returncode == 2, run.stderr
+    lines = run.stderr.strip().splitlines()
+    assert len(lines) == 1 and "--viewer page" in lines[0] and "Traceback" not in run.stderr
+
+
+def test_page_curve_points_are_clicked_on_the_model(page_server):
+    ed = page_server.session.ed
+    bar = ed.model.positions
+    picks = [bar[np.argmin(np.abs(bar[:, 0] - x) + 3 * np.abs(bar[:, 2] - 0.5))]
+             for x in (1.2, 1.7, 2.3, 2.8)]
+    with Chromium(size=(1100, 750)) as tab:
+        _open(tab, page_server.url())
+        tab.eval("document.getElementById('curve-add').click()")
+        for i, p in enumerate(picks):
+            x, y = tab.eval(f"sdScreenOf({_as_list(np.asarray(p) - ed.origin)})")
+            tab.mouse("mousePressed", x, y, button="left", clickCount=1)
+            tab.mouse("mouseReleased", x, y, button="left", clickCount=1)
+            tab.wait(f"sdState().curve && sdState().curve.control.length === {i + 1}")
+        tab.eval("document.getElementById('curve-done').click()")
+        tab.eval("(() => { const e = document.getElementById('curve-radius'); e.value = 0.15; "
+                 "e.dispatchEvent(new Event('change')); })()")
+        st = tab.wait("sdState().curve.capture_radius === 0.15 && sdState()")
+        rows = tab.eval("Array.from(document.querySelectorAll('#tree .node'))"
+                        ".map(d => d.textContent.trim())")
+    control = np.asarray(st["curve"]["control"]) + ed.origin
+    # each click placed the point drawn under it (the nearest drawn point within 12 px)
+    assert np.abs(control - np.asarray(picks)).max() < 0.05 * ed.model.diagonal()
+    assert st["curve"]["band"] > 0 and st["curve"]["problem"] is None
+    assert rows[-5].startswith("curve (degree 3") and rows[-1] == "point 3"
+
+
+def test_saves_from_request_threads_render_every_png(bar_path, tmp_path):
+    """The page's server answers each request on a new thread; every Save renders its PNG
+    (the second one failed: an OpenGL context is current in one thread only)."""
+    shutil.copy(bar_path, tmp_path / "bar.ply")
+    s = _fitted_session(tmp_path / "bar.ply")
+    from splatdeform.render import render_comparison  # a render on this thread first
+
+    render_comparison(s.ed.model, s.ed.model, tmp_path / "first.png", size=(32, 32))
+    out = []
+    for i in range(2):
+        t = threading.Thread(target=lambda i=i: out.append(s.act(
+            {"op": "save", "model": f"o{i}.ply", "yaml": f"o{i}.yaml", "png": f"o{i}.png"})))
+        t.start()
+        t.join()
+    assert [o["message"].startswith("wrote") for o in out] == [True, True], out
+    assert (tmp_path / "o1.png").stat().st_size > 0

@@ -10,7 +10,8 @@ Everything goes through the same pipeline as ``splatdeform deform``: the config 
 (:mod:`splatdeform.edit.config`), :func:`splatdeform.edit.precompute` for rings, fit and basis, and
 :func:`splatdeform.deform.apply` for the saved model, so the saved YAML reproduces the saved model
 byte for byte. One or more handles (``handles:`` in the YAML when there are several): one
-fit, one basis, one 4x4 pose per handle.
+fit, one basis, one 4x4 pose per handle; and/or a curve (:mod:`.curve`, ``curve:``), whose pose
+is its moved control points.
 
 Example::
 
@@ -44,10 +45,11 @@ from splatdeform.edit.selectors import Selector, select
 
 from .. import deform as df
 from ..basis import resolve_backend
-from ..errors import ConfigError, InputError, RegionError
+from ..errors import InputError, RegionError
 from ..io import check_output_path, save
 from ..model import PointModel
 from . import selectors as sl
+from .curve import CurveState, CurveView, curve_view
 from .fastpath import covariance_frame, full_from_triu6, triu6
 
 ROLES = ("fixed", "handle")
@@ -144,6 +146,8 @@ class EditorController:
         self.units = units
         self.fixed: list[Selector] = []
         self.handles: list[HandleState] = [HandleState()]
+        self.curve: CurveState | None = None  # a curve edit (``curve:``), with or without handles
+        self._curve_cache: tuple[Any, CurveView] | None = None
         self.settings = config if config is not None else parse_edit(
             _bare_settings(self.model_path), str(self.model_path))
         lo, hi = model.bbox()
@@ -169,15 +173,12 @@ class EditorController:
 
     @classmethod
     def from_config(cls, path: str | Path) -> EditorController:
-        """Load an edit YAML (handle edits) into the editor state."""
+        """Load an edit YAML (handles, a curve, or both) into the editor state."""
         from splatdeform.edit.plain import transform_matrix
         from splatdeform.edit.run import prepare_model
 
         path = Path(path)
         cfg = load_edit(path)
-        if cfg.curve is not None:
-            raise ConfigError(f"{path}: curve: the editor edits handle edits only (regions.fixed "
-                              "+ regions.handle + handle, or handles)")
         base = path.resolve().parent
         model = prepare_model(cfg, base, {})
         ed = cls(model, model_path=base / cfg.input, base_dir=base, config=cfg,
@@ -185,10 +186,16 @@ class EditorController:
         ed.fixed = [s.to_selector() for s in cfg.regions.fixed]
         if cfg.handles:
             entries = [(f"handles[{i}]", h, h.region) for i, h in enumerate(cfg.handles)]
-        else:
+        elif cfg.handle is not None:
             entries = [("handle", cfg.handle, cfg.regions.handle or [])]
-        ed.handles = [HandleState([s.to_selector() for s in region]) for _, _, region in entries]
-        for (key, h, _), state, mask in zip(entries, ed.handles, ed.masks()[1], strict=True):
+        else:  # a curve alone
+            entries = []
+        ed.handles = [HandleState([s.to_selector() for s in region])
+                      for _, _, region in entries] or [HandleState()]
+        ed.curve = None if cfg.curve is None else CurveState.from_config(cfg.curve)
+        masks = ed.masks()[1][:len(entries)]
+        for (key, h, _), state, mask in zip(entries, ed.handles[:len(entries)], masks,
+                                            strict=True):
             if mask.any() or h.matrix is not None:  # a centroid pivot needs points
                 try:
                     state.matrix = transform_matrix(h, key, cfg.regions.units, model, mask)
@@ -262,7 +269,36 @@ class EditorController:
             raise InputError(f"{role}: no selector {index} (the region has {len(region)})")
 
     def _regions_key(self) -> tuple:
-        return (self.units, tuple(self.fixed), tuple(tuple(h.selectors) for h in self.handles))
+        return (self.units, tuple(self.fixed), tuple(tuple(h.selectors) for h in self.handles),
+                None if self.curve is None else self.curve.basis_key())
+
+    def live_handles(self) -> list[HandleState]:
+        """The handles the edit has: all of them, except the one empty handle of a curve edit
+        (a curve alone has no handle columns)."""
+        if self.curve is not None and len(self.handles) == 1 and not self.handles[0].selectors:
+            return []
+        return self.handles
+
+    def curve_view(self) -> CurveView | None:
+        """The curve's band and drawn samples (cached per curve), or None without a curve."""
+        if self.curve is None:
+            return None
+        key = (self.units, self.curve.basis_key())
+        if self._curve_cache is None or self._curve_cache[0] != key:
+            self._curve_cache = (key, curve_view(self.curve, self.model, self.units))
+        return self._curve_cache[1]
+
+    def set_curve(self, curve: CurveState | None) -> None:
+        """Replace the curve (None: no curve)."""
+        self.curve = curve
+
+    def _moving(self) -> np.ndarray:
+        """(N,) bool: the live handles' points and the curve band."""
+        _, handles = self.masks()
+        live = handles[:len(self.live_handles())]
+        view = self.curve_view()
+        parts = live + ([view.band] if view is not None else [])
+        return np.logical_or.reduce(parts) if parts else np.zeros(self.model.n_points, bool)
 
     def masks(self) -> tuple[np.ndarray, list[np.ndarray]]:
         """(fixed (N,) bool, [handle (N,) bool per handle]) for the current selectors."""
@@ -276,9 +312,13 @@ class EditorController:
         return fixed, handles
 
     def labels(self) -> np.ndarray:
-        """(N,) uint8: 0 free, 1 fixed, 2 + i handle i (a point in both shows as fixed)."""
+        """(N,) uint8: 0 free, 1 fixed, 2 + i handle i, 2 + (number of live handles) the
+        curve band (a point in both shows as fixed)."""
         fixed, handles = self.masks()
         out = np.zeros(self.model.n_points, dtype=np.uint8)
+        view = self.curve_view()
+        if view is not None:
+            out[view.band] = HANDLE + len(self.live_handles())
         for i in reversed(range(len(handles))):
             out[handles[i]] = HANDLE + i
         out[fixed] = FIXED
@@ -286,8 +326,8 @@ class EditorController:
 
     def counts(self) -> dict[str, int]:
         """Point counts: fixed, handle (all handles), free, overlap (in both)."""
-        fixed, handles = self.masks()
-        moving = np.logical_or.reduce(handles) if handles else np.zeros_like(fixed)
+        fixed, _ = self.masks()
+        moving = self._moving()
         return {"fixed": int(fixed.sum()), "handle": int(moving.sum()),
                 "free": int((~(fixed | moving)).sum()), "overlap": int((fixed & moving).sum())}
 
@@ -309,7 +349,10 @@ class EditorController:
         fixed, handles = self.masks()
         if not fixed.any():
             check_regions(fixed, fixed)  # the CLI's line for an empty fixed region
-        for i, state in enumerate(self.handles):
+        view = self.curve_view()
+        if view is not None and view.problem is not None:
+            raise InputError(view.problem)
+        for i, state in enumerate(self.live_handles()):
             if not state.selectors:  # no YAML can say this; the line for an empty region
                 one = len(self.handles) == 1
                 raise RegionError.at("regions.handle" if one else f"handles[{i}].region",
@@ -317,7 +360,7 @@ class EditorController:
                                      ("the handle region" if one else "it"))
         for mph in metaphors(self.to_config(), self.model, self.base_dir):
             check_metaphor(fixed, mph, self.model.n_points)
-        check_regions(fixed, np.logical_or.reduce(handles))
+        check_regions(fixed, self._moving())
 
     def add_handle(self, selectors: list[Selector] | None = None) -> int:
         """A new handle (its own region and pose; one fit for all). Returns its index."""
@@ -410,8 +453,12 @@ class EditorController:
         if self.deformation is None:
             raise StaleFitError("fit: no fit yet; fit the regions first")
         groups = self.deformation.handle_groups()
-        return np.vstack([delta_for_transform(g.frame.control_points, h.matrix)
-                          for g, h in zip(groups, self.handles, strict=True)])
+        parts = [delta_for_transform(g.frame.control_points, h.matrix)
+                 for g, h in zip(groups, self.live_handles(), strict=True)]
+        if self.curve is not None:
+            given, moved, _ = self.curve.model_points(self.model, self.units)
+            parts.append(moved - given)
+        return np.vstack(parts)
 
     def handle_pivot(self, handle: int = 0) -> np.ndarray:
         """(3,) model-space centre of handle ``handle``'s fitted frame, moved by its pose."""
@@ -502,12 +549,14 @@ class EditorController:
             "regions": {"units": self.units,
                         "fixed": [sl.to_yaml(x, self.base_dir) for x in self.fixed]},
         }
-        if len(self.handles) == 1:
+        if self.curve is None and len(self.handles) == 1:
             data["regions"]["handle"] = region(self.handles[0])
             data["handle"] = {"matrix": rows(self.handles[0].matrix)}
-        else:
+        elif self.live_handles():  # several, or handles with a curve: the handles: form
             data["handles"] = [{"region": region(h), "matrix": rows(h.matrix)}
-                               for h in self.handles]
+                               for h in self.live_handles()]
+        if self.curve is not None:
+            data["curve"] = self.curve.to_yaml()
         data.update({
             "boundary": s.boundary.model_dump(),
             "fit": s.fit.model_dump(),
@@ -516,6 +565,8 @@ class EditorController:
         })
         if s.device is not None:
             data["device"] = s.device
+        if self.model.gaussians is not None or "gaussians" in s.model_fields_set:
+            data["gaussians"] = s.gaussians.model_dump()  # the mode the saved splats used
         if s.render is not None:
             render = s.render.model_dump()
             if s.render.output is not None:
@@ -545,7 +596,8 @@ class EditorController:
                                 " fit again before saving")
         cfg = self.to_config()
         delta_c, matrix = control_displacement(cfg, self.model, self.deformation)
-        deformed = df.apply(self.deformation, self.model, delta_c, moving_matrix=matrix)
+        deformed = df.apply(self.deformation, self.model, delta_c, moving_matrix=matrix,
+                            covariance=cfg.gaussians.covariance)
         if not np.isfinite(deformed.positions).all():
             raise InputError("the deformation produced non-finite positions; check the regions "
                              "and the transform")

@@ -1,7 +1,9 @@
 """Undo / redo for the editor: snapshots of the controller's regions and poses (no web imports).
 
-A snapshot is the fixed selectors plus, per handle, its selectors and (4, 4) pose. Selectors are
-immutable values, so a snapshot is a few small lists. Restoring one that matches the last fit's
+A snapshot is the fixed selectors, per handle its selectors and (4, 4) pose, and the curve (an
+immutable :class:`~.curve.CurveState`, its moved points included) and the Gaussians'
+covariance mode. Selectors are immutable
+values, so a snapshot is a few small lists. Restoring one that matches the last fit's
 regions makes that fit current again (the controller compares region keys), so undoing a wrong
 grab never throws away a fit.
 """
@@ -18,17 +20,20 @@ from .controller import EditorController, HandleState
 
 def snapshot(ed: EditorController) -> tuple[Any, ...]:
     """The controller's editable state as an immutable-enough value."""
-    return (list(ed.fixed), [(list(h.selectors), h.matrix.copy()) for h in ed.handles])
+    return (list(ed.fixed), [(list(h.selectors), h.matrix.copy()) for h in ed.handles],
+            ed.curve, ed.settings.gaussians.covariance)
 
 
 def restore(ed: EditorController, snap: tuple[Any, ...]) -> None:
-    fixed, handles = snap
+    fixed, handles, curve, covariance = snap
     ed.fixed = list(fixed)
     ed.handles = [HandleState(list(s), m.copy()) for s, m in handles]
+    ed.curve = curve
+    ed.settings.gaussians.covariance = covariance
 
 
 def _same(a: tuple[Any, ...], b: tuple[Any, ...]) -> bool:
-    if a[0] != b[0] or len(a[1]) != len(b[1]):
+    if a[0] != b[0] or len(a[1]) != len(b[1]) or a[2:] != b[2:]:
         return False
     return all(sa == sb and np.array_equal(ma, mb)
                for (sa, ma), (sb, mb) in zip(a[1], b[1], strict=True))

@@ -22,12 +22,14 @@ from urllib.parse import parse_qs, urlparse
 
 import numpy as np
 
+from ..resources import resource_path
 from . import payload
 from .controller import EditorController
 from .security import default_save_folder, exposure_warning, new_token
 from .session import Session, error_line
 
 WEB = Path(__file__).with_name("web")
+SHARED_SHADERS = ("covariance.glsl",)  # served from shaders/ itself: one source for both stages
 MAX_BODY = 1 << 20
 
 
@@ -83,6 +85,8 @@ class _Handler(BaseHTTPRequestHandler):
                 return
         if path == "/":
             self._static("index.html")
+        elif path.startswith("/web/shared/") and path[12:] in SHARED_SHADERS:
+            self._send(200, resource_path("shaders", path[12:]).read_bytes(), "text/plain")
         elif path.startswith("/web/"):
             self._static(path[5:])
         elif path == "/api/scene":

@@ -18,6 +18,7 @@ import numpy as np
 from ..deform import full_basis
 from ..deform.normals import pca_normals
 from ..render.camera import default_up
+from ..render.gaussian_data import log_scale_shape
 from . import view
 from .controller import EditorController, _gaussian_cov6
 
@@ -56,8 +57,10 @@ def model_arrays(ed: EditorController, normals: np.ndarray | None = None
                  ) -> dict[str, np.ndarray]:
     """The page's per-model arrays: positions (N, 3) float32 local, colors (N, 4) uint8 (RGB
     as stored or neutral grey; alpha the 3DGS opacity), and when present normals (N, 3) float32,
-    faces (F, 3) uint32, cov6 (N, 6) float32 (xx, xy, xz, yy, yz, zz), sh_rest (N, 3 * R)
-    float32 channel-major. ``normals``: :func:`display_normals` when already computed."""
+    faces (F, 3) uint32, cov6 (N, 6) float32 (xx, xy, xz, yy, yz, zz), shape (N, 2) float32
+    (spread and mean of the float64 log-scales, for the ``limited`` covariance mode), sh_rest
+    (N, 3 * R) float32 channel-major. ``normals``: :func:`display_normals` when already
+    computed."""
     m = ed.model
     out: dict[str, np.ndarray] = {
         "positions": (np.asarray(m.positions, np.float64) - ed.origin).astype(np.float32),
@@ -72,6 +75,7 @@ def model_arrays(ed: EditorController, normals: np.ndarray | None = None
     g = m.gaussians
     if g is not None:
         out["cov6"] = _gaussian_cov6(m)
+        out["shape"] = log_scale_shape(g.scale_log)
         if g.sh_rest is not None and g.sh_rest.shape[1] >= 9:
             out["sh_rest"] = np.ascontiguousarray(g.sh_rest, dtype=np.float32)
     return out
@@ -98,6 +102,7 @@ def scene_info(ed: EditorController, arrays: dict[str, np.ndarray] | None = None
         "origin": [float(v) for v in ed.origin], "up": up_axis(ed),
         "up_vector": list(UP_VECTORS[up_axis(ed)]), "point_size": view.point_size(ed.model),
         "normals": normals_from, "sh_degree": sh_degree(ed),
+        "covariance": ed.settings.gaussians.covariance,
         "arrays": {k: {"dtype": a.dtype.str, "shape": list(a.shape)}
                    for k, a in arrays.items()},
     }
@@ -117,9 +122,11 @@ def basis_arrays(ed: EditorController) -> tuple[np.ndarray, np.ndarray]:
 
 
 def basis_arrays_meta(ed: EditorController) -> tuple[int, list[list[float]]]:
-    """(k, control points (K, 3) local as lists) without building the basis."""
+    """(k, the handles' control points (4 per handle, local) as lists) without building the
+    basis; the columns after them are the curve's (delta = moved_to - control_points)."""
     d = ed.deformation
-    control = np.vstack([g.frame.control_points for g in d.handle_groups()]) - ed.origin
+    frames = [g.frame.control_points for g in d.handle_groups()]
+    control = np.vstack(frames) - ed.origin if frames else np.zeros((0, 3))
     return int(d.k), control.tolist()
 
 

@@ -124,3 +124,32 @@ def to_yaml(sel: Selector, base_dir: Path | None = None) -> dict[str, Any]:
     if to_config is None:
         raise InputError(f"selector: unknown selector {sel!r}")
     return to_config(base_dir)
+
+
+def from_text(text: str, model: PointModel, units: str, base_dir: Path) -> Selector:
+    """One selector of any kind typed in the page, as YAML or JSON (``{all: [{box: ...},
+    {not: {property: {name: classification, equals: 2}}}]}``), validated like the edit config
+    and evaluated once (an unknown property is its one line). In the edit's ``units``. An
+    ``indices: {file: ...}`` is refused here (the page reads no file the user did not open):
+    load it from an EDIT.yaml."""
+    import yaml
+    from pydantic import TypeAdapter, ValidationError
+
+    from splatdeform.edit.config import validation_error
+    from splatdeform.edit.selectors import SelectorCfg, leaves, select
+
+    try:
+        data = yaml.safe_load(str(text))
+    except yaml.YAMLError as exc:
+        problem = " ".join(str(getattr(exc, "problem", None) or exc).split())
+        raise InputError(f"selector: invalid YAML: {problem}") from None
+    try:
+        entry = TypeAdapter(SelectorCfg).validate_python(data)
+    except ValidationError as exc:
+        raise validation_error("selector", exc) from None
+    sel = entry.to_selector()
+    if any(getattr(leaf, "file", None) is not None for leaf in leaves(sel)):
+        raise InputError("selector: indices: {file: ...} is read only from a loaded EDIT.yaml; "
+                         "type the indices, or select them on screen")
+    select(model, [sel], units, base_dir)  # an unknown property fails here, not in a later draw
+    return sel

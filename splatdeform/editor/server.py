@@ -20,7 +20,7 @@ import numpy as np
 
 from splatdeform.deform.gaussians import quaternion_to_matrix
 
-from ..errors import SplatdeformError
+from ..errors import ConfigError, SplatdeformError
 from . import view
 from .controller import EditorController, Frame
 from .security import (
@@ -521,6 +521,9 @@ def run(path: str, *, host: str = "127.0.0.1", port: int = 8080,
     import viser
 
     controller = EditorController.open(path)
+    if controller.curve is not None:
+        raise ConfigError(f"{path}: curve: the viser viewer edits handles only; open curve "
+                          "edits in the page (--viewer page, the default)")
     folder = default_save_folder(controller, save_dir)
     token = token or new_token()
     stop = threading.Event()

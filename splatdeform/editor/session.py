@@ -8,6 +8,7 @@ draws them. Every change is recorded for undo / redo (:mod:`.history`); a pose d
 
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
@@ -34,6 +35,7 @@ class Session:
         self.fit_id = 0
         self.last_fit: dict[str, Any] = {}
         self.message = ""
+        self._saver = ThreadPoolExecutor(max_workers=1, thread_name_prefix="editor-save")
 
     # ---- state --------------------------------------------------------------------------
     def _selector_info(self, role: str, h: int, i: int, sel: Any) -> dict[str, Any]:
@@ -59,6 +61,7 @@ class Session:
                              for k, v in self.last_fit.items()}}
         return {
             "selectors": sels, "handles": len(ed.handles), "fit": fit, "stale": ed.stale,
+            "curve": self._curve_info(), "covariance": ed.settings.gaussians.covariance,
             "poses": [payload.model_to_local(ed, h.matrix).tolist() for h in ed.handles],
             "counts": ed.counts(), "problem": ed.problem(),
             "can_undo": bool(self.history.undo_stack), "can_redo": bool(self.history.redo_stack),
@@ -66,6 +69,21 @@ class Session:
             "defaults": [p.name for p in ed.default_paths()],
             "save_folder": str(self.save_folder.root),
         }
+
+    def _curve_info(self) -> dict[str, Any] | None:
+        """The curve for the page (local coordinates): control points, moved points, settings,
+        band size, and the snapped curve's samples with their spline weights (the page draws
+        the moved curve as samples + weights . delta)."""
+        ed = self.ed
+        if ed.curve is None:
+            return None
+        given, moved, radius = ed.curve.model_points(ed.model, ed.units)
+        view = ed.curve_view()
+        return {"control": (given - ed.origin).tolist(), "moved": (moved - ed.origin).tolist(),
+                "degree": ed.curve.degree, "parametrization": ed.curve.parametrization,
+                "capture_radius": radius, "band": int(view.band.sum()),
+                "samples": (view.samples - ed.origin).tolist(), "weights": view.weights.tolist(),
+                "problem": view.problem, "yaml": ed.curve.to_yaml()}
 
     # ---- actions ------------------------------------------------------------------------
     def act(self, req: dict[str, Any]) -> dict[str, Any]:
@@ -112,6 +130,17 @@ class Session:
         self.ed.add_selector(req["role"], Indices(tuple(int(i) for i in idx)),
                              handle=int(req.get("handle", 0)))
 
+    def _op_add_selector_text(self, req: dict[str, Any]) -> None:
+        """A selector of any kind typed as YAML (all / not nest freely)."""
+        sel = sl.from_text(req.get("text", ""), self.ed.model, self.ed.units, self.ed.base_dir)
+        self.ed.add_selector(req["role"], sel, handle=int(req.get("handle", 0)))
+
+    def _op_set_selector_text(self, req: dict[str, Any]) -> None:
+        """Replace selector ``index`` of a region by one typed as YAML."""
+        sel = sl.from_text(req.get("text", ""), self.ed.model, self.ed.units, self.ed.base_dir)
+        self.ed.set_selector(req["role"], int(req["index"]), sel,
+                             handle=int(req.get("handle", 0)))
+
     def _op_move_selector(self, req: dict[str, Any]) -> None:
         size = req.get("size")
         if size is not None:
@@ -145,6 +174,65 @@ class Session:
         self.ed.handles[h].matrix = payload.local_to_model(self.ed, m)
         return None if req.get("commit") else {"ok": 1}
 
+    # ---- the curve ----------------------------------------------------------------------
+    def _curve(self):
+        if self.ed.curve is None:
+            raise InputError("curve: there is none; click control points on the model first")
+        return self.ed.curve
+
+    def _op_add_curve_point(self, req: dict[str, Any]) -> None:
+        """A control point at the picked point (the first one starts the curve)."""
+        from .curve import CurveState
+
+        at = self._center(req)
+        if at is None:
+            raise InputError("center: expected 3 finite numbers")
+        ed = self.ed
+        ed.set_curve(CurveState.new(ed.model, ed.units, at) if ed.curve is None
+                     else ed.curve.appended(ed.model, ed.units, at))
+
+    def _op_move_curve_point(self, req: dict[str, Any]) -> dict[str, Any] | None:
+        """Control point ``index`` to ``center``; ``moved``: its moved_to (the pose, needs a
+        current fit; without ``commit`` a drag step, not recorded), else the point itself."""
+        curve, index = self._curve(), int(req["index"])
+        at = self._center(req)
+        if at is None:
+            raise InputError("center: expected 3 finite numbers")
+        moved = bool(req.get("moved"))
+        if moved and self.ed.stale:
+            raise InputError("fit: the regions changed since the last fit (or there is none); "
+                             "fit again before moving the curve")
+        self.ed.set_curve(curve.with_point(self.ed.model, self.ed.units, index, at,
+                                           moved=moved))
+        return None if (not moved or req.get("commit")) else {"ok": 1}
+
+    def _op_remove_curve_point(self, req: dict[str, Any]) -> None:
+        self.ed.set_curve(self._curve().without(int(req["index"])))
+
+    def _op_remove_curve(self, req: dict[str, Any]) -> None:
+        self.ed.set_curve(None)
+
+    def _op_curve_settings(self, req: dict[str, Any]) -> None:
+        """capture_radius (model units), degree, parametrization: any of them."""
+        self.ed.set_curve(self._curve().with_settings(
+            self.ed.model, self.ed.units, capture_radius=req.get("capture_radius"),
+            degree=req.get("degree"), parametrization=req.get("parametrization")))
+
+    def _op_reset_curve(self, req: dict[str, Any]) -> None:
+        self.ed.set_curve(self._curve().reset())
+
+    def _op_covariance(self, req: dict[str, Any]) -> None:
+        """``gaussians.covariance`` of the edit (jacobian | rotation | limited): what the page's
+        vertex stage draws and what Save writes (the fit does not depend on it)."""
+        from splatdeform.deform.gaussians import COVARIANCE_MODES
+
+        mode = req.get("mode")
+        if mode not in COVARIANCE_MODES:
+            raise InputError(f"gaussians.covariance: expected one of "
+                             f"{', '.join(COVARIANCE_MODES)}, got {mode!r}")
+        self.ed.settings.gaussians.covariance = mode
+        self.message = f"gaussians.covariance: {mode}"
+
     def _op_reset_pose(self, req: dict[str, Any]) -> None:
         self.ed.reset_pose(int(req.get("handle", 0)))
 
@@ -177,8 +265,11 @@ class Session:
         return self.state()
 
     def save(self, model: Path, config: Path, image: Path):
-        """The controller's save (the PNG at ``render.size`` when the YAML has one)."""
-        return self.ed.save(model, config, image)
+        """The controller's save (the PNG at ``render.size`` when the YAML has one), always on
+        the session's one save thread: the page's server answers each request on a new
+        thread, and an OpenGL context serves only the thread that made it (a second Save
+        failed with "cannot create renderbuffer"); one thread keeps one context."""
+        return self._saver.submit(self.ed.save, model, config, image).result()
 
     # ---- arrays -------------------------------------------------------------------------
     def labels(self) -> np.ndarray:

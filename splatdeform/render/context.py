@@ -1,4 +1,6 @@
-"""The one place that creates the OpenGL context: a cached standalone EGL context (headless).
+"""The one place that creates the OpenGL context: a cached standalone EGL context (headless),
+one per thread (an EGL context is current in one thread only: the editor renders its PNGs on its
+save thread while another thread may have rendered before).
 
 Works on a GPU driver and on Mesa's llvmpipe alike. The default (X11/GLX) backend is never used:
 it fails without a display. Anything missing (moderngl, libEGL, a GL 3.3 core driver) becomes a
@@ -7,7 +9,7 @@ one-line :class:`~splatdeform.errors.DeviceError`.
 
 from __future__ import annotations
 
-import functools
+import threading
 from typing import Any
 
 from splatdeform.errors import DeviceError
@@ -15,12 +17,22 @@ from splatdeform.errors import DeviceError
 MIN_GL_VERSION = 330  # geometry shaders, GLSL 3.30 core
 
 
-@functools.lru_cache(maxsize=1)
+_PER_THREAD = threading.local()
+
+
 def get_context() -> Any:
-    """The process-wide standalone EGL ``moderngl.Context`` (created on first use, cached).
+    """The calling thread's standalone EGL ``moderngl.Context`` (created on its first use there,
+    cached for that thread).
 
     Raises DeviceError when moderngl, EGL or a GL >= 3.3 core driver is unavailable.
     """
+    ctx = getattr(_PER_THREAD, "ctx", None)
+    if ctx is None:
+        ctx = _PER_THREAD.ctx = _create_context()
+    return ctx
+
+
+def _create_context() -> Any:
     try:
         import moderngl
     except ImportError as exc:  # pragma: no cover - moderngl is a hard dependency

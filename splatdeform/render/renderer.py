@@ -59,7 +59,9 @@ FEEDBACK_VARYINGS = ("v_position", "v_normal", "v_axis_u", "v_axis_v")
 SURFEL_DEPTH_OFFSET = 1.0  # depth pre-pass pushed back by this many splat radii
 SURFEL_SCALE = 1.25  # surface splatting enlarges the discs so that neighbours overlap
 
-_programs: dict[tuple[str, bool, int, int, str], Any] = {}
+# compiled programs per context (a thread's own context, see render/context.py); a context
+# object is kept here with its programs, so its id is never reused while the entry lives
+_programs_of: dict[int, tuple[Any, dict[tuple[str, bool, int, int, str], Any]]] = {}
 
 
 def _shader(name: str) -> str:
@@ -114,6 +116,7 @@ def program(name: str, k: int = 0, sh: tuple[int, int] = (0, 0),
     sh = (int(sh[0]), int(sh[1])) if kind == "gauss" and int(sh[0]) > 0 else (0, 0)
     covariance = covariance if kind == "gauss" and deform else "jacobian"
     key = (kind, deform, k, sh[0] * 1000 + sh[1], covariance)
+    _programs = _programs_of.setdefault(id(ctx), (ctx, {}))[1]
     if key not in _programs:
         if (k or sh[0]) and ctx.version_code < STORAGE_GL_VERSION:
             what = f"k = {k} control DOFs" if k else f"SH degree {sh[0]} colours"

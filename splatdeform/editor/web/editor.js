@@ -18,8 +18,18 @@ async function api(path, asBytes) {
   return asBytes ? r.arrayBuffer() : r.json();
 }
 
-async function act(req, quiet) {
-  const body = JSON.stringify(req);
+// Actions reach the server one at a time, in the order they were made (the server answers each
+// request on its own thread: three quick size edits could otherwise land in any order).
+let actions = Promise.resolve();
+function act(req, quiet) {
+  const body = JSON.stringify(req);  // the request as it is now, whatever runs before it
+  const run = () => send(req, body, quiet);
+  const done = actions.then(run, run);
+  actions = done.catch(() => {});
+  return done;
+}
+
+async function send(req, body, quiet) {
   if (req.op === 'pose') stats.poseBytes = body.length;
   const r = await fetch('/api/action', {
     method: 'POST', body, headers: { 'X-Editor-Token': TOKEN, 'Content-Type': 'application/json' } });
@@ -32,11 +42,15 @@ async function act(req, quiet) {
 const shaderText = {};
 async function loadShaders() {
   for (const name of ['deform.glsl', 'shading.glsl', 'points.vert', 'points.frag', 'mesh.frag',
-                      'gauss.vert', 'gauss.frag', 'parity.vert']) {
+                      'gauss.vert', 'gauss.frag', 'parity.vert', 'covariance_page.glsl']) {
     const r = await fetch(`/web/shaders/${name}`);
     shaderText[name] = await r.text();
   }
+  // the covariance modes come from shaders/covariance.glsl itself (the renderer's source)
+  shaderText['covariance.glsl'] = await (await fetch('/web/shared/covariance.glsl')).text();
 }
+const COVARIANCE_MODES = ['jacobian', 'rotation', 'limited'];  // gaussians.covariance
+const covarianceDefine = (mode) => Math.max(COVARIANCE_MODES.indexOf(mode || 'limited'), 0);
 
 function source(defines, ...names) {
   const head = Object.entries(defines).map(([k, v]) => `#define ${k} ${v}`).join('\n');
@@ -121,8 +135,9 @@ function makeMaterial() {
   let vert, frag, extra = {};
   if (kind === 'splats') {
     const deg = S.scene.sh_degree;
-    const defs = { K, SH_DEGREE: deg, SH_REST: Math.max((deg + 1) ** 2 - 1, 1), SH_TEXELS: Math.max(shTexels(), 1) };
-    vert = source(defs, 'deform.glsl', 'shading.glsl', 'gauss.vert');
+    const defs = { K, SH_DEGREE: deg, SH_REST: Math.max((deg + 1) ** 2 - 1, 1), SH_TEXELS: Math.max(shTexels(), 1),
+      COVARIANCE: covarianceDefine(S.scene.covariance) };
+    vert = source(defs, 'deform.glsl', 'covariance.glsl', 'covariance_page.glsl', 'shading.glsl', 'gauss.vert');
     frag = source({}, 'gauss.frag');
     extra = { transparent: true, depthWrite: false, depthTest: false, blending: THREE.CustomBlending,
       blendSrc: THREE.OneFactor, blendDst: THREE.OneMinusSrcAlphaFactor };
@@ -147,7 +162,9 @@ function splatTextureData() {
     out[o + 3] = a.colors[4 * i + 3] / 255;
     for (let j = 0; j < 6; j++) out[o + 4 + j] = a.cov6[6 * i + j];
     out[o + 10] = S.labels ? S.labels[i] : 0;
+    out[o + 11] = a.shape[2 * i];  // log-scale spread and mean (covariance.glsl's shape)
     for (let j = 0; j < 3; j++) out[o + 12 + j] = a.colors[4 * i + j] / 255;
+    out[o + 15] = a.shape[2 * i + 1];
   }
   return out;
 }
@@ -211,14 +228,47 @@ function computeDelta() {
   const K = S.fit.k, d = new Float32Array(3 * K);
   const live = S.state && !S.state.stale && S.fit.basis;
   if (live) {
-    for (let k = 0; k < K; k++) {
+    const H = S.fit.control.length;  // the handles' columns (4 each), then the curve's
+    for (let k = 0; k < H; k++) {
       const c = S.fit.control[k], t = affine(S.poses[Math.floor(k / 4)], c);
       for (let j = 0; j < 3; j++) d[3 * k + j] = t[j] - c[j];
+    }
+    const cv = S.state.curve;
+    for (let k = H; cv && k < K; k++) {  // delta = moved_to - control point
+      for (let j = 0; j < 3; j++) d[3 * k + j] = cv.moved[k - H][j] - cv.control[k - H][j];
     }
   }
   S.delta = d;
   applyFitUniforms();
   S.needSort = true;
+}
+
+// ---- the curve: control points (blue), their moved points (orange), the moved curve --------
+const curveGroup = new THREE.Group();
+scene3.add(curveGroup);
+function curveDelta() {  // the curve's rows of delta C (k_curve x 3), zeros without a live fit
+  const cv = S.state && S.state.curve, k = cv ? cv.control.length : 0, H = S.fit.control ? S.fit.control.length : 0;
+  const live = S.state && !S.state.stale && S.fit.basis && S.fit.k === H + k;
+  return Array.from({ length: k }, (_, i) => [0, 1, 2].map((j) => (live ? cv.moved[i][j] - cv.control[i][j] : 0)));
+}
+function renderCurve() {
+  for (const o of [...curveGroup.children]) { curveGroup.remove(o); o.geometry.dispose(); o.material.dispose(); }
+  const cv = S.state && S.state.curve;
+  if (!cv) return;
+  const dot = (pts, color) => {
+    const g = new THREE.BufferGeometry();
+    g.setAttribute('position', new THREE.BufferAttribute(new Float32Array(pts.flat()), 3));
+    return new THREE.Points(g, new THREE.PointsMaterial({ color, size: 9, sizeAttenuation: false, depthTest: false }));
+  };
+  curveGroup.add(dot(cv.control, 0x2050ff));
+  curveGroup.add(dot(cv.moved, 0xff781e));
+  if (cv.samples.length) {  // the moved curve: samples + weights . delta
+    const dC = curveDelta();
+    const pts = cv.samples.map((p, s) => [0, 1, 2].map((j) => p[j] + cv.weights[s].reduce((a, w, i) => a + w * dC[i][j], 0)));
+    const g = new THREE.BufferGeometry();
+    g.setAttribute('position', new THREE.BufferAttribute(new Float32Array(pts.flat()), 3));
+    curveGroup.add(new THREE.Line(g, new THREE.LineBasicMaterial({ color: 0xff781e, depthTest: false })));
+  }
 }
 
 // P + B delta C on the CPU (depth-sort keys and picking); positions when there is no fit.
@@ -325,6 +375,10 @@ async function applyState(st) {
   if (!st || !st.selectors) return;
   S.state = st;
   S.poses = st.poses;
+  if (S.scene.kind === 'splats' && st.covariance && st.covariance !== S.scene.covariance) {
+    S.scene.covariance = st.covariance;  // gaussians.covariance changed (or undone): recompile
+    makeMaterial();
+  }
   if (st.fit && st.fit.id !== S.fit.id) {
     const buf = await api('/api/basis', true);
     const basis = new Float32Array(buf);
@@ -357,9 +411,18 @@ async function applyState(st) {
   sel.value = Math.min(S.activeHandle, st.handles - 1);
   if (S.selected && S.selected.type === 'selector' && !findSelector(S.selected)) S.selected = null;
   if (S.selected && S.selected.type === 'pose' && (!st.fit || st.stale)) S.selected = null;
-  if (!S.selected && st.fit && !st.stale) S.selected = { type: 'pose', handle: 0 };
+  if (S.selected && S.selected.type === 'curve' && (!st.curve || S.selected.index >= st.curve.control.length)) S.selected = null;
+  if (!S.selected && st.fit && !st.stale) {  // the first handle's pose, else the curve's first point
+    S.selected = st.fit.control.length ? { type: 'pose', handle: 0 } : st.curve ? { type: 'curve', index: 0 } : null;
+  }
   renderTree();
   renderOutlines();
+  renderCurve();
+  const cv = st.curve;
+  $('curveinfo').textContent = !cv ? 'no curve: click control points on the model'
+    : `${cv.control.length} control points · band ${cv.band} points` + (cv.problem ? `\n⚠ ${cv.problem}` : '');
+  if (cv && document.activeElement !== $('curve-radius')) $('curve-radius').value = +cv.capture_radius.toPrecision(6);
+  if (cv) $('curve-degree').value = String(cv.degree);
   attachGizmo();
   requestDraw();
   S.shown = st;  // what sdState() reports: the state once it is on screen
@@ -369,30 +432,62 @@ function findSelector(ref) {
   return S.state.selectors.find((s) => s.role === ref.role && s.handle === ref.handle && s.index === ref.index);
 }
 
+// One selector's YAML as tree rows [depth, text]: all / not are inner nodes, the rest leaves.
+function selectorRows(y, depth, out) {
+  const [key, v] = Object.entries(y)[0];
+  if (key === 'all') {
+    out.push([depth, 'all (intersection)']);
+    for (const part of v) selectorRows(part, depth + 1, out);
+  } else if (key === 'not') {
+    out.push([depth, 'not (complement)']);
+    selectorRows(v, depth + 1, out);
+  } else if (key === 'indices' && Array.isArray(v)) {
+    out.push([depth, `indices (${v.length} points)`]);
+  } else {
+    out.push([depth, `${key} ${JSON.stringify(v)}`]);
+  }
+  return out;
+}
+
 function renderTree() {
   const tree = $('tree');
   tree.innerHTML = '';
-  const add = (text, ref) => {
+  const row = (depth, text, ref) => {
     const div = document.createElement('div');
+    div.className = 'node';
+    div.dataset.depth = depth;
+    div.style.paddingLeft = `${12 * depth}px`;
     div.textContent = text;
-    if (S.selected && ref.type === S.selected.type && ref.role === S.selected.role &&
-        ref.handle === S.selected.handle && ref.index === S.selected.index) div.className = 'sel';
-    div.onclick = () => { S.selected = ref; renderTree(); attachGizmo(); };
+    if (ref) {
+      if (S.selected && ref.type === S.selected.type && ref.role === S.selected.role &&
+          ref.handle === S.selected.handle && ref.index === S.selected.index) div.classList.add('sel');
+      div.onclick = () => { S.selected = ref; renderTree(); attachGizmo(); };
+    }
     tree.appendChild(div);
   };
-  const fixed = S.state.selectors.filter((s) => s.role === 'fixed');
-  const div = document.createElement('div');
-  div.textContent = 'fixed (union)';
-  tree.appendChild(div);
-  for (const s of fixed) add(`  ${JSON.stringify(s.yaml)}`, { type: 'selector', role: s.role, handle: s.handle, index: s.index });
+  const selectors = (list) => {
+    for (const s of list) {
+      const ref = { type: 'selector', role: s.role, handle: s.handle, index: s.index };
+      for (const [depth, text] of selectorRows(s.yaml, 1, [])) row(depth, text, ref);
+    }
+  };
+  row(0, 'fixed (union)');
+  selectors(S.state.selectors.filter((s) => s.role === 'fixed'));
   for (let h = 0; h < S.state.handles; h++) {
-    if (S.state.fit && !S.state.stale) add(`handle ${h} (union) · pose gizmo`, { type: 'pose', handle: h });
-    else { const d = document.createElement('div'); d.textContent = `handle ${h} (union)`; tree.appendChild(d); }
-    for (const s of S.state.selectors.filter((x) => x.role === 'handle' && x.handle === h)) {
-      add(`  ${JSON.stringify(s.yaml)}`, { type: 'selector', role: s.role, handle: s.handle, index: s.index });
+    if (S.state.fit && !S.state.stale && 4 * h < S.state.fit.control.length) row(0, `handle ${h} (union) · pose gizmo`, { type: 'pose', handle: h });
+    else row(0, `handle ${h} (union)`);
+    selectors(S.state.selectors.filter((x) => x.role === 'handle' && x.handle === h));
+  }
+  const cv = S.state.curve;
+  if (cv) {
+    row(0, `curve (degree ${cv.degree}, band ${cv.band} points)`);
+    const moving = S.state.fit && !S.state.stale;
+    for (let i = 0; i < cv.control.length; i++) {
+      row(1, `point ${i}${moving ? ' · drag its moved point' : ''}`, { type: 'curve', index: i });
     }
   }
   const s = S.selected && S.selected.type === 'selector' ? findSelector(S.selected) : null;
+  if (s && document.activeElement !== $('sel-text')) $('sel-text').value = JSON.stringify(s.yaml);
   for (const [i, id] of ['cx', 'cy', 'cz'].entries()) { $(id).value = s ? +s.center[i].toPrecision(6) : ''; $(id).disabled = !s; }
   for (const [i, id] of ['sx', 'sy', 'sz'].entries()) {
     $(id).value = s ? +s.size[i].toPrecision(6) : ''; $(id).disabled = !s || s.kind === 'plane' || (s.kind === 'sphere' && i > 0);
@@ -424,9 +519,17 @@ function pivotOf(h) {
 
 function attachGizmo() {
   gizmo.detach();
+  requestDraw();  // the gizmo's matrices are updated by the draw (its picking needs them)
   const sel = S.selected;
   if (!sel) return;
   gizmoTarget.quaternion.identity();
+  if (sel.type === 'curve') {  // after a fit the moved point (the pose), before it the point
+    const cv = S.state.curve, moving = S.state.fit && !S.state.stale;
+    gizmoTarget.position.fromArray((moving ? cv.moved : cv.control)[sel.index]);
+    gizmo.setMode('translate');
+    gizmo.attach(gizmoTarget);
+    return;
+  }
   if (sel.type === 'pose') {
     gizmoTarget.position.fromArray(pivotOf(sel.handle));
     gizmo.setMode($('mode').value);
@@ -449,7 +552,10 @@ gizmo.addEventListener('dragging-changed', (e) => {
     return;
   }
   if (!sel || !drag) return;
-  if (sel.type === 'pose') {
+  if (sel.type === 'curve') {
+    act({ op: 'move_curve_point', index: sel.index, center: gizmoTarget.position.toArray(),
+      moved: !!(S.state.fit && !S.state.stale), commit: true }).then(applyState);
+  } else if (sel.type === 'pose') {
     act({ op: 'pose', handle: sel.handle, matrix: S.poses[sel.handle], commit: true }).then(applyState);
   } else {
     const s = findSelector(sel);
@@ -467,7 +573,21 @@ renderer.domElement.addEventListener('pointermove', (e) => { lastInput = perform
 gizmo.addEventListener('objectChange', () => {
   const sel = S.selected;
   if (!sel || !drag) { requestDraw(); return; }
-  if (sel.type === 'pose') {
+  if (sel.type === 'curve') {
+    const cv = S.state.curve, p = gizmoTarget.position.toArray();
+    if (S.state.fit && !S.state.stale) {  // a pose step: new delta C, a draw, 1 point to the server
+      cv.moved[sel.index] = p;
+      computeDelta();
+      renderCurve();
+      pendingInput = lastInput || performance.now();
+      draw();
+      act({ op: 'move_curve_point', index: sel.index, center: p, moved: true }, true);
+    } else {
+      cv.control[sel.index] = p; cv.moved[sel.index] = p;
+      renderCurve();
+      requestDraw();
+    }
+  } else if (sel.type === 'pose') {
     // rotate about the drag's start point, then move: D = T(pos) R T(-start); pose = D base
     const q = gizmoTarget.quaternion.clone().multiply(drag.q0.clone().invert());
     const R = new THREE.Matrix4().makeRotationFromQuaternion(q);
@@ -531,6 +651,10 @@ renderer.domElement.addEventListener('pointerup', async (e) => {
   if (Math.hypot(e.clientX - down[0], e.clientY - down[1]) > 4) return;
   const at = pick(e.clientX, e.clientY);
   if (!at) { $('status').textContent = 'no point under the cursor: click on the model'; return; }
+  if (S.placing[0] === 'curve') {  // stays on: every click adds a control point until "done"
+    await applyState(await act({ op: 'add_curve_point', center: at }));
+    return;
+  }
   const [role, kind] = S.placing;
   S.placing = null;
   const handle = role === 'handle' ? Number($('active-handle').value || 0) : 0;
@@ -630,6 +754,29 @@ for (const b of document.querySelectorAll('[data-select]')) {
 for (const b of document.querySelectorAll('[data-add]')) {
   b.onclick = () => { S.placing = b.dataset.add.split(' '); $('status').textContent = `click on the model to place the ${b.dataset.add}`; };
 }
+// a selector of any kind typed as YAML: added to a region, or replacing the selected one
+for (const b of document.querySelectorAll('[data-text]')) {
+  b.onclick = async () => {
+    const role = b.dataset.text, handle = role === 'handle' ? Number($('active-handle').value || 0) : 0;
+    const st = await act({ op: 'add_selector_text', role, handle, text: $('sel-text').value });
+    const mine = (st.selectors || []).filter((s) => s.role === role && s.handle === handle);
+    if (!st.error && mine.length) S.selected = { type: 'selector', role, handle, index: mine[mine.length - 1].index };
+    await applyState(st);
+  };
+}
+$('text-replace').onclick = async () => {
+  const s = S.selected && S.selected.type === 'selector' ? findSelector(S.selected) : null;
+  if (!s) { $('status').textContent = 'select a selector in the tree first'; return; }
+  await applyState(await act({ op: 'set_selector_text', role: s.role, index: s.index, handle: s.handle,
+    text: $('sel-text').value }));
+};
+$('curve-add').onclick = () => { S.placing = ['curve']; S.tool = null;
+  $('status').textContent = 'click on the model: each click adds a control point (done ends)'; };
+$('curve-done').onclick = () => { if (S.placing && S.placing[0] === 'curve') S.placing = null; $('status').textContent = ''; };
+$('curve-reset').onclick = async () => applyState(await act({ op: 'reset_curve' }));
+$('curve-remove').onclick = async () => { S.selected = null; applyState(await act({ op: 'remove_curve' })); };
+$('curve-radius').onchange = async () => applyState(await act({ op: 'curve_settings', capture_radius: Number($('curve-radius').value) }));
+$('curve-degree').onchange = async () => applyState(await act({ op: 'curve_settings', degree: Number($('curve-degree').value) }));
 $('active-handle').onchange = () => { S.activeHandle = Number($('active-handle').value); };
 $('new-handle').onclick = async () => { const st = await act({ op: 'add_handle' }); S.activeHandle = st.handles - 1; applyState(st); };
 $('fit').onclick = async () => {
@@ -643,6 +790,12 @@ $('reset').onclick = async () => applyState(await act({ op: 'reset_pose', handle
 $('undo').onclick = async () => applyState(await act({ op: 'undo' }));
 $('redo').onclick = async () => applyState(await act({ op: 'redo' }));
 $('remove').onclick = async () => {
+  if (S.selected && S.selected.type === 'curve') {
+    const index = S.selected.index;
+    S.selected = null;
+    applyState(await act({ op: 'remove_curve_point', index }));
+    return;
+  }
   const s = S.selected && S.selected.type === 'selector' ? findSelector(S.selected) : null;
   if (!s) return;
   S.selected = null;
@@ -663,6 +816,7 @@ $('mode').onchange = attachGizmo;
 $('psize').oninput = () => requestDraw();
 $('regions').onchange = () => { material.uniforms.u_show_regions.value = $('regions').checked ? 1 : 0; requestDraw(); };
 $('up').onchange = () => setUp($('up').value);
+$('covariance').onchange = async () => applyState(await act({ op: 'covariance', mode: $('covariance').value }));
 // Saves go into the editor's save folder by file name; an existing file is only replaced
 // after the user presses Replace for the same names (the server asks with `confirm`).
 async function save(replace) {
@@ -712,8 +866,10 @@ function background() {
 window.sdParity = (input) => {
   const { k, positions, normals, cov6, basis } = input;
   const n = positions.length / 3;
+  const shape = input.shape || new Array(2 * n).fill(0);
   const g2 = document.createElement('canvas').getContext('webgl2');
-  const vs = `#version 300 es\n${source({ K: k }, 'deform.glsl', 'parity.vert')}`;
+  const vs = `#version 300 es\n${source({ K: k, COVARIANCE: covarianceDefine(input.mode || 'jacobian') },
+    'deform.glsl', 'covariance.glsl', 'covariance_page.glsl', 'parity.vert')}`;
   const fs = '#version 300 es\nprecision highp float;\nout vec4 o;\nvoid main() { o = vec4(0.0); }';
   const prog = g2.createProgram();
   for (const [type, src] of [[g2.VERTEX_SHADER, vs], [g2.FRAGMENT_SHADER, fs]]) {
@@ -726,16 +882,16 @@ window.sdParity = (input) => {
   g2.linkProgram(prog);
   if (!g2.getProgramParameter(prog, g2.LINK_STATUS)) throw new Error(g2.getProgramInfoLog(prog));
   g2.useProgram(prog);
-  const attr = (name, data) => {
+  const attr = (name, data, size = 3) => {
     const loc = g2.getAttribLocation(prog, name);
     if (loc < 0) return;
     const b = g2.createBuffer(); g2.bindBuffer(g2.ARRAY_BUFFER, b);
     g2.bufferData(g2.ARRAY_BUFFER, new Float32Array(data), g2.STATIC_DRAW);
-    g2.enableVertexAttribArray(loc); g2.vertexAttribPointer(loc, 3, g2.FLOAT, false, 0, 0);
+    g2.enableVertexAttribArray(loc); g2.vertexAttribPointer(loc, size, g2.FLOAT, false, 0, 0);
   };
   const ca = [], cb = [];
   for (let i = 0; i < n; i++) { ca.push(cov6[6 * i], cov6[6 * i + 1], cov6[6 * i + 2]); cb.push(cov6[6 * i + 3], cov6[6 * i + 4], cov6[6 * i + 5]); }
-  attr('position', positions); attr('normal', normals); attr('cov_a', ca); attr('cov_b', cb);
+  attr('position', positions); attr('normal', normals); attr('cov_a', ca); attr('cov_b', cb); attr('shape', shape, 2);
   const texels = n * k, width = Math.min(4096, texels), height = Math.ceil(texels / width);
   const data = new Float32Array(width * height * 4); data.set(basis);
   const tex = g2.createTexture(); g2.bindTexture(g2.TEXTURE_2D, tex);
@@ -770,6 +926,8 @@ async function start() {
   buildModel();
   resize();
   $('up').value = S.scene.up;
+  $('covariance-row').hidden = S.scene.kind !== 'splats';
+  $('covariance').value = S.scene.covariance;
   setUp(S.scene.up);
   const st = await api('/api/state');
   [$('out-model').value, $('out-yaml').value, $('out-png').value] = st.defaults;
@@ -779,7 +937,7 @@ async function start() {
 }
 window.sdApply = applyState;
 window.sdGizmo = gizmo;
-window.sdDebug = { model: () => model, outlines, gizmo, order: () => S.order };
+window.sdDebug = { model: () => model, outlines, gizmo, order: () => S.order, curve: () => curveGroup };
 window.sdAct = async (req) => { const st = await act(req); await applyState(st); return st; };
 window.sdState = () => S.shown;
 window.sdSelect = (ref) => { S.selected = ref; renderTree(); attachGizmo(); };

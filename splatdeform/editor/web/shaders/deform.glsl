@@ -6,8 +6,10 @@
 // storage layout of shaders/deform.glsl. delta C is uniform vec3 u_delta[K].
 //
 //   p' = p + sum_k b_k delta_k          J = I + sum_k outer(delta_k, grad b_k)
-//   n' = normalize(cof(J) n)            Sigma' = J Sigma J^T
-//   R  = rotation of the polar decomposition J = R U (SH are evaluated at R^T d)
+//   n' = normalize(cof(J) n)
+// Gaussians then take Sigma' and the polar rotation R of J (SH at R^T d) from
+// shaders/covariance.glsl itself (the ``gaussians.covariance`` modes; served as
+// /web/shared/covariance.glsl), pasted after this file.
 
 #if K > 0
 uniform highp sampler2D u_basis;
@@ -58,12 +60,4 @@ vec3 deform_normal(mat3 J, vec3 n) {
     vec3 cn = n.x * cross(J[1], J[2]) + n.y * cross(J[2], J[0]) + n.z * cross(J[0], J[1]);
     float len = length(cn);
     return len > 0.0 ? cn / len : vec3(0.0);
-}
-
-mat3 polar_rotation(mat3 J) {
-    mat3 R = J;
-    for (int i = 0; i < 12; ++i) {
-        R = 0.5 * (R + transpose(inverse(R)));
-    }
-    return R;
 }

@@ -1,9 +1,11 @@
 // splatdeform editor page: 3D Gaussian splats deformed in the vertex stage, the WebGL2 twin of
 // shaders/gauss.vert (no geometry shader: one point sprite per splat, square, covering 3 sigma,
 // in depth order). Vertex s draws splat u_order[s] (the page sorts the slots back to front). Per splat 4 texels of u_splat:
-// [x y z opacity] [xx xy xz yy] [yz zz label 0] [r g b 0]; SH_TEXELS texels of u_sh (f_rest,
-// channel-major). The host prepends "#define K", "#define SH_DEGREE", "#define SH_REST",
-// "#define SH_TEXELS", deform.glsl and shading.glsl.
+// [x y z opacity] [xx xy xz yy] [yz zz label spread] [r g b mean]; SH_TEXELS texels of u_sh
+// (f_rest, channel-major). spread, mean: of the splat's float64 log-scales (covariance.glsl's
+// ``shape``). The host prepends "#define K", "#define SH_DEGREE", "#define SH_REST",
+// "#define SH_TEXELS", "#define COVARIANCE m" (the edit's gaussians.covariance), deform.glsl,
+// shaders/covariance.glsl, covariance_page.glsl and shading.glsl.
 uniform highp sampler2D u_order;
 uniform int u_order_width;
 uniform highp sampler2D u_splat;
@@ -62,11 +64,13 @@ void main() {
     int slot = gl_VertexID;
     int ot = slot / 4;
     int i = int(texelFetch(u_order, ivec2(ot % u_order_width, ot / u_order_width), 0)[slot % 4] + 0.5);
-    vec4 t0 = splat_texel(i, 0), t1 = splat_texel(i, 1), t2 = splat_texel(i, 2);
+    vec4 t0 = splat_texel(i, 0), t1 = splat_texel(i, 1), t2 = splat_texel(i, 2),
+         t3 = splat_texel(i, 3);
     vec3 p = t0.xyz;
     mat3 sigma = mat3(t1.x, t1.y, t1.z, t1.y, t1.w, t2.x, t1.z, t2.x, t2.y);
     mat3 J = deform_point(i, p);
-    sigma = J * sigma * transpose(J);
+    bool moved = J != mat3(1.0);  // fixed splats (and no fit): Sigma as it is
+    if (moved) sigma = page_covariance(J, sigma, vec2(t2.w, t3.w));
     gl_Position = vec4(0.0, 0.0, 2.0, 1.0);  // culled unless set below
     v_color = vec4(0.0);
     vec3 t = (viewMatrix * vec4(p, 1.0)).xyz;
@@ -89,9 +93,10 @@ void main() {
     gl_Position = projectionMatrix * vec4(t, 1.0);
     float lmax = 0.5 * (a + c) + sqrt(0.25 * (a - c) * (a - c) + b * b);  // 2D eigenvalue
     gl_PointSize = min(6.0 * sqrt(lmax), 1024.0);  // 3 sigma each side
-    vec3 rgb = splat_texel(i, 3).rgb;
+    vec3 rgb = t3.rgb;
 #if SH_DEGREE > 0
-    vec3 d = transpose(polar_rotation(J)) * normalize(p - cameraPosition);
+    vec3 d = normalize(p - cameraPosition);
+    if (moved) d = transpose(polar_rotation(J)) * d;  // SH turn with R in every mode
     rgb += sh_view(i, d);
 #endif
     v_color = vec4(region_tint(max(rgb, 0.0), t2.z), t0.w);

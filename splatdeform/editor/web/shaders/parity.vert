@@ -1,9 +1,12 @@
 // splatdeform editor page: the deform math of deform.glsl read back by transform feedback, for
-// the parity test against splatdeform/basis/reference.py (host prepends "#define K", deform.glsl).
+// the parity tests against splatdeform/basis/reference.py and splatdeform/deform/gaussians.py
+// (host prepends "#define K", "#define COVARIANCE", deform.glsl, shaders/covariance.glsl
+// and covariance_page.glsl).
 in vec3 position;
 in vec3 normal;
 in vec3 cov_a;   // xx xy xz
 in vec3 cov_b;   // yy yz zz
+in vec2 shape;   // spread and mean of the splat's log-scales (covariance.glsl)
 out vec3 o_position;
 out vec3 o_normal;
 out vec3 o_cov_a;
@@ -15,7 +18,7 @@ void main() {
     vec3 p = position;
     mat3 J = deform_point(gl_VertexID, p);
     mat3 s = mat3(cov_a.x, cov_a.y, cov_a.z, cov_a.y, cov_b.x, cov_b.y, cov_a.z, cov_b.y, cov_b.z);
-    s = J * s * transpose(J);
+    s = page_covariance(J, s, shape);
     mat3 R = polar_rotation(J);
     o_position = p;
     o_normal = deform_normal(J, normal);
