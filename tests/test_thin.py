@@ -272,3 +272,29 @@ def test_reuse_cache_stores_the_kept_subset(shell, shell_def, tmp_path):
     assert np.array_equal(back.kept, shell_def.kept) and back.n_kept == shell_def.n_kept
     assert back.ring_sizes == shell_def.ring_sizes
     assert back.fit.method == shell_def.fit.method
+
+
+def test_auto_dense_through_the_kept_points_meets_every_ring_point():
+    """Where the dense solve through the thinned points is predicted cheapest, ``auto`` runs it
+    ("exact-kept"): it interpolates every point it went through (the thinned subset plus the
+    ring points a first solve missed) and misses no ring point by more than 10 tolerances."""
+    from splatdeform.rbf.auto import BOUNDARY_FACTOR, point_errors
+
+    rng = np.random.default_rng(5)
+    u = rng.random((3000, 2))
+    pts = np.column_stack([u, 0.05 * np.sin(6 * u[:, 0]) + 1e-3 * rng.random(3000)])
+    rhs = np.column_stack([np.cos(3 * pts[:, 0]), pts[:, 1] ** 2, pts[:, 0] * pts[:, 1]])
+    kept = np.zeros(3000, dtype=bool)
+    kept[::4] = True
+    choice = choose_method(3000, int(kept.sum()), 1)
+    assert choice.dense_kept < choice.dense
+    tol = 1e-5
+    fit = fit_auto(pts, rhs, kept=kept, tolerance=tol, threads=1, max_centers=20)
+    assert fit.method == "exact-kept" and fit.converged
+    used = kept if fit.kept is None else fit.kept
+    assert np.all(used[kept])  # a superset of the thinned subset
+    assert fit.n_centers == int(used.sum()) < 3000
+    err = point_errors(fit, pts, rhs)
+    assert np.all(err[used] <= 1e-8) and err.max() <= BOUNDARY_FACTOR * tol
+    again = fit_auto(pts, rhs, kept=kept, tolerance=tol, threads=1, max_centers=20)
+    assert np.array_equal(again.weights, fit.weights)  # deterministic
