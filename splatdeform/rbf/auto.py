@@ -27,7 +27,8 @@ dense solve through the kept points is many times cheaper. So ``auto``
 A dense solve through the kept points is checked the same way; the dropped ring points it
 misses by more than :data:`BOUNDARY_FACTOR` tolerances join the kept set and it is solved again
 (the fit's ``kept`` says which points it went through), as long as the predicted costs so far
-stay below half the dense solve through every point, which runs otherwise.
+stay below half the dense solve through every point (the first always runs when it is the
+cheaper), which runs otherwise.
 
 The constants are from ``benchmarks/fit_table.py`` on the development machine (README: "Fit
 benchmark"); they are costs in seconds on one core, only their ratios matter. Decisions use the
@@ -234,7 +235,7 @@ def _dense(pts: np.ndarray, b: np.ndarray, kept: np.ndarray | None, tol: float,
         for _ in range(DENSE_ROUNDS):
             count = int(np.count_nonzero(mask))
             spent += dense_kept_seconds(m_all, count, threads)
-            if spent >= DENSE_KEPT_SHARE * dense_all:
+            if spent >= DENSE_KEPT_SHARE * dense_all and count > np.count_nonzero(kept):
                 break  # too many misses: thinning does not keep this boundary
             try:
                 fit = fit_exact(pts[mask], b[mask], normalization=normalization,
