@@ -165,6 +165,8 @@ def test_default_fit_close_to_scipy_through_every_ring_point(shell):
 def test_auto_picks_by_predicted_cost():
     small = choose_method(300, 280, 2)
     assert small.method == "exact" and small.dense <= small.incremental_start
+    # a small scene solves through every point at once, however much thinning dropped
+    assert choose_method(1200, 300, 1).method == "exact"
     large = choose_method(9000, 3000, 2)
     assert large.method == "incremental" and large.incremental_start < large.dense
     assert choose_method(20_000, 5000, 16).method == "incremental"  # beyond the dense limit

@@ -11,9 +11,11 @@ one thread, at several times less flops per second than the Cholesky, plus per-c
 per-block overheads. On thick noisy rings it needs a center for most kept points, where the
 dense solve through the kept points is many times cheaper. So ``auto``
 
-1. solves densely at once (through the kept points when that is predicted cheaper than through
-   all, method "exact-kept"; else "exact") when even the incremental fit's first blocks are
-   predicted to cost more (small scenes);
+1. solves densely through every point at once when that is predicted to take at most
+   :data:`SMALL_DENSE` seconds (small scenes: nothing worth a failed thinned attempt to win);
+   else solves densely at once (through the kept points when that is predicted cheaper than
+   through all, method "exact-kept"; else "exact") when even the incremental fit's first
+   blocks are predicted to cost more;
 2. else runs the incremental fit and, after each block, stops and switches to the cheaper dense
    solve once its predicted cost so far has passed that dense cost, or once the centers it is
    heading for (log-linear extrapolation of the largest |r| from half its centers to now, down
@@ -62,6 +64,10 @@ INCREMENTAL_FLOPS = 6e9
 INCREMENTAL_ENTRY = 1.5e-8
 #: Seconds of fixed cost per center block (Python, LAPACK calls, the residual recovery).
 INCREMENTAL_BLOCK = 1.5e-3
+#: Predicted seconds below which the dense solve through every point runs at once (m up to
+#: about 1,500 on one thread): a thinned attempt that fails its boundary check costs about as
+#: much again, and there is at most this much to win.
+SMALL_DENSE = 0.04
 #: Centers of the first blocks (16 + 32 + 64): the least work an incremental fit does.
 FIRST_CENTERS = 112
 #: Centers before the extrapolated heading is trusted.
@@ -132,6 +138,8 @@ def choose_method(m_all: int, m_kept: int, threads: int) -> Choice:
     kept = dense_kept_seconds(m_all, m_kept, threads) if m_kept < m_all else math.inf
     start = incremental_seconds(m_kept, min(m_kept, FIRST_CENTERS))
     first = Choice("incremental", dense, kept, start)
+    if dense <= SMALL_DENSE:
+        return Choice("exact", dense, kept, start)
     if start >= first.target:
         return Choice(first.dense_method, dense, kept, start)
     return first
