@@ -24,7 +24,13 @@ from splatdeform.edit.config import load_edit
 from splatdeform.edit.run import format_report, run_edit
 from splatdeform.io import save
 from splatdeform.model import PointModel
-from splatdeform.rbf.auto import choose_method, dense_seconds, fit_auto, incremental_seconds
+from splatdeform.rbf.auto import (
+    choose_method,
+    dense_seconds,
+    fit_auto,
+    incremental_seconds,
+    point_errors,
+)
 from splatdeform.rbf.exact import _solve, _solve_indefinite, dense_threads, fit_exact
 
 NUMPY_BASIS = partial(compute_basis, gradients=False, backend="numpy")
@@ -187,10 +193,15 @@ def test_auto_runs_exact_on_a_small_scene_and_incremental_on_a_large_one(shell):
     assert d.fit.method == "incremental" and d.fit.converged
     assert d.n_kept < d.constraint_idx.size and d.fit.n_centers < d.n_kept
     assert choose_method(d.constraint_idx.size, d.n_kept, 1).method == "incremental"
-    # a noisy shell needs nearly a center per kept point and misses dropped ones: exact
+    # a noisy shell needs nearly a center per kept point: the dense solve through the kept
+    # points (plus those it missed) is cheaper; it interpolates every point it went through,
+    # and the deformation's kept count says which
     fixed, handle, _ = edit_masks(shell)
     d = sd.prepare_handle(shell, fixed, handle, backend="numpy", threads=1)
-    assert d.fit.method == "exact" and d.n_kept == d.constraint_idx.size
+    assert d.fit.method == "exact-kept" and d.fit.converged
+    assert d.fit.n_centers == d.n_kept < d.constraint_idx.size
+    err = point_errors(d.fit, d.constraint_points[d.kept], d.constraint_rhs[d.kept])
+    assert err.max() <= 1e-8
 
 
 def test_auto_switches_to_exact_when_incremental_would_not_converge():
@@ -280,7 +291,7 @@ def test_auto_dense_through_the_kept_points_meets_every_ring_point():
     """Where the dense solve through the thinned points is predicted cheapest, ``auto`` runs it
     ("exact-kept"): it interpolates every point it went through (the thinned subset plus the
     ring points a first solve missed) and misses no ring point by more than 10 tolerances."""
-    from splatdeform.rbf.auto import BOUNDARY_FACTOR, point_errors
+    from splatdeform.rbf.auto import BOUNDARY_FACTOR
 
     rng = np.random.default_rng(5)
     u = rng.random((3000, 2))

@@ -12,4 +12,4 @@ DEFAULT_MAX_CENTERS = 2000
 DEFAULT_METHOD = "auto"
 #: ``fit.thinning``: voxel cell of each ring's thinning, in units of the ring's width
 #: (:mod:`splatdeform.deform.thin`); 0 keeps every ring point.
-DEFAULT_THINNING = 0.75
+DEFAULT_THINNING = 1.0
