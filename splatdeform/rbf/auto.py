@@ -189,12 +189,12 @@ def fit_auto(points: np.ndarray, rhs: np.ndarray, *, kept: np.ndarray | None = N
     choice = choose_method(m_all, m_kept, n_threads)
     tol = float(tolerance)
 
-    def dense(fallback: RbfFit | None = None) -> RbfFit:
-        return _dense(pts, b, kept if choice.dense_method == "exact-kept" else None, tol,
+    def dense(method: str, fallback: RbfFit | None = None) -> RbfFit:
+        return _dense(pts, b, kept if method == "exact-kept" else None, tol,
                       choice.dense, normalization, n_threads, fallback)
 
     if choice.method != "incremental":
-        return dense()
+        return dense(choice.method)
     history: list[tuple[int, float]] = []
     over = [False]  # the heading passed the dense cost at the previous check
 
@@ -221,7 +221,7 @@ def fit_auto(points: np.ndarray, rhs: np.ndarray, *, kept: np.ndarray | None = N
         return fit
     if fit.converged and (kept is None or all_errors(fit, pts, b) <= BOUNDARY_FACTOR * tol):
         return fit
-    return dense(fit)
+    return dense(choice.dense_method, fit)
 
 
 #: Most dense solves through a growing kept set before the solve through every point.
