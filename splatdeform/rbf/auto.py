@@ -34,7 +34,8 @@ cheaper), which runs otherwise.
 
 The constants are from ``benchmarks/fit_table.py`` on the development machine (README: "Fit
 benchmark"); they are costs in seconds on one core, only their ratios matter. Decisions use the
-counts alone, never wall time, so they are deterministic.
+counts alone, never wall time nor the thread count (costs are predicted for one thread), so
+the same scene gets the same fit on every machine and thread setting.
 """
 
 from __future__ import annotations
@@ -186,7 +187,9 @@ def fit_auto(points: np.ndarray, rhs: np.ndarray, *, kept: np.ndarray | None = N
         if pts.ndim == 2 and pts.shape[0] else 0
     m_kept = m_all if kept is None else int(sub_p.shape[0])
     n_threads = dense_threads(threads)
-    choice = choose_method(m_all, m_kept, n_threads)
+    # predicted on one thread whatever the solve gets: the same scene gets the same fit under
+    # any thread setting (Dask workers and CI set OMP_NUM_THREADS=1)
+    choice = choose_method(m_all, m_kept, 1)
     tol = float(tolerance)
 
     def dense(method: str, fallback: RbfFit | None = None) -> RbfFit:
@@ -242,7 +245,7 @@ def _dense(pts: np.ndarray, b: np.ndarray, kept: np.ndarray | None, tol: float,
         m_all, spent = pts.shape[0], 0.0
         for _ in range(DENSE_ROUNDS):
             count = int(np.count_nonzero(mask))
-            spent += dense_kept_seconds(m_all, count, threads)
+            spent += dense_kept_seconds(m_all, count, 1)
             if spent >= DENSE_KEPT_SHARE * dense_all and count > np.count_nonzero(kept):
                 break  # too many misses: thinning does not keep this boundary
             try:
