@@ -311,6 +311,8 @@ def test_auto_dense_through_the_kept_points_meets_every_ring_point():
     assert np.all(err[used] <= 1e-8) and err.max() <= BOUNDARY_FACTOR * tol
     again = fit_auto(pts, rhs, kept=kept, tolerance=tol, threads=1, max_centers=20)
     assert np.array_equal(again.weights, fit.weights)  # deterministic
+    two = fit_auto(pts, rhs, kept=kept, tolerance=tol, threads=2, max_centers=20)
+    assert (two.method, two.n_centers) == (fit.method, fit.n_centers)  # whatever the threads
     # a small scene (the solve through all of it predicted cheap) goes through every point
     small = fit_auto(pts[:1000], rhs[:1000], kept=kept[:1000], tolerance=tol, threads=1)
     assert small.method == "exact" and small.n_centers == 1000
