@@ -24,7 +24,13 @@ from splatdeform.edit.config import load_edit
 from splatdeform.edit.run import format_report, run_edit
 from splatdeform.io import save
 from splatdeform.model import PointModel
-from splatdeform.rbf.auto import choose_method, dense_seconds, fit_auto, incremental_seconds
+from splatdeform.rbf.auto import (
+    choose_method,
+    dense_seconds,
+    fit_auto,
+    incremental_seconds,
+    point_errors,
+)
 from splatdeform.rbf.exact import _solve, _solve_indefinite, dense_threads, fit_exact
 
 NUMPY_BASIS = partial(compute_basis, gradients=False, backend="numpy")
@@ -165,6 +171,8 @@ def test_default_fit_close_to_scipy_through_every_ring_point(shell):
 def test_auto_picks_by_predicted_cost():
     small = choose_method(300, 280, 2)
     assert small.method == "exact" and small.dense <= small.incremental_start
+    # a small scene solves through every point at once, however much thinning dropped
+    assert choose_method(1200, 300, 1).method == "exact"
     large = choose_method(9000, 3000, 2)
     assert large.method == "incremental" and large.incremental_start < large.dense
     assert choose_method(20_000, 5000, 16).method == "incremental"  # beyond the dense limit
@@ -185,10 +193,15 @@ def test_auto_runs_exact_on_a_small_scene_and_incremental_on_a_large_one(shell):
     assert d.fit.method == "incremental" and d.fit.converged
     assert d.n_kept < d.constraint_idx.size and d.fit.n_centers < d.n_kept
     assert choose_method(d.constraint_idx.size, d.n_kept, 1).method == "incremental"
-    # a noisy shell needs nearly a center per kept point and misses dropped ones: exact
+    # a noisy shell needs nearly a center per kept point: the dense solve through the kept
+    # points (plus those it missed) is cheaper; it interpolates every point it went through,
+    # and the deformation's kept count says which
     fixed, handle, _ = edit_masks(shell)
     d = sd.prepare_handle(shell, fixed, handle, backend="numpy", threads=1)
-    assert d.fit.method == "exact" and d.n_kept == d.constraint_idx.size
+    assert d.fit.method == "exact-kept" and d.fit.converged
+    assert d.fit.n_centers == d.n_kept < d.constraint_idx.size
+    err = point_errors(d.fit, d.constraint_points[d.kept], d.constraint_rhs[d.kept])
+    assert err.max() <= 1e-8
 
 
 def test_auto_switches_to_exact_when_incremental_would_not_converge():
@@ -272,3 +285,34 @@ def test_reuse_cache_stores_the_kept_subset(shell, shell_def, tmp_path):
     assert np.array_equal(back.kept, shell_def.kept) and back.n_kept == shell_def.n_kept
     assert back.ring_sizes == shell_def.ring_sizes
     assert back.fit.method == shell_def.fit.method
+
+
+def test_auto_dense_through_the_kept_points_meets_every_ring_point():
+    """Where the dense solve through the thinned points is predicted cheapest, ``auto`` runs it
+    ("exact-kept"): it interpolates every point it went through (the thinned subset plus the
+    ring points a first solve missed) and misses no ring point by more than 10 tolerances."""
+    from splatdeform.rbf.auto import BOUNDARY_FACTOR
+
+    rng = np.random.default_rng(5)
+    u = rng.random((3000, 2))
+    pts = np.column_stack([u, 0.05 * np.sin(6 * u[:, 0]) + 1e-3 * rng.random(3000)])
+    rhs = np.column_stack([np.cos(3 * pts[:, 0]), pts[:, 1] ** 2, pts[:, 0] * pts[:, 1]])
+    kept = np.zeros(3000, dtype=bool)
+    kept[::4] = True
+    choice = choose_method(3000, int(kept.sum()), 1)
+    assert choice.dense_kept < choice.dense
+    tol = 1e-5
+    fit = fit_auto(pts, rhs, kept=kept, tolerance=tol, threads=1, max_centers=20)
+    assert fit.method == "exact-kept" and fit.converged
+    used = kept if fit.kept is None else fit.kept
+    assert np.all(used[kept])  # a superset of the thinned subset
+    assert fit.n_centers == int(used.sum()) < 3000
+    err = point_errors(fit, pts, rhs)
+    assert np.all(err[used] <= 1e-8) and err.max() <= BOUNDARY_FACTOR * tol
+    again = fit_auto(pts, rhs, kept=kept, tolerance=tol, threads=1, max_centers=20)
+    assert np.array_equal(again.weights, fit.weights)  # deterministic
+    two = fit_auto(pts, rhs, kept=kept, tolerance=tol, threads=2, max_centers=20)
+    assert (two.method, two.n_centers) == (fit.method, fit.n_centers)  # whatever the threads
+    # a small scene (the solve through all of it predicted cheap) goes through every point
+    small = fit_auto(pts[:1000], rhs[:1000], kept=kept[:1000], tolerance=tol, threads=1)
+    assert small.method == "exact" and small.n_centers == 1000

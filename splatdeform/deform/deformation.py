@@ -231,6 +231,8 @@ def prepare_metaphors(model: PointModel, fixed: np.ndarray, metaphors: list[Meta
         kept = None
     if fit.method == "exact":
         kept = None  # the dense solve goes through every constraint
+    elif fit.kept is not None:
+        kept = fit.kept  # auto's dense solve added ring points the thinned one missed
     timings["fit"] = time.perf_counter() - t0
 
     free_idx = np.flatnonzero(~(fixed | moving))

@@ -135,7 +135,8 @@ class FitCfg(_Strict):
     """``fit:``. tolerance bounds the largest constraint error |r_ic| over the kept (thinned)
     constraints in the dimensionless coordinates of M (a kept ring point then misses its target
     by at most k * tolerance * the largest control-point move); method ``auto`` takes the
-    cheaper of ``incremental`` and ``exact`` by predicted cost; thinning: ring thinning cell in
+    cheapest of ``incremental``, the dense solve through the kept constraints (checked at every
+    ring point) and ``exact`` by predicted cost; thinning: ring thinning cell in
     ring widths (0 keeps every ring point); threads: the exact solve's BLAS threads (default:
     the CPUs this process may use). Defaults from the measured table in the README."""
 

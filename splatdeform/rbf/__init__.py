@@ -1,5 +1,6 @@
 """Triharmonic RBF fitting: kernel table, farthest point sampling, incremental QR fitter, exact
-solve, and ``auto`` (the cheaper of the two by predicted cost).
+solve, and ``auto`` (the cheapest of the incremental fit, the exact solve through the kept
+constraints and through all, by predicted cost).
 
 Names are imported on first use, so that importing the plain result types (``RbfFit``,
 ``Normalization``) does not load scipy.linalg: ``splatdeform info`` and the CLI's parser start

@@ -1,33 +1,47 @@
-"""``fit.method: auto``: the cheaper of the incremental fit (on the kept constraints) and the
-dense exact solve (through every constraint), by predicted cost.
+"""``fit.method: auto``: the cheapest of the incremental fit (on the kept constraints), the
+dense exact solve through the kept constraints, and the dense exact solve through every
+constraint, by predicted cost, checked over every ring point.
 
 The dense solve's cost is known before it starts: one Cholesky of about m^3 / 3 flops on the
 BLAS threads (:func:`splatdeform.rbf.exact.dense_threads`), plus building the m x m kernel
-matrix. The incremental fit's cost grows with the centers it needs, which are only known as it
-goes: about 2 m_kept n^2 flops of blocked Householder QR on one thread, plus per-center and
-per-block overheads. So ``auto``
+matrix. Through the m_kept thinned constraints it costs m_kept^3 / 3 plus one evaluation at
+every ring point (the boundary check). The incremental fit's cost grows with the centers it
+needs, which are only known as it goes: about 2 m_kept n^2 flops of blocked Householder QR on
+one thread, at several times less flops per second than the Cholesky, plus per-center and
+per-block overheads. On thick noisy rings it needs a center for most kept points, where the
+dense solve through the kept points is many times cheaper. So ``auto``
 
-1. solves densely at once when even the incremental fit's first blocks are predicted to cost
-   more than the whole dense solve (small scenes);
-2. else runs the incremental fit and, after each block, stops and switches to the dense solve
-   once its predicted cost so far has passed the dense cost, or once the centers it is heading
-   for (log-linear extrapolation of the largest |r| from half its centers to now, down to the
-   tolerance) predict a remaining cost above the dense cost at two checks in a row;
+1. solves densely through every point at once when that is predicted to take at most
+   :data:`SMALL_DENSE` seconds (small scenes: nothing worth a failed thinned attempt to win);
+   else solves densely at once (through the kept points when that is predicted cheaper than
+   through all, method "exact-kept"; else "exact") when even the incremental fit's first
+   blocks are predicted to cost more;
+2. else runs the incremental fit and, after each block, stops and switches to the cheaper dense
+   solve once its predicted cost so far has passed that dense cost, or once the centers it is
+   heading for (log-linear extrapolation of the largest |r| from half its centers to now, down
+   to the tolerance) predict a remaining cost above it at two checks in a row;
 3. also switches when the incremental fit stops at ``max_centers`` above the tolerance, so every
    scene the dense solve can take converges;
 4. and when the incremental fit met the tolerance on the kept constraints but misses a dropped
    ring point by more than :data:`BOUNDARY_FACTOR` times the tolerance (|r| over every ring
    point, one cheap evaluation): thinning is only used where it keeps the boundary.
 
-The constants are from ``benchmarks/fit_table.py`` (README: "Fit benchmark"); they are costs
-in seconds on one core of the development machine, only their ratios matter. Decisions use
-the counts alone, never wall time, so they are deterministic.
+A dense solve through the kept points is checked the same way; the dropped ring points it
+misses by more than :data:`BOUNDARY_FACTOR` tolerances join the kept set and it is solved again
+(the fit's ``kept`` says which points it went through), as long as the predicted costs so far
+stay below half the dense solve through every point (the first always runs when it is the
+cheaper), which runs otherwise.
+
+The constants are from ``benchmarks/fit_table.py`` on the development machine (README: "Fit
+benchmark"); they are costs in seconds on one core, only their ratios matter. Decisions use the
+counts alone, never wall time nor the thread count (costs are predicted for one thread), so
+the same scene gets the same fit on every machine and thread setting.
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -37,18 +51,24 @@ from splatdeform.rbf.exact import EXACT_MAX_CONSTRAINTS, dense_threads, fit_exac
 from splatdeform.rbf.fit import fit_incremental
 from splatdeform.rbf.result import Normalization, RbfFit
 
-#: Flop rate of one thread in the dense Cholesky (BLAS-3, large blocks).
-DENSE_FLOPS = 15e9
+#: Flop rate of one thread in the dense Cholesky (BLAS-3, large blocks; ~40-50 measured).
+DENSE_FLOPS = 40e9
 #: Parallel efficiency exponent: t threads run ``t ** DENSE_SCALING`` times faster.
 DENSE_SCALING = 0.8
-#: Seconds per kernel-matrix entry (cdist, cube, the rank-8 projection).
-DENSE_ENTRY = 1.2e-8
-#: Effective flop rate of the incremental fit's blocked QR on its one thread.
-INCREMENTAL_FLOPS = 3e9
+#: Seconds per kernel-matrix entry (cdist, cube, the rank-8 update).
+DENSE_ENTRY = 5e-9
+#: Seconds per (ring point x center) of the boundary check of a thinned dense solve.
+CHECK_ENTRY = 1e-8
+#: Effective flop rate of the incremental fit's blocked QR on its one thread (~5-7 measured).
+INCREMENTAL_FLOPS = 6e9
 #: Seconds per (kept constraint x center) for the picks, kernel columns and residual checks.
 INCREMENTAL_ENTRY = 1.5e-8
 #: Seconds of fixed cost per center block (Python, LAPACK calls, the residual recovery).
-INCREMENTAL_BLOCK = 2e-3
+INCREMENTAL_BLOCK = 1.5e-3
+#: Predicted seconds below which the dense solve through every point runs at once (m up to
+#: about 1,500 on one thread): a thinned attempt that fails its boundary check costs about as
+#: much again, and there is at most this much to win.
+SMALL_DENSE = 0.04
 #: Centers of the first blocks (16 + 32 + 64): the least work an incremental fit does.
 FIRST_CENTERS = 112
 #: Centers before the extrapolated heading is trusted.
@@ -83,22 +103,47 @@ def _blocks(n: int, block: int) -> int:
     return count
 
 
+def dense_kept_seconds(m_all: int, m_kept: int, threads: int) -> float:
+    """Predicted seconds of the dense solve through ``m_kept`` of ``m_all`` constraints and its
+    boundary check at all of them."""
+    return dense_seconds(m_kept, threads) + CHECK_ENTRY * m_all * m_kept
+
+
 @dataclass(frozen=True)
 class Choice:
-    """The first decision of ``auto``: method ("exact" | "incremental") and the predictions
-    (seconds) it was made on."""
+    """The first decision of ``auto``: method ("exact" | "exact-kept" | "incremental") and the
+    predictions (seconds) it was made on: dense through all, dense through the kept ones, and
+    the incremental fit's first blocks."""
 
     method: str
     dense: float
+    dense_kept: float
     incremental_start: float
+
+    @property
+    def target(self) -> float:
+        """The cheaper dense solve's predicted seconds."""
+        return min(self.dense, self.dense_kept)
+
+    @property
+    def dense_method(self) -> str:
+        """The cheaper dense solve: "exact-kept" or "exact"."""
+        return "exact-kept" if self.dense_kept < self.dense else "exact"
 
 
 def choose_method(m_all: int, m_kept: int, threads: int) -> Choice:
     """Dense at once when the incremental fit's first blocks on ``m_kept`` constraints are
-    predicted to cost more than the dense solve through ``m_all``; else incremental."""
+    predicted to cost more than the cheaper dense solve (through the kept points, or through
+    all ``m_all``); else incremental."""
     dense = dense_seconds(m_all, threads)
+    kept = dense_kept_seconds(m_all, m_kept, threads) if m_kept < m_all else math.inf
     start = incremental_seconds(m_kept, min(m_kept, FIRST_CENTERS))
-    return Choice("exact" if start >= dense else "incremental", dense, start)
+    first = Choice("incremental", dense, kept, start)
+    if dense <= SMALL_DENSE:
+        return Choice("exact", dense, kept, start)
+    if start >= first.target:
+        return Choice(first.dense_method, dense, kept, start)
+    return first
 
 
 def heading_for(history: list[tuple[int, float]], tolerance: float) -> float | None:
@@ -124,35 +169,46 @@ def fit_auto(points: np.ndarray, rhs: np.ndarray, *, kept: np.ndarray | None = N
              tolerance: float = DEFAULT_TOLERANCE, max_centers: int = DEFAULT_MAX_CENTERS,
              normalization: Normalization | None = None, selection: str = "greedy",
              threads: int | None = None) -> RbfFit:
-    """The cheaper of :func:`fit_incremental` on ``points[kept]`` and :func:`fit_exact` on all
-    ``points`` (m, 3) / ``rhs`` (m, k), by predicted cost (module docstring).
+    """The cheapest of :func:`fit_incremental` on ``points[kept]``, :func:`fit_exact` on the
+    kept points (checked at all of them) and :func:`fit_exact` on all ``points`` (m, 3) /
+    ``rhs`` (m, k), by predicted cost (module docstring).
 
-    kept: (m,) bool, the constraints the incremental fit uses (None: all). threads: the dense
-    solve's BLAS threads (None: :func:`dense_threads`); the incremental fit uses one.
-    The returned fit's ``method`` says which ran.
+    kept: (m,) bool, the thinned constraints (None: all). threads: the dense solve's BLAS
+    threads (None: :func:`dense_threads`); the incremental fit uses one. The returned fit's
+    ``method`` says which ran, its ``kept`` the constraints an "exact-kept" solve went through
+    when it added missed ones.
     """
     pts = np.asarray(points)
     b = np.asarray(rhs)
+    if kept is not None and bool(np.all(kept)):
+        kept = None
     sub_p, sub_b = (pts, b) if kept is None else (pts[kept], b[kept])
     m_all = int(np.unique(np.asarray(pts, dtype=np.float64), axis=0).shape[0]) \
         if pts.ndim == 2 and pts.shape[0] else 0
+    m_kept = m_all if kept is None else int(sub_p.shape[0])
     n_threads = dense_threads(threads)
-    choice = choose_method(m_all, int(sub_p.shape[0]), n_threads)
-    if choice.method == "exact":
-        return fit_exact(pts, b, normalization=normalization, threads=n_threads)
-    history: list[tuple[int, float]] = []
-    m_kept = int(sub_p.shape[0])
+    # predicted on one thread whatever the solve gets: the same scene gets the same fit under
+    # any thread setting (Dask workers and CI set OMP_NUM_THREADS=1)
+    choice = choose_method(m_all, m_kept, 1)
+    tol = float(tolerance)
 
+    def dense(method: str, fallback: RbfFit | None = None) -> RbfFit:
+        return _dense(pts, b, kept if method == "exact-kept" else None, tol,
+                      choice.dense, normalization, n_threads, fallback)
+
+    if choice.method != "incremental":
+        return dense(choice.method)
+    history: list[tuple[int, float]] = []
     over = [False]  # the heading passed the dense cost at the previous check
 
     def stop(n: int, err: float) -> bool:
         history.append((n, err))
         spent = incremental_seconds(m_kept, n)
-        if spent >= choice.dense:
+        if spent >= choice.target:
             return True
-        heading = heading_for(history, float(tolerance)) if n >= HEADING_AFTER else None
+        heading = heading_for(history, tol) if n >= HEADING_AFTER else None
         passed = heading is not None and \
-            incremental_seconds(m_kept, min(heading, 1e9)) - spent > choice.dense
+            incremental_seconds(m_kept, min(heading, 1e9)) - spent > choice.target
         give_up, over[0] = passed and over[0], passed  # twice in a row: not one plateau
         return give_up
 
@@ -164,25 +220,69 @@ def fit_auto(points: np.ndarray, rhs: np.ndarray, *, kept: np.ndarray | None = N
             raise
         # the kept subset alone is degenerate (e.g. flat): the dense solve takes every point
         return fit_exact(pts, b, normalization=normalization, threads=n_threads)
-    if math.isinf(choice.dense):
+    if math.isinf(choice.target):
         return fit
-    if fit.converged and (kept is None or all_errors(fit, pts, b) <= BOUNDARY_FACTOR
-                          * float(tolerance)):
+    if fit.converged and (kept is None or all_errors(fit, pts, b) <= BOUNDARY_FACTOR * tol):
         return fit
-    return fit_exact(pts, b, normalization=normalization, threads=n_threads)
+    return dense(choice.dense_method, fit)
+
+
+#: Most dense solves through a growing kept set before the solve through every point.
+DENSE_ROUNDS = 4
+#: The kept-set solves stop once their predicted costs pass this share of the solve through
+#: every point (the most they can waste before it).
+DENSE_KEPT_SHARE = 0.5
+
+
+def _dense(pts: np.ndarray, b: np.ndarray, kept: np.ndarray | None, tol: float,
+           dense_all: float, normalization: Normalization | None, threads: int,
+           fallback: RbfFit | None) -> RbfFit:
+    """The dense solve through the ``kept`` points (plus the ring points it misses by more than
+    :data:`BOUNDARY_FACTOR` tolerances, a few rounds, while the predicted cost stays below
+    ``dense_all``), else through every point; ``fallback`` when that is over the limit."""
+    if kept is not None:
+        mask = np.asarray(kept, dtype=bool).copy()
+        m_all, spent = pts.shape[0], 0.0
+        for _ in range(DENSE_ROUNDS):
+            count = int(np.count_nonzero(mask))
+            spent += dense_kept_seconds(m_all, count, 1)
+            if spent >= DENSE_KEPT_SHARE * dense_all and count > np.count_nonzero(kept):
+                break  # too many misses: thinning does not keep this boundary
+            try:
+                fit = fit_exact(pts[mask], b[mask], normalization=normalization,
+                                threads=threads)
+            except InputError:
+                break  # the kept subset alone is degenerate (e.g. flat)
+            miss = point_errors(fit, pts, b) > BOUNDARY_FACTOR * tol
+            if not miss.any():
+                return replace(fit, method="exact-kept", tolerance=tol,
+                               kept=None if np.array_equal(mask, kept) else mask)
+            mask |= miss
+    if math.isinf(dense_all) and fallback is not None:
+        return fallback
+    return fit_exact(pts, b, normalization=normalization, threads=threads)
 
 
 def all_errors(fit: RbfFit, points: np.ndarray, rhs: np.ndarray, chunk: int = 4096) -> float:
     """Largest |rhs - b(points)| of ``fit`` over ``points`` (m, 3) model units, rhs (m, k)."""
+    err = point_errors(fit, points, rhs, chunk)
+    return float(err.max()) if err.size else 0.0
+
+
+def point_errors(fit: RbfFit, points: np.ndarray, rhs: np.ndarray,
+                 chunk: int = 4096) -> np.ndarray:
+    """(m,) largest |rhs - b(p)| over the k columns at each of ``points`` (m, 3) model units,
+    rhs (m, k)."""
     from scipy.spatial.distance import cdist
 
     x = fit.normalization.apply(points)
-    worst = 0.0
+    out = np.zeros(x.shape[0])
     for a in range(0, x.shape[0], chunk):
         xa = x[a:a + chunk]
         val = fit.weights[0] + xa @ fit.weights[1:4]
         if fit.n_centers:
-            val = val + (cdist(xa, fit.centers) ** 3) @ fit.weights[4:]
-        worst = max(worst, float(np.abs(np.asarray(rhs[a:a + chunk], dtype=np.float64)
-                                        - val).max()))
-    return worst
+            dist = cdist(xa, fit.centers)
+            val = val + (dist * dist * dist) @ fit.weights[4:]
+        out[a:a + chunk] = np.abs(np.asarray(rhs[a:a + chunk], dtype=np.float64) - val).max(
+            axis=1)
+    return out

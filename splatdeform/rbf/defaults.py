@@ -7,8 +7,9 @@ interpolant. A module of its own so the config layer reads them without importin
 DEFAULT_TOLERANCE = 1.5e-4
 DEFAULT_MAX_CENTERS = 2000
 
-#: ``fit.method``: ``auto`` picks the cheaper of the incremental fit and the exact solve.
+#: ``fit.method``: ``auto`` picks the cheapest of the incremental fit, the dense solve through
+#: the kept constraints (checked at every ring point) and the exact solve.
 DEFAULT_METHOD = "auto"
 #: ``fit.thinning``: voxel cell of each ring's thinning, in units of the ring's width
 #: (:mod:`splatdeform.deform.thin`); 0 keeps every ring point.
-DEFAULT_THINNING = 0.75
+DEFAULT_THINNING = 1.0

@@ -108,6 +108,15 @@ def _kernel_block(x: np.ndarray, out: np.ndarray) -> None:
     out *= dist
 
 
+def _kernel_matrix(x: np.ndarray) -> np.ndarray:
+    """|x_i - x_j|^3 (m, m), Fortran-ordered for LAPACK (symmetric: the transpose of the
+    C-ordered product, so every elementwise pass runs over contiguous memory)."""
+    dist = cdist(x, x)
+    phi = dist * dist
+    phi *= dist
+    return phi.T
+
+
 def _solve(x: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(polynomial part (4, k), center weights (m, k)) of the interpolation system.
 
@@ -116,8 +125,10 @@ def _solve(x: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     w = Q [0; z] satisfies the side conditions, and the system splits into
     A22 z = (Q^T rhs)_2 with A22 = (Q^T Phi Q)_22 symmetric positive definite (one Cholesky,
     m^3 / 3 flops, LAPACK's best-threaded factorisation) and R a = (Q^T rhs)_1 - A12 z.
-    Q^T Phi Q is one rank-8 symmetric update (BLAS syr2k). Should rounding make A22 not
-    positive definite (near-duplicate points), the full saddle system is solved by the
+    Q^T Phi Q = Phi - Z V^T - V Z^T, so A22 is the kernel matrix of the points 5.. (built
+    directly, contiguous, factored in place) plus one rank-8 symmetric update (BLAS syr2k);
+    only the first 4 rows of Phi are needed besides. Should rounding make A22 not positive
+    definite (near-duplicate points), the full saddle system is solved by the
     symmetric-indefinite factorisation instead.
     """
     from scipy.linalg import blas, cho_factor, cho_solve, lapack, solve_triangular
@@ -135,16 +146,19 @@ def _solve(x: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     v[np.arange(4), np.arange(4)] = 1.0
     r = np.triu(qr[:4, :4])
     t = _larft(v, tau)
-    phi = np.empty((m, m), order="F")
-    _kernel_block(x, phi)
-    y = phi @ v                                         # Phi V
+    top = cdist(x[:4], x)
+    top = top * top * top                               # Phi[:4, :] (4, m)
+    a22 = _kernel_matrix(x[4:])                         # Phi[4:, 4:]
+    y = np.empty((m, 4))                                # Phi V
+    y[:4] = top @ v
+    y[4:] = a22 @ v[4:] + top[:, 4:].T @ v[:4]
     z = y @ t - 0.5 * v @ (t.T @ (v.T @ y) @ t)         # Q^T Phi Q = Phi - Z V^T - V Z^T
     c = b - v @ (t.T @ (v.T @ b))                       # Q^T rhs
     try:
-        phi = blas.dsyr2k(-1.0, z, v, beta=1.0, c=phi, lower=1, overwrite_c=1)
-        chol = cho_factor(phi[4:, 4:], lower=True, overwrite_a=True, check_finite=False)
+        a22 = blas.dsyr2k(-1.0, z[4:], v[4:], beta=1.0, c=a22, lower=1, overwrite_c=1)
+        chol = cho_factor(a22, lower=True, overwrite_a=True, check_finite=False)
         zz = cho_solve(chol, c[4:], check_finite=False)
-        a12 = phi[4:, :4].T                             # the lower triangle holds A21 = A12^T
+        a12 = top[:, 4:] - z[:4] @ v[4:].T - v[:4] @ z[4:].T
         a = solve_triangular(r, c[:4] - a12 @ zz, lower=False, check_finite=False)
         full = np.zeros_like(c)
         full[4:] = zz

@@ -13,6 +13,7 @@ R W = Q1^T rhs once.
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable, Iterator
 from contextlib import AbstractContextManager, nullcontext
 from typing import Literal
@@ -209,9 +210,16 @@ def blas_threads(threads: int | None) -> AbstractContextManager:
     """
     if threads is None:
         return nullcontext()
-    from threadpoolctl import threadpool_limits
+    return _controller().limit(limits=int(threads), user_api="blas")
 
-    return threadpool_limits(limits=int(threads), user_api="blas")
+
+@functools.cache
+def _controller():
+    """One threadpoolctl controller per process: creating one scans the loaded libraries
+    (about a millisecond, as much as a whole small fit)."""
+    from threadpoolctl import ThreadpoolController
+
+    return ThreadpoolController()
 
 
 class _Centers:

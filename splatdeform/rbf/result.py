@@ -45,8 +45,11 @@ class RbfFit:
     tolerance: the bound on max_ic |r_ic| the fit aimed for (units of the right-hand side).
     max_error: the achieved max_ic |r_ic|, r = rhs - A W over the constraint rows (nan: unknown).
     rms_error: the achieved RMS of r over all constraints and columns (nan: unknown).
-    method: "incremental" (least squares on chosen centers) or "exact" (every constraint a
-               center, the dense interpolation solve).
+    method: "incremental" (least squares on chosen centers), "exact" (every constraint a
+               center, the dense interpolation solve) or "exact-kept" (``fit.method: auto``:
+               the dense interpolation solve through the kept constraints only).
+    kept:      (m,) bool, the constraints an "exact-kept" fit went through when ``auto`` added
+               dropped ring points it missed to the thinned subset (None: as given).
     """
 
     centers: np.ndarray
@@ -58,6 +61,7 @@ class RbfFit:
     max_error: float = float("nan")
     rms_error: float = float("nan")
     method: str = "incremental"
+    kept: np.ndarray | None = None
 
     @property
     def n_centers(self) -> int:
