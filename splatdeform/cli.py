@@ -49,7 +49,9 @@ def cmd_deform(args: argparse.Namespace) -> int:
     from pathlib import Path
 
     from splatdeform.edit.config import load_edit
-    from splatdeform.edit.run import format_report, run_edit
+    from splatdeform.edit.result import format_report
+    from splatdeform.edit.run import run_edit
+    from splatdeform.edit.stream import StreamOptions
 
     _check_workers(args)
     cfg = load_edit(args.config)
@@ -75,9 +77,8 @@ def cmd_deform(args: argparse.Namespace) -> int:
     try:
         result = run_edit(cfg, base, output=output, drop_nonfinite=args.drop_nonfinite,
                           reuse=reuse, log=None if args.quiet else print, warn=_warn,
-                          stream={"budget": args.memory_budget, "scheduler": args.scheduler,
-                                  "workers": args.workers, "quiet": args.quiet,
-                                  "render": bool(render_out)})
+                          stream=StreamOptions(args.memory_budget, args.scheduler,
+                                               args.workers, args.quiet))
     except InputError as exc:
         # an error about a config key is said of the config file it came from
         if exc.key is not None:
@@ -107,15 +108,14 @@ def _check_workers(args: argparse.Namespace) -> None:
 
 def _check_streamed_frames(args: argparse.Namespace, cfg, base, render_out) -> None:
     """Frames need the model in memory: refused before any work when the edit will stream."""
-    from splatdeform.edit.images import render_frames_count
+    from splatdeform.edit.images import refuse_streamed_frames, render_frames_count
     from splatdeform.edit.stream import should_stream
 
     if not render_out or render_frames_count(cfg, args.frames) < 2:
         return
     budget = _budget(args.memory_budget, cfg.memory_budget)
     if args.scheduler or args.workers or should_stream(cfg, base / cfg.input, budget):
-        raise InputError("--frames/render.frames: an animation needs the model in memory; this "
-                         "edit is streamed (raise --memory-budget, or render one image)")
+        refuse_streamed_frames()
 
 
 def _check_deform_paths(args: argparse.Namespace, cfg, base, output, reuse, render_out) -> None:

@@ -8,7 +8,7 @@ from pathlib import Path
 
 from splatdeform.deform import full_basis
 from splatdeform.edit.config import EditConfig, RenderCfg
-from splatdeform.edit.run import EditResult
+from splatdeform.edit.result import EditResult
 from splatdeform.errors import InputError
 
 
@@ -46,6 +46,12 @@ def render_target(out: str | Path, frames: int, what: str = "render.output"
 def render_frames_count(cfg: EditConfig, frames: int = 0) -> int:
     """The frame count an edit renders: ``--frames`` wins over ``render.frames``."""
     return frames or (cfg.render.frames if cfg.render else 0)
+
+
+def refuse_streamed_frames() -> None:
+    """The InputError of an animation asked of a streamed edit (frames need the model)."""
+    raise InputError("--frames/render.frames: an animation needs the model in memory; this "
+                     "edit is streamed (raise --memory-budget, or render one image)")
 
 
 def render_result(result: EditResult, cfg: EditConfig, out: str | Path, *,
@@ -107,8 +113,7 @@ def render_streamed(result: EditResult, input_path: Path, target: Path, frames: 
     from splatdeform.render.colors import colored
 
     if frames >= 2:
-        raise InputError("--frames/render.frames: an animation needs the model in memory; this "
-                         "edit streamed (raise --memory-budget, or render one image)")
+        refuse_streamed_frames()
     budget = budget or default_budget()
     inputs = [load_for_render(p, budget, share=0.5)
               for p in (input_path, result.output)]

@@ -7,37 +7,21 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
-from functools import partial
 from pathlib import Path
 
 import numpy as np
 
 from splatdeform import deform as df
-from splatdeform.basis import compute_basis
 from splatdeform.edit import plain
 from splatdeform.edit.config import EditConfig, input_paths
 from splatdeform.edit.plain import control_displacement, metaphors, transform_matrix  # noqa: F401
-from splatdeform.errors import InputError, ProcessingError
+from splatdeform.edit.result import EditResult, edit_stats, format_report  # noqa: F401
+from splatdeform.edit.stream import StreamOptions, run_stream, should_stream
+from splatdeform.errors import ConfigError, InputError, ProcessingError
 from splatdeform.io import SUPPORTED, extension_of, load, save
 from splatdeform.io.atomic import check_io_paths
 from splatdeform.model import MAX_COORDINATE, PointModel
 from splatdeform.rbf import RbfFit
-
-
-@dataclass
-class EditResult:
-    """What one edit produced: the deformed model, the precomputed deformation, the control
-    displacement delta_c (k, 3), the handle matrix (4x4, handle edits), the figures printed."""
-
-    model: PointModel
-    deformed: PointModel
-    deformation: df.Deformation
-    delta_c: np.ndarray
-    matrix: np.ndarray | None
-    output: Path | None
-    stats: dict[str, float | int | str] = field(default_factory=dict)
-    timings: dict[str, float] = field(default_factory=dict)
 
 
 def not_converged_message(fit: RbfFit, cfg: EditConfig) -> str | None:
@@ -98,19 +82,35 @@ def check_converged(fit: RbfFit, cfg: EditConfig,
         warn(message)
 
 
+def streams(cfg: EditConfig, in_path: Path, options: StreamOptions, budget: int | None, *,
+            reuse: str | Path | None = None, drop_nonfinite: bool = False) -> bool:
+    """True when this edit runs out of core: Dask asked for (``options.scheduler``/``workers``),
+    or the input's in-memory estimate exceeds ``budget`` (None: half the RAM). ``--reuse`` and
+    ``--drop-nonfinite`` need the model in memory: with them an edit over the budget runs in
+    memory, and asking for Dask is a ConfigError."""
+    if not options.distributed and not should_stream(cfg, in_path, budget):
+        return False
+    if reuse is not None or drop_nonfinite:
+        if options.distributed:
+            raise ConfigError("--scheduler/--workers: cannot be combined with --reuse or "
+                              "--drop-nonfinite")
+        return False
+    return True
+
+
 def run_edit(cfg: EditConfig, base_dir: str | Path = ".", *, output: str | Path | None = None,
              save_output: bool = True, drop_nonfinite: bool = False,
              reuse: str | Path | None = None,
              log: Callable[[str], None] | None = None,
              warn: Callable[[str], None] | None = None,
-             stream: dict | None = None) -> EditResult:
+             stream: StreamOptions | None = None) -> EditResult:
     """Run one edit. ``output`` overrides ``cfg.output``; ``reuse`` names a precomputed
     deformation file to load when it matches this edit (and to write otherwise). ``warn``
     receives the one-line warning of a fit that stopped above the tolerance (with
     ``fit.on_not_converged: error`` that is a ProcessingError instead, before any output).
-    ``stream``: {budget, scheduler, workers, quiet} for the out-of-core path
-    (:mod:`splatdeform.edit.stream`), taken when the input exceeds the budget or Dask is asked
-    for."""
+    ``stream``: budget, Dask and quiet options of the out-of-core path
+    (:func:`splatdeform.edit.stream.run_stream`), taken (see :func:`streams`) when the input
+    exceeds the budget or Dask is asked for; only when the output is saved."""
     base_dir = Path(base_dir)
     out_path = Path(output) if output is not None else base_dir / cfg.output
     in_path = base_dir / cfg.input
@@ -120,16 +120,13 @@ def run_edit(cfg: EditConfig, base_dir: str | Path = ".", *, output: str | Path 
                              f"expected one of {', '.join(SUPPORTED)}")
         check_io_paths(input_paths(cfg, base_dir),
                        [("output", out_path), ("reuse cache", reuse)])
-        from splatdeform.edit.stream import (
-            maybe_stream,  # out of core / on Dask when asked or too big
-        )
-
-        streamed = maybe_stream(cfg, base_dir, out_path, reuse=reuse, log=log,
-                                drop_nonfinite=drop_nonfinite,
-                                check_fit=lambda fit: check_converged(fit, cfg, warn),
-                                **(stream or {}))
-        if streamed is not None:
-            return streamed
+        options = stream or StreamOptions()
+        budget = options.budget_bytes(cfg)
+        if streams(cfg, in_path, options, budget, reuse=reuse, drop_nonfinite=drop_nonfinite):
+            return run_stream(cfg, base_dir, output=out_path, budget=budget,
+                              scheduler=options.scheduler, workers=options.workers,
+                              quiet=options.quiet, log=log,
+                              check_fit=lambda fit: check_converged(fit, cfg, warn))
     timings: dict[str, float] = {}
     model = prepare_model(cfg, base_dir, timings, drop_nonfinite)
     deformation = None
@@ -161,53 +158,12 @@ def run_edit(cfg: EditConfig, base_dir: str | Path = ".", *, output: str | Path 
     deformed = df.apply(deformation, model, delta_c, moving_matrix=matrix,  # checks finiteness
                         covariance=cfg.gaussians.covariance, stats=applied)
     timings["apply"] = time.perf_counter() - t0
-    err, err_rms = df.constraint_errors(deformation, delta_c,
-                                        partial(compute_basis, gradients=False,
-                                                backend="numpy"))
-    fit = deformation.fit
-    stats = {
-        "points": model.n_points,
-        "free_points": int(deformation.free_idx.size),
-        "constraints": int(deformation.constraint_idx.size),
-        "kept": deformation.n_kept,
-        "centers": fit.n_centers,
-        "residual": fit.max_error,
-        "residual_rms": fit.rms_error,
-        "tolerance": fit.tolerance,
-        "method": fit.method,
-        "converged": bool(fit.converged),
-        "constraint_error": err,
-        "constraint_error_rms": err_rms,
-        "constraint_error_rel": err / max(model.diagonal(), 1e-300),
-        "refused_splats": int(applied.get("refused_splats", 0)),
-    }
+    stats = edit_stats(deformation, delta_c, points=model.n_points,
+                       free_points=deformation.free_idx.size, diagonal=model.diagonal(),
+                       refused_splats=int(applied.get("refused_splats", 0)))
     result = EditResult(model, deformed, deformation, delta_c, matrix, None, stats, timings)
     if save_output:
         t0 = time.perf_counter()
         result.output = save(deformed, out_path)
         timings["save"] = time.perf_counter() - t0
     return result
-
-
-def format_report(result: EditResult) -> str:
-    """The lines ``splatdeform deform`` prints: counts, fit figures, per-stage timings."""
-    s = result.stats
-    lines = [
-        f"points {s['points']:,}  free {s['free_points']:,}  constraints {s['constraints']:,} "
-        f"(kept {s.get('kept', s['constraints']):,})  centers {s['centers']}",
-        f"fit ({s['method']}): largest |r| {s['residual']:.3g}, RMS {s['residual_rms']:.3g} "
-        f"over the {'kept' if s['method'] != 'exact' else 'all'} constraints (tolerance "
-        f"{s['tolerance']:.3g}, converged: {str(s['converged']).lower()})",
-        f"constraint error for this transform over all {s['constraints']:,} ring points: max "
-        f"{s['constraint_error']:.3g}, RMS {s['constraint_error_rms']:.3g} model units "
-        f"({s['constraint_error_rel']:.2e} of the diagonal)",
-    ]
-    if s.get("refused_splats"):
-        lines.append(f"gaussians.covariance rotation: {s['refused_splats']:,} splats folded "
-                     "(det J <= 0) kept their covariance")
-    for stage in ("load", "rings", "fit", "basis", "apply", "save", "render"):
-        if stage in result.timings:
-            lines.append(f"{stage:<7}{result.timings[stage]:9.3f} s")
-    if result.output is not None:
-        lines.append(f"wrote {result.output}")
-    return "\n".join(lines)

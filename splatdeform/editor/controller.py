@@ -389,6 +389,7 @@ class EditorController:
         """Rings, fit and basis for the current regions (``splatdeform.edit.precompute``).
         ``progress(stage, fraction)`` is called as stages start. Returns the figures shown
         (counts, centers, residual, seconds per stage). Region errors are the CLI's lines."""
+        from splatdeform.edit.result import fit_stats
         from splatdeform.edit.run import precompute
 
         report = progress or (lambda stage, fraction: None)
@@ -403,12 +404,9 @@ class EditorController:
         self.deformation = deformation
         self._fit_key = key
         self._frame_data = self._prepare_frames(deformation)
-        fit = deformation.fit
         self.fit_stats = {
-            "points": self.model.n_points, "free_points": int(deformation.free_idx.size),
-            "constraints": int(deformation.constraint_idx.size), "centers": fit.n_centers,
-            "kept": deformation.n_kept, "method": fit.method,
-            "converged": bool(fit.converged), "seconds": time.perf_counter() - t0,
+            **fit_stats(deformation, self.model.n_points, deformation.free_idx.size),
+            "seconds": time.perf_counter() - t0,
             **{f"{k}_s": v for k, v in deformation.timings.items()},
         }
         report("done", 1.0)

@@ -15,19 +15,26 @@ from ..errors import FormatError, InputError
 from ..model import PointModel
 from . import gltf, las, open3d_io, pcd, playcanvas, ply, sog, splat, spz
 from .atomic import atomic_path, atomic_write, check_output_path
+from .chunks import ChunkFile
 from .regular import require_regular
 
 
 @dataclass(frozen=True)
 class Format:
     """One file format: ``read(path, drop_nonfinite=) -> PointModel`` and
-    ``write(model, path, text)`` (atomic); ``stream``: chunked reading for the streaming and
-    Dask paths; ``lossy``: a write quantises (and says once what it loses)."""
+    ``write(model, path, text)`` (atomic); ``chunks(path) -> ChunkFile``: chunked reading and
+    writing for the streaming and Dask paths (None: not streamable); ``lossy``: a write
+    quantises (and says once what it loses)."""
 
     read: Callable[..., PointModel]
     write: Callable[[PointModel, Path, bool | None], None]
-    stream: bool = False
+    chunks: Callable[[Path], ChunkFile] | None = None
     lossy: bool = False
+
+    @property
+    def stream(self) -> bool:
+        """True when the streaming and Dask paths read this format in chunks."""
+        return self.chunks is not None
 
 
 def _write_ply(model: PointModel, path: Path, text: bool | None) -> None:
@@ -60,7 +67,7 @@ def _streamed_writer(module) -> Callable[[PointModel, Path, bool | None], None]:
 #: A double extension (``.compressed.ply``) is matched before the plain one; a key without a
 #: leading dot (``meta.json``: a SOG folder) is a whole file name.
 FORMATS: dict[str, Format] = {
-    ".ply": Format(ply.read_model, _write_ply, stream=True),
+    ".ply": Format(ply.read_model, _write_ply, chunks=ply.PlyChunks),
     ".compressed.ply": Format(ply.read_model, _streamed_writer(playcanvas), lossy=True),
     **{ext: Format(splat.read_model, _streamed_writer(splat), lossy=True)
        for ext in splat.EXTENSIONS},
@@ -70,7 +77,7 @@ FORMATS: dict[str, Format] = {
     **{ext: Format(gltf.read_model, _streamed_writer(gltf)) for ext in gltf.EXTENSIONS},
     **{ext: Format(pcd.read_model, _streamed_writer(pcd)) for ext in pcd.EXTENSIONS},
     **{ext: Format(open3d_io.read_model, _write_open3d) for ext in open3d_io.EXTENSIONS},
-    **{ext: Format(las.read_model, _write_las, stream=True) for ext in las.EXTENSIONS},
+    **{ext: Format(las.read_model, _write_las, chunks=las.LasChunks) for ext in las.EXTENSIONS},
 }
 READERS = {ext: fmt.read for ext, fmt in FORMATS.items()}
 SUPPORTED = tuple(FORMATS)
@@ -91,6 +98,18 @@ def extension_of(path: str | Path) -> str:
         if ext.count(".") > 1 and name.endswith(ext) and len(name) > len(ext):
             return ext
     return Path(name).suffix
+
+
+def open_chunks(path: str | Path) -> ChunkFile:
+    """The chunk reader of ``path`` by its extension (InputError when not streamable)."""
+    path = Path(path)
+    ext = extension_of(path)
+    fmt = FORMATS.get(ext)
+    if fmt is None or fmt.chunks is None:
+        raise InputError(f"{path}: streaming reads {', '.join(STREAMABLE)} (PLY binary); this "
+                         f"{ext or 'extensionless'} file must fit the memory budget (raise "
+                         "--memory-budget)")
+    return fmt.chunks(path)
 
 
 def _compressed_ply_fields(path: Path) -> dict:
@@ -203,4 +222,4 @@ def save(model: PointModel, path: str | Path, *, text: bool | None = None) -> Pa
 
 __all__ = ["FORMATS", "Format", "load", "save", "SUPPORTED", "STREAMABLE", "PLY_EXTENSIONS",
            "LAS_EXTENSIONS", "extension_of", "format_fields", "atomic_path", "atomic_write",
-           "check_output_path"]
+           "check_output_path", "ChunkFile", "open_chunks"]

@@ -13,7 +13,8 @@ extent itself does not fit is the scale widened, with a warning naming the file.
 Models not read from LAS are written as LAS 1.4 point format 6 (7 with colours), with normals
 and other numeric per-point properties as extra-bytes dimensions.
 
-Chunked access for the streaming and Dask paths: :func:`iter_chunks` and :class:`LasWriter`.
+Chunked access for the streaming and Dask paths: :class:`LasChunks` (over :func:`iter_chunks`)
+and :class:`LasWriter`.
 """
 
 from __future__ import annotations
@@ -27,6 +28,7 @@ import numpy as np
 
 from ..errors import FormatError, ProcessingError
 from ..model import PlyElementData, PlyProperty, PlySource, PointModel, classify
+from .chunks import ChunkFile
 from .las_header import check_header
 from .ply_format import TYPE_NAMES
 
@@ -284,6 +286,22 @@ def _original_xyz(points: np.ndarray) -> np.ndarray:
     return np.stack([points[a] for a in "XYZ"], axis=1)
 
 
+def requantized(header, points: np.ndarray, model: PointModel, scales: np.ndarray,
+                offsets: np.ndarray, shift: np.ndarray, keep_ints: bool) -> np.ndarray:
+    """A copy of the raw records ``points`` (N,) read with ``header``, X Y Z re-quantised from
+    ``model.positions`` (N, 3) (:func:`quantize`) and its normals written into nx ny nz when
+    the records have them."""
+    ints = quantize(model.positions, positions_of(header, points), _original_xyz(points),
+                    scales, offsets, shift, keep_ints)
+    out = points.copy()
+    for i, axis in enumerate("XYZ"):
+        out[axis] = ints[:, i]
+    if model.normals is not None and all(n in (out.dtype.names or ()) for n in NORMAL_NAMES):
+        for i, n in enumerate(NORMAL_NAMES):
+            out[n] = model.normals[:, i].astype(out.dtype[n])
+    return out
+
+
 def las_records_for(model: PointModel, path: str | Path):
     """(header, raw records (N,)) to write for ``model``: its LAS source with re-quantised
     coordinates, or a new LAS 1.4 file for models from other formats."""
@@ -298,15 +316,7 @@ def las_records_for(model: PointModel, path: str | Path):
     lo, hi = model.positions.min(axis=0), model.positions.max(axis=0)
     scales, offsets, shift = fit_offsets(header, lo, hi, path)
     same_scale = bool(np.all(scales == np.asarray(header.scales)))
-    original_xyz = _original_xyz(src.points)
-    ints = quantize(model.positions, positions_of(header, src.points), original_xyz,
-                    scales, offsets, shift, same_scale)
-    points = src.points.copy()
-    for i, axis in enumerate("XYZ"):
-        points[axis] = ints[:, i]
-    if model.normals is not None and all(n in (points.dtype.names or ()) for n in NORMAL_NAMES):
-        for i, n in enumerate(NORMAL_NAMES):
-            points[n] = model.normals[:, i].astype(points.dtype[n])
+    points = requantized(header, src.points, model, scales, offsets, shift, same_scale)
     if np.any(shift) or not same_scale:
         header = _copy_header(header)
         header.offsets = offsets
@@ -462,3 +472,34 @@ class LasWriter:
             self._writer.write_evlrs(self._evlrs)
         self._writer.close()
         restore_vlrs(self.out, self._original)
+
+
+class LasChunks(ChunkFile):
+    """LAS/LAZ (every point format) in chunks; deformed chunks keep every record field, with
+    X Y Z re-quantised on the input's scale and offset."""
+
+    def __init__(self, path: str | Path) -> None:
+        self.path = Path(path)
+        self.header, self.compressed, self.evlrs = read_header(self.path)
+        self.n_points = int(self.header.point_count)
+        self.record_bytes = int(self.header.point_format.size)
+        self.scales = np.asarray(self.header.scales, dtype=np.float64)
+        self.offsets = np.asarray(self.header.offsets, dtype=np.float64)
+
+    def rows(self, start: int, stop: int) -> np.ndarray:
+        parts = list(iter_chunks(self.path, stop - start, start, stop))
+        return parts[0] if len(parts) == 1 else np.concatenate(parts)
+
+    def positions(self, start: int, stop: int) -> np.ndarray:
+        return positions_of(self.header, self.rows(start, stop))
+
+    def model_of(self, rows: np.ndarray) -> PointModel:
+        return model_from_las(self.header, rows, self.path, compressed=self.compressed)
+
+    def encode(self, model: PointModel) -> tuple[np.ndarray, None]:
+        """Raises ProcessingError when a coordinate leaves int32 (the offset stays)."""
+        return requantized(self.header, model.source.points, model, self.scales, self.offsets,
+                           np.zeros(3, dtype=np.int64), True), None
+
+    def writer(self, out: Path, props: list | None = None) -> LasWriter:
+        return LasWriter(self.header, out, self.evlrs)

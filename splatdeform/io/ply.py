@@ -9,16 +9,26 @@ triangulated) or from a ``tristrips`` element (strips separated by -1).
 
 from __future__ import annotations
 
+import os
 from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 from numpy.lib.recfunctions import structured_to_unstructured
 
-from ..errors import FormatError
-from ..model import Gaussians, PlyElementData, PlyProperty, PlySource, PointModel, classify
+from ..errors import FormatError, InputError
+from ..model import (
+    MAX_COORDINATE,
+    Gaussians,
+    PlyElementData,
+    PlyProperty,
+    PlySource,
+    PointModel,
+    classify,
+)
 from . import playcanvas
-from .ply_format import read_ply, write_ply
+from .chunks import ChunkFile
+from .ply_format import MAX_HEADER_BYTES, header_text, parse_header, read_ply, write_ply
 
 AXIS_NAMES = ("ux", "uy", "uz", "vx", "vy", "vz")
 RADIUS_NAMES = ("radius", "surfel_radius")
@@ -434,3 +444,122 @@ def source_for_save(model: PointModel) -> PlySource:
 def write_model(model: PointModel, stream, *, text: bool | None = None) -> None:
     """Write ``model`` as PLY to an open binary stream."""
     write_ply(source_for_save(model), stream, text=text)
+
+
+# ---- chunked access (streaming, Dask) ----------------------------------------------------
+
+class PlyChunks(ChunkFile):
+    """Binary PLY (either byte order) whose ``vertex`` element is the first element and holds
+    scalar properties only, and that has no faces (``face``/``tristrips`` with rows); any other
+    element after the vertices is copied verbatim into the output."""
+
+    def __init__(self, path: str | Path) -> None:
+        self.path = Path(path)
+        with open(self.path, "rb") as f:
+            head = f.read(MAX_HEADER_BYTES)
+        header = parse_header(self.path, head)
+        if header.text:
+            raise InputError(f"{self.path}: streaming needs a binary PLY (this one is ascii); "
+                             "raise --memory-budget or convert it to binary")
+        if not header.elements or header.elements[0][0] != "vertex":
+            raise InputError(f"{self.path}: streaming needs the 'vertex' element first")
+        name, count, props = header.elements[0]
+        if any(p.is_list for p in props):
+            raise InputError(f"{self.path}: streaming needs scalar vertex properties")
+        for el_name, el_count, _ in header.elements[1:]:
+            if el_name in ("face", "tristrips") and el_count > 0:
+                raise InputError(f"{self.path}: streaming handles point clouds; this is a mesh "
+                                 f"({el_count} {el_name} rows): raise --memory-budget")
+        self.header = header
+        self.props = props
+        self.n_points = count
+        self.byte_order = header.byte_order
+        self.dtype = np.dtype([(p.name, self.byte_order + p.dtype) for p in props])
+        self.record_bytes = self.dtype.itemsize
+        self.data_offset = header.size
+        self.tail_offset = header.size + count * self.dtype.itemsize
+        size = os.path.getsize(self.path)
+        if size < self.tail_offset:
+            raise FormatError(f"{self.path}: truncated binary body: {size} bytes, the vertex "
+                              f"element needs {self.tail_offset}")
+        missing = [a for a in "xyz" if a not in self.dtype.names]
+        if missing:
+            raise FormatError(f"{self.path}: vertex element lacks property {', '.join(missing)}")
+
+    def rows(self, start: int, stop: int) -> np.ndarray:
+        with open(self.path, "rb") as f:
+            f.seek(self.data_offset + start * self.dtype.itemsize)
+            rows = np.fromfile(f, dtype=self.dtype, count=stop - start)
+        if rows.shape[0] != stop - start:
+            raise FormatError(f"{self.path}: truncated binary body at vertex {start}")
+        return rows
+
+    def positions(self, start: int, stop: int) -> np.ndarray:
+        """(stop - start, 3) float64; a NaN/Inf or a far point is a FormatError (a stream
+        cannot drop points)."""
+        rows = self.rows(start, stop)
+        out = np.empty((stop - start, 3), dtype=np.float64)
+        for i, a in enumerate("xyz"):
+            out[:, i] = rows[a]
+        if not np.isfinite(out).all():
+            bad = int(np.flatnonzero(~np.isfinite(out).all(axis=1))[0]) + start
+            raise FormatError(f"{self.path}: vertex {bad} has NaN/Inf coordinates (streaming "
+                              "cannot drop them; fix the file)")
+        far = np.abs(out).max(axis=1) > MAX_COORDINATE if out.size else None
+        if far is not None and far.any():
+            bad = int(np.flatnonzero(far)[0]) + start
+            raise FormatError(f"{self.path}: point {bad} at {out[bad - start].tolist()} is beyond "
+                              f"+-{MAX_COORDINATE:g}; the fit would overflow; fix or crop the "
+                              "file")
+        return out
+
+    def model_of(self, rows: np.ndarray) -> PointModel:
+        source = PlySource([PlyElementData("vertex", self.props, rows)],
+                           self.header.comments, self.header.obj_info, False, self.byte_order)
+        return model_from_source(source, self.path)
+
+    def encode(self, model: PointModel) -> tuple[np.ndarray, list[PlyProperty]]:
+        vertex = source_for_save(model).element("vertex")
+        dtype = np.dtype([(p.name, self.byte_order + p.dtype) for p in vertex.properties])
+        return vertex.data.astype(dtype, copy=False), vertex.properties
+
+    def header_bytes(self, props: list[PlyProperty]) -> bytes:
+        """The output header: vertex element with ``props``, the other elements as read."""
+        elements = [PlyElementData("vertex", props, np.empty(self.n_points, dtype=[]))]
+        elements += [PlyElementData(n, p, np.empty(c, dtype=[]))
+                     for n, c, p in self.header.elements[1:]]
+        source = PlySource(elements, self.header.comments, self.header.obj_info, False,
+                           self.byte_order)
+        return header_text(source, False, self.byte_order)
+
+    def copy_tail(self, out) -> None:
+        """Copy the bytes after the vertex element (other elements) verbatim."""
+        with open(self.path, "rb") as f:
+            f.seek(self.tail_offset)
+            while True:
+                block = f.read(1 << 24)
+                if not block:
+                    break
+                out.write(block)
+
+    def writer(self, out: Path, props: list | None) -> PlyChunkWriter:
+        return PlyChunkWriter(self, out, props)
+
+
+class PlyChunkWriter:
+    """Streams vertex records into ``out``: the header first, the input's other elements
+    verbatim at :meth:`close` (flushed to disk)."""
+
+    def __init__(self, src: PlyChunks, out: Path, props: list[PlyProperty]) -> None:
+        self.src = src
+        self.stream = open(out, "wb")
+        self.stream.write(src.header_bytes(props))
+
+    def write(self, rows: np.ndarray) -> None:
+        self.stream.write(rows.tobytes())
+
+    def close(self) -> None:
+        self.src.copy_tail(self.stream)
+        self.stream.flush()
+        os.fsync(self.stream.fileno())
+        self.stream.close()

@@ -520,7 +520,9 @@ def read_ply(path: str | Path) -> PlySource:
                      header.byte_order)
 
 
-def _header_text(source: PlySource, text: bool, byte_order: str) -> bytes:
+def header_text(source: PlySource, text: bool, byte_order: str) -> bytes:
+    """The header bytes of ``source`` (its elements, counts and properties) in the given
+    encoding (``byte_order`` "<" or ">" when binary)."""
     fmt = "ascii" if text else ("binary_big_endian" if byte_order == ">"
                                 else "binary_little_endian")
     lines = ["ply", f"format {fmt} 1.0"]
@@ -645,7 +647,7 @@ def write_ply(source: PlySource, out: io.BufferedIOBase, *, text: bool | None = 
     """Write ``source`` to the open binary stream ``out`` (format defaults to the source's)."""
     text = source.text if text is None else text
     bo = source.byte_order if byte_order is None else byte_order
-    out.write(_header_text(source, text, bo))
+    out.write(header_text(source, text, bo))
     for el in source.elements:
         if text:
             _write_ascii_element(out, el)

@@ -10,21 +10,25 @@ given a Dask scheduler (``--scheduler``) or local worker processes (``--workers`
 3. pass 5: per chunk, basis of the free points + apply (the in-memory code on a chunk) ->
    the output file (same format and properties), renamed into place at the end.
 
-See :mod:`splatdeform.edit.stream.plan` for why the rings equal the in-memory rings.
+See :mod:`splatdeform.edit.stream.plan` for why the rings equal the in-memory rings. The
+choice stream-or-not is :func:`splatdeform.edit.run.run_edit`'s (with :class:`StreamOptions`);
+the chunk readers are the io format table's (:func:`splatdeform.io.open_chunks`), the border
+geometry :mod:`splatdeform.deform.border`.
 """
 
 from __future__ import annotations
 
 import os
 import re
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
+from splatdeform.edit.result import EditResult, edit_stats
 from splatdeform.edit.stream.progress import Progress
-from splatdeform.edit.stream.sources import STREAMABLE
 from splatdeform.errors import ConfigError
-from splatdeform.io import extension_of
+from splatdeform.io import STREAMABLE, extension_of
 
 _UNITS = {"": 1, "b": 1, "k": 2**10, "kb": 2**10, "kib": 2**10, "m": 2**20, "mb": 2**20,
           "mib": 2**20, "g": 2**30, "gb": 2**30, "gib": 2**30, "t": 2**40, "tb": 2**40,
@@ -43,6 +47,31 @@ def parse_size(text: str | int | float, what: str = "--memory-budget") -> int:
     if value < 64 * 2**20:
         raise ConfigError(f"{what}: expected at least 64MB, got {text!r}")
     return value
+
+
+@dataclass(frozen=True)
+class StreamOptions:
+    """How ``deform`` may run out of core: ``budget`` in bytes or a size string like '2GB'
+    (None: the config's ``memory_budget``, else half the RAM); a Dask ``scheduler`` address or
+    a number of local ``workers`` (either one makes the edit stream); ``quiet``: no progress
+    or streaming lines."""
+
+    budget: int | str | None = None
+    scheduler: str | None = None
+    workers: int | None = None
+    quiet: bool = False
+
+    @property
+    def distributed(self) -> bool:
+        return bool(self.scheduler or self.workers)
+
+    def budget_bytes(self, cfg) -> int | None:
+        """``budget`` in bytes, else ``cfg.memory_budget``'s (ConfigError naming the flag or
+        key when malformed), else None (half the RAM)."""
+        if self.budget is None:
+            return None if cfg.memory_budget is None else parse_size(cfg.memory_budget,
+                                                                     "memory_budget")
+        return parse_size(self.budget) if isinstance(self.budget, str) else self.budget
 
 
 def machine_memory() -> int:
@@ -85,18 +114,20 @@ def should_stream(cfg, in_path: Path, budget: int | None) -> bool:
 def run_stream(cfg, base_dir: str | Path = ".", *, output: str | Path | None = None,
                budget: int | None = None, scheduler: str | None = None,
                workers: int | None = None, quiet: bool = False, log=None, check_fit=None,
-               client=None, chunk: int | None = None, max_handle: int | None = None):
+               client=None, chunk: int | None = None,
+               max_handle: int | None = None) -> EditResult:
     """Run one handle edit out of core (locally, or on Dask with ``scheduler``/``workers``).
 
-    Returns an :class:`splatdeform.edit.EditResult` with ``model``/``deformed`` None (the models
-    are never whole in memory) and the figures ``format_report`` prints. ``client``: an open
-    Dask client to use; ``chunk``: points per chunk (default: from the budget);
-    ``max_handle``: most handle points kept whole for the frame (beyond: streamed moments)."""
+    Returns an :class:`~splatdeform.edit.result.EditResult` with ``model``/``deformed`` None
+    (the models are never whole in memory) and the figures ``format_report`` prints.
+    ``client``: an open Dask client to use; ``chunk``: points per chunk (default: from the
+    budget); ``max_handle``: most handle points kept whole for the frame (beyond: streamed
+    moments)."""
     import time
 
-    from splatdeform.edit.run import EditResult
     from splatdeform.edit.stream.run import check_streamable, dask_client, stream_deform
     from splatdeform.io import check_output_path
+    from splatdeform.memory import BASE_BYTES
 
     base_dir = Path(base_dir)
     in_path = base_dir / cfg.input
@@ -106,11 +137,8 @@ def run_stream(cfg, base_dir: str | Path = ".", *, output: str | Path | None = N
     t0 = time.perf_counter()
     src = check_streamable(cfg, in_path, out_path)
     n = src.n_points
-    record = src.dtype.itemsize if hasattr(src, "dtype") else src.header.point_format.size
-    from splatdeform.memory import BASE_BYTES
-
     base = BASE_BYTES + 2 * n  # interpreter and libraries, labels
-    chunk = chunk or chunk_for_budget(budget, record, fixed_bytes=base)
+    chunk = chunk or chunk_for_budget(budget, src.record_bytes, fixed_bytes=base)
     max_border = int(max(budget - base, budget // 2) // 500)
     # handle points kept whole (24 bytes each, ~4 copies in the frame's SVD) up to a quarter
     if max_handle is None:
@@ -118,11 +146,7 @@ def run_stream(cfg, base_dir: str | Path = ".", *, output: str | Path | None = N
     if log and not quiet:
         log(f"streaming {n:,} points in chunks of {chunk:,} (memory budget "
             f"{budget / 2**20:,.0f} MB)")
-    if client is not None:
-        plan = stream_deform(src, cfg, base_dir, out_path, chunk=chunk, quiet=quiet,
-                             client=client, max_border=max_border, check_fit=check_fit,
-                                 max_handle=max_handle)
-    elif scheduler or workers:  # at least ~16 parts, so every worker gets several
+    if client is None and (scheduler or workers):  # at least ~16 parts: several per worker
         chunk = min(chunk, max(20_000, -(-n // 16)))
         with dask_client(scheduler, workers) as client:
             plan = stream_deform(src, cfg, base_dir, out_path, chunk=chunk, quiet=quiet,
@@ -130,66 +154,18 @@ def run_stream(cfg, base_dir: str | Path = ".", *, output: str | Path | None = N
                                  max_handle=max_handle)
     else:
         plan = stream_deform(src, cfg, base_dir, out_path, chunk=chunk, quiet=quiet,
-                             max_border=max_border, check_fit=check_fit,
+                             client=client, max_border=max_border, check_fit=check_fit,
                              max_handle=max_handle)
-    from functools import partial
-
-    from splatdeform import deform as df
-    from splatdeform.basis import compute_basis
-
-    border = plan.border
-    basis_fn = partial(compute_basis, gradients=False, backend="numpy")
-    if hasattr(df, "constraint_errors"):
-        err, err_rms = df.constraint_errors(border, plan.delta_c, basis_fn)
-    else:
-        err, err_rms = df.constraint_error(border, plan.delta_c, basis_fn), float("nan")
-    fit = border.fit
-    diag = float(np.linalg.norm(plan.hi - plan.lo)) or 1.0
-    stats = {
-        "points": n,
-        "free_points": int(np.count_nonzero(plan.labels == 0)),
-        "constraints": int(border.constraint_idx.size),
-        "kept": border.n_kept,
-        "centers": fit.n_centers,
-        "residual": getattr(fit, "max_error", float("nan")),
-        "residual_rms": getattr(fit, "rms_error", float("nan")),
-        "tolerance": fit.tolerance,
-        "method": getattr(fit, "method", "incremental"),
-        "converged": bool(fit.converged),
-        "constraint_error": err,
-        "constraint_error_rms": err_rms,
-        "constraint_error_rel": err / max(diag, 1e-300),
-        "border_points": plan.border_points,
-        "chunk": chunk,
-    }
+    stats = edit_stats(plan.border, plan.delta_c, points=n,
+                       free_points=int(np.count_nonzero(plan.labels == 0)),
+                       diagonal=float(np.linalg.norm(plan.hi - plan.lo)) or 1.0,
+                       border_points=plan.border_points, chunk=chunk)
     timings = dict(plan.timings)
     timings["load"] = sum(timings.pop(k, 0.0) for k in ("bbox", "regions", "border"))
     timings["total"] = time.perf_counter() - t0
-    return EditResult(None, None, border, plan.delta_c, plan.matrix, out_path, stats, timings)
+    return EditResult(None, None, plan.border, plan.delta_c, plan.matrix, out_path, stats,
+                      timings)
 
 
-__all__ = ["Progress", "default_budget", "parse_size", "run_stream", "should_stream"]
-
-
-def maybe_stream(cfg, base_dir: Path, out_path: Path, *, budget: int | str | None = None,
-                 scheduler: str | None = None, workers: int | None = None,
-                 quiet: bool = False, reuse=None, drop_nonfinite: bool = False, log=None,
-                 check_fit=None, render: bool = False):  # render: both files, sampled
-    """The streaming result when this edit should stream (budget exceeded, or a Dask
-    scheduler/workers asked for), else None (run in memory). ``budget``: bytes or a size
-    string (else ``cfg.memory_budget``, else half the RAM)."""
-    distributed = bool(scheduler or workers)
-    if budget is None and cfg.memory_budget is not None:
-        budget = parse_size(cfg.memory_budget, "memory_budget")
-    elif isinstance(budget, str):
-        budget = parse_size(budget)
-    in_path = Path(base_dir) / cfg.input
-    if not distributed and not should_stream(cfg, in_path, budget):
-        return None
-    if reuse is not None or drop_nonfinite:
-        if distributed:
-            raise ConfigError("--scheduler/--workers: cannot be combined with --reuse or "
-                              "--drop-nonfinite")
-        return None
-    return run_stream(cfg, base_dir, output=out_path, budget=budget, scheduler=scheduler,
-                      workers=workers, quiet=quiet, log=log, check_fit=check_fit)
+__all__ = ["Progress", "StreamOptions", "default_budget", "parse_size", "run_stream",
+           "should_stream"]

@@ -20,27 +20,52 @@ outliers) are reported.
 
 from __future__ import annotations
 
-import math
 import warnings
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from pathlib import Path
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from splatdeform import deform as df
 from splatdeform.basis.result import Basis
+from splatdeform.deform.border import (
+    Moments,
+    distance_to_other,
+    frame_from_moments,
+    in_sorted,
+    initial_radius,
+    kth_distance,
+    merge_keys,
+    near_voxels,
+    voxel_keys,
+)
 from splatdeform.deform.handle import AffineFrame, delta_for_transform, handle_frame
 from splatdeform.edit.config import EditConfig
 from splatdeform.edit.selectors import Indices, Property, leaves, map_leaves, select
 from splatdeform.edit.selectors.indices import index_mask
 from splatdeform.edit.stream.progress import Progress
-from splatdeform.edit.stream.sources import ChunkFile, as_chunk
 from splatdeform.errors import ProcessingError, RegionError
-from splatdeform.interrupts import knn_query
+from splatdeform.io import ChunkFile
 from splatdeform.model import PointModel
 
 FREE, FIXED, HANDLE = 0, 1, 2
+
+
+class ChunkModel(PointModel):
+    """A chunk of a bigger model: region selectors see the whole file's bounding box."""
+
+    lo: np.ndarray
+    hi: np.ndarray
+
+    def bbox(self) -> tuple[np.ndarray, np.ndarray]:
+        return self.lo, self.hi
+
+
+def as_chunk(model: PointModel, lo: np.ndarray, hi: np.ndarray) -> ChunkModel:
+    """``model`` (no copy) as a ChunkModel whose bbox() is (lo, hi) (3,) each."""
+    chunk = ChunkModel(**{f.name: getattr(model, f.name) for f in fields(PointModel)})
+    chunk.lo, chunk.hi = lo, hi
+    return chunk
 
 
 @dataclass
@@ -89,21 +114,6 @@ def bbox_pass(src: ChunkFile, chunk: int, quiet: bool, sample_size: int = 200_00
     return lo, hi, np.concatenate(sample), seconds
 
 
-def initial_radius(sample: np.ndarray, n: int, neighbors: int, rings: int,
-                   lo: np.ndarray, hi: np.ndarray) -> float:
-    """R from the k-th-neighbour distance of a sample scaled to the full density (surface
-    scaling), with the (rings + 1) r < R/2 rule and a factor 2 of slack."""
-    m = sample.shape[0]
-    k = min(neighbors, m - 1)
-    diag = float(np.linalg.norm(hi - lo)) or 1.0
-    if k < 1:
-        return diag
-    dist, _ = knn_query(cKDTree(sample), sample, k=k + 1)
-    r_sample = float(np.quantile(dist[:, -1], 0.95))
-    r = r_sample * math.sqrt(m / max(n, 1))
-    return min(max(3.5 * (rings + 1) * r, 1e-9 * diag), diag)
-
-
 def _split_selectors(selectors):
     plain = [s for s in selectors if not isinstance(s, Indices)]
     index = [s for s in selectors if isinstance(s, Indices)]
@@ -149,86 +159,6 @@ def _at_rows(selectors, start: int) -> list:
         return selectors
     return [map_leaves(s, lambda leaf: _Rows(leaf.whole, start) if isinstance(leaf, _Rows)
                        else leaf) for s in selectors]
-
-
-def _voxel_keys(pos: np.ndarray, lo: np.ndarray, h: float, dims: np.ndarray) -> np.ndarray:
-    ijk = np.minimum(((pos - lo) / h).astype(np.int64), dims - 1)
-    return (ijk[:, 0] * dims[1] + ijk[:, 1]) * dims[2] + ijk[:, 2]
-
-
-def _near(keys: np.ndarray, others: np.ndarray, dims: np.ndarray, reach: int = 2) -> np.ndarray:
-    """The voxels of ``keys`` (sorted unique) within Chebyshev distance ``reach`` of a voxel of
-    ``others`` (sorted unique); memory O(len(keys)), one lookup per offset."""
-    i = keys // (dims[1] * dims[2])
-    j = (keys // dims[2]) % dims[1]
-    k = keys % dims[2]
-    hit = np.zeros(keys.shape, dtype=bool)
-    steps = range(-reach, reach + 1)
-    for di in steps:
-        for dj in steps:
-            for dk in steps:
-                a, b, c = i + di, j + dj, k + dk
-                ok = (a >= 0) & (a < dims[0]) & (b >= 0) & (b < dims[1]) & (c >= 0) & (c < dims[2])
-                hit[ok] |= _in_sorted((a[ok] * dims[1] + b[ok]) * dims[2] + c[ok], others)
-    return keys[hit]
-
-
-def _merge(parts: list[np.ndarray], new: np.ndarray) -> list[np.ndarray]:
-    """Append sorted unique keys; consolidate when the pending parts outgrow the merged set
-    (chunks of a shuffled scan each touch most voxels: without this, memory grows with N)."""
-    parts = parts + [new]
-    if len(parts) > 2 and sum(p.size for p in parts[1:]) > max(parts[0].size, 1 << 16):
-        parts = [np.unique(np.concatenate(parts))]
-    return parts
-
-
-def _in_sorted(keys: np.ndarray, table: np.ndarray) -> np.ndarray:
-    if table.size == 0:
-        return np.zeros(keys.shape, dtype=bool)
-    at = np.minimum(np.searchsorted(table, keys), table.size - 1)
-    return table[at] == keys
-
-
-class Moments:
-    """Streaming first and second moments of points (about a reference point ``ref`` (3,))."""
-
-    def __init__(self, ref: np.ndarray) -> None:
-        self.ref = np.asarray(ref, dtype=np.float64)
-        self.n = 0
-        self.s1 = np.zeros(3)
-        self.s2 = np.zeros((3, 3))
-
-    def add(self, points: np.ndarray) -> None:
-        d = points - self.ref
-        self.n += points.shape[0]
-        self.s1 += d.sum(axis=0)
-        self.s2 += d.T @ d
-
-    def centroid_and_axes(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(centroid (3,), singular values (3,) of the centred points, vt (3, 3) rows =
-        principal axes, largest first): what an SVD of the centred points gives."""
-        mean = self.s1 / self.n
-        cov = self.s2 - self.n * np.outer(mean, mean)
-        values, vectors = np.linalg.eigh((cov + cov.T) / 2)
-        order = np.argsort(values)[::-1]
-        return self.ref + mean, np.sqrt(np.maximum(values[order], 0.0)), vectors[:, order].T
-
-
-def frame_from_moments(moments: Moments, extent_of) -> AffineFrame:
-    """The handle frame of :func:`splatdeform.deform.handle.handle_frame` from streamed moments;
-    ``extent_of(centroid, vt)`` -> (3,) largest |(p - centroid) . axis| over the handle."""
-    centroid, sv, vt = moments.centroid_and_axes()
-    if sv[0] <= 0 or sv[1] <= 1e-6 * sv[0]:
-        raise RegionError("regions.handle: the handle points are (nearly) collinear or a single "
-                          "point; an affine handle needs points spanning at least a plane")
-    extent = extent_of(centroid, vt)
-    extent = np.where(extent > 1e-3 * extent[0], extent, extent[0])
-    axes = vt * extent[:, None]
-    if np.linalg.det(vt) < 0:
-        axes[2] *= -1
-    control = np.vstack([centroid, centroid + axes])
-    system = np.vstack([control.T, np.ones(4)])
-    return AffineFrame(control_points=control, inverse=np.linalg.inv(system))
 
 
 def handle_extent_pass(src: ChunkFile, labels: np.ndarray, centroid: np.ndarray,
@@ -314,22 +244,23 @@ def gather_border(src: ChunkFile, labels: np.ndarray, lo: np.ndarray, hi: np.nda
     free_keys, region_keys = [], []
     progress = Progress("pass 3 (border voxels)", n, quiet=quiet)
     for a, b in chunk_ranges(n, chunk):
-        keys = _voxel_keys(src.positions(a, b), lo, edge, dims)
+        keys = voxel_keys(src.positions(a, b), lo, edge, dims)
         lab = labels[a:b]
-        free_keys = _merge(free_keys, np.unique(keys[lab == FREE]))
-        region_keys = _merge(region_keys, np.unique(keys[lab != FREE]))
+        free_keys = merge_keys(free_keys, np.unique(keys[lab == FREE]))
+        region_keys = merge_keys(region_keys, np.unique(keys[lab != FREE]))
         progress.update(b - a)
     progress.finish()
     free_v = np.unique(np.concatenate(free_keys))
     region_v = np.unique(np.concatenate(region_keys))
     del free_keys, region_keys
-    candidates = np.union1d(_near(region_v, free_v, dims), _near(free_v, region_v, dims))
+    candidates = np.union1d(near_voxels(region_v, free_v, dims),
+                            near_voxels(free_v, region_v, dims))
     idx, pos, lab = [], [], []
     taken = 0
     progress = Progress("pass 4 (border points)", n, quiet=quiet)
     for a, b in chunk_ranges(n, chunk):
         p = src.positions(a, b)
-        keep = np.flatnonzero(_in_sorted(_voxel_keys(p, lo, edge, dims), candidates))
+        keep = np.flatnonzero(in_sorted(voxel_keys(p, lo, edge, dims), candidates))
         taken += keep.size
         if taken > max_points:
             raise ProcessingError(
@@ -342,24 +273,9 @@ def gather_border(src: ChunkFile, labels: np.ndarray, lo: np.ndarray, hi: np.nda
     progress.finish()
     idx, pos, lab = np.concatenate(idx), np.concatenate(pos), np.concatenate(lab)
     free = lab == FREE
-    dist = np.full(idx.size, np.inf)
-    if free.any() and (~free).any():
-        dist[~free] = knn_query(cKDTree(pos[free]), pos[~free], k=1,
-                                distance_upper_bound=radius)[0]
-        dist[free] = knn_query(cKDTree(pos[~free]), pos[free], k=1,
-                               distance_upper_bound=radius)[0]
+    dist = distance_to_other(pos, free, radius)
     keep = dist < radius
     return idx[keep], pos[keep], lab[keep], dist[keep]
-
-
-def kth_distance(points: np.ndarray, k: int, block: int = 500_000) -> np.ndarray:
-    """(M,) distance of each point to its k-th nearest other point (within ``points``)."""
-    tree = cKDTree(points)
-    k = min(k, points.shape[0] - 1)
-    out = np.empty(points.shape[0])
-    for a in range(0, points.shape[0], block):
-        out[a:a + block] = knn_query(tree, points[a:a + block], k=k + 1)[0][:, -1]
-    return out
 
 
 def build_plan(src: ChunkFile, cfg: EditConfig, base_dir: Path, *, chunk: int, quiet: bool,

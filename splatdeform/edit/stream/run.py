@@ -1,5 +1,5 @@
-"""The streaming second pass (basis + apply chunk by chunk) locally or on Dask, and the entry
-point :func:`run_stream` that ``deform`` calls when the in-memory path would exceed the budget.
+"""The streaming second pass (basis + apply chunk by chunk) locally or on Dask, and
+:func:`stream_deform` (plan + second pass) that :func:`splatdeform.edit.stream.run_stream` calls.
 
 Every chunk is deformed by the same code as the in-memory path (:func:`splatdeform.deform.apply`
 on a chunk-sized :class:`~splatdeform.deform.Deformation`), so fixed and handle points are
@@ -27,10 +27,9 @@ from splatdeform import deform as df
 from splatdeform.basis.result import Basis
 from splatdeform.edit.stream.plan import FIXED, FREE, HANDLE, Plan, build_plan, chunk_ranges
 from splatdeform.edit.stream.progress import Progress
-from splatdeform.edit.stream.sources import ChunkFile, LasChunks, PlyChunks, open_chunks
 from splatdeform.errors import InputError, ProcessingError
 from splatdeform.interrupts import deferred_signals
-from splatdeform.io import las as laslib
+from splatdeform.io import FORMATS, ChunkFile, open_chunks
 from splatdeform.io.atomic import atomic_path
 
 
@@ -135,37 +134,25 @@ def _remove_parts(parts: Path, futures) -> None:
 
 
 class _Writer:
-    """Streams deformed chunks into the output (PLY: header, rows, other elements verbatim;
-    LAS/LAZ: the input's header, VLRs and EVLRs)."""
+    """Streams deformed chunks into the output in the input's format (PLY: header, rows, other
+    elements verbatim; LAS/LAZ: the input's header, VLRs and EVLRs), opened at the first chunk
+    (which gives the output properties)."""
 
     def __init__(self, src: ChunkFile, tmp: Path) -> None:
         self.src, self.tmp = src, tmp
-        self.stream = None
-        self.las = None
+        self.out = None
 
     def write(self, rows, props) -> None:
-        if isinstance(self.src, PlyChunks):
-            if self.stream is None:
-                self.stream = open(self.tmp, "wb")
-                self.stream.write(self.src.header_bytes(props))
-            self.stream.write(rows.tobytes())
-        else:
-            if self.las is None:
-                self.las = laslib.LasWriter(self.src.header, self.tmp, self.src.evlrs)
-            self.las.write(rows)
+        if self.out is None:
+            self.out = self.src.writer(self.tmp, props)
+        self.out.write(rows)
 
-    def close(self, props) -> None:
-        if isinstance(self.src, PlyChunks):
-            self.src.copy_tail(self.stream)
-            self.stream.flush()
-            os.fsync(self.stream.fileno())
-            self.stream.close()
-        else:
-            self.las.close()
+    def close(self) -> None:
+        self.out.close()
 
 
-def _ply_props(src: PlyChunks, plan: Plan, shared: Shared):
-    """The output vertex properties (from deforming a one-point chunk)."""
+def _out_props(src: ChunkFile, plan: Plan, shared: Shared):
+    """The output properties (from deforming a one-point chunk)."""
     _, props = deform_chunk(src, 0, 1, plan.labels[:1], shared)
     return props
 
@@ -180,7 +167,7 @@ def second_pass_local(src: ChunkFile, plan: Plan, shared: Shared, out: Path, chu
             rows, props = deform_chunk(src, a, b, plan.labels[a:b], shared)
             writer.write(rows, props)
             progress.update(b - a)
-        writer.close(props)
+        writer.close()
     progress.finish()
 
 
@@ -203,12 +190,12 @@ def second_pass_dask(src: ChunkFile, plan: Plan, shared: Shared, out: Path, chun
             a, b = futures[fut]
             progress.update(b - a)
         progress.finish()
-        props = _ply_props(src, plan, shared) if isinstance(src, PlyChunks) else None
+        props = _out_props(src, plan, shared)
         with atomic_path(out) as tmp:
             writer = _Writer(src, tmp)
             for a, _b in chunk_ranges(src.n_points, chunk):
                 writer.write(np.load(_part_name(parts, a), allow_pickle=False), props)
-            writer.close(props)
+            writer.close()
     finally:
         with deferred_signals():  # a second Ctrl-C must not leave the folder behind
             _remove_parts(parts, futures)
@@ -267,7 +254,8 @@ def _closing(*close):
 def stream_deform(src: ChunkFile, cfg, base_dir: Path, out: Path, *, chunk: int,
                   quiet: bool = False, client=None, max_border: int = 20_000_000,
                   max_handle: int = 2**62, check_fit=None):
-    """Plan (passes 1-4, rings, fit) and the second pass. Returns (plan, timings)."""
+    """Plan (passes 1-4, rings, fit) and the second pass. Returns the plan (its timings with
+    the second pass's as ``apply``)."""
     from splatdeform.edit.plain import handle_matrix, make_fit_fn
 
     plan = build_plan(src, cfg, base_dir, chunk=chunk, quiet=quiet, max_border=max_border,
@@ -290,17 +278,13 @@ def check_streamable(cfg, in_path: Path, out_path: Path) -> ChunkFile:
     """The chunk reader, or an InputError saying why this edit cannot stream."""
     if cfg.curve is not None:
         raise InputError("curve edits do not stream yet; raise --memory-budget")
-    if getattr(cfg, "handles", None):
-        raise InputError("handles: several handles do not stream yet; raise --memory-budget")
     if cfg.handles is not None:
-        raise InputError("handles: several handles do not stream yet (one handle: does); "
-                         "raise --memory-budget")
+        raise InputError("handles: several handles do not stream yet; raise --memory-budget")
     if cfg.normals == "estimate":
         raise InputError("normals: estimate needs the whole model; raise --memory-budget")
     src = open_chunks(in_path)
-    same = (isinstance(src, PlyChunks) and out_path.suffix.lower() == ".ply") or (
-        isinstance(src, LasChunks) and out_path.suffix.lower() in laslib.EXTENSIONS)
-    if not same:
+    out_format = FORMATS.get(out_path.suffix.lower())
+    if out_format is None or out_format.chunks is None or not isinstance(src, out_format.chunks):
         raise InputError(f"{out_path}: streaming writes the input's format "
                          f"({in_path.suffix}); choose a matching output extension")
     return src

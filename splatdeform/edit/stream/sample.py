@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from splatdeform import memory
-from splatdeform.edit.stream.sources import STREAMABLE, open_chunks
+from splatdeform.io import STREAMABLE, open_chunks
 from splatdeform.model import PointModel
 
 SEED = 20240524
@@ -69,8 +69,7 @@ def sample_file(path: str | Path, keep: int, seed: int = SEED,
     n = src.n_points
     rng = np.random.default_rng(seed)
     p = min(keep / max(n, 1), 1.0)
-    row_bytes = src.dtype.itemsize if hasattr(src, "dtype") else src.header.point_format.size
-    chunk = max(chunk_bytes // max(row_bytes, 1), 10_000)
+    chunk = max(chunk_bytes // max(src.record_bytes, 1), 10_000)
     parts, index = [], []
     for a in range(0, n, chunk):
         b = min(a + chunk, n)

@@ -24,8 +24,7 @@ def stream_select(cfg: EditConfig, base_dir: Path, budget: int, *, preview: bool
     in_path = Path(base_dir) / cfg.input
     src = check_streamable(cfg, in_path, in_path)
     n = src.n_points
-    record = src.dtype.itemsize if hasattr(src, "dtype") else src.header.point_format.size
-    chunk = chunk_for_budget(budget, record, fixed_bytes=BASE_BYTES + n)
+    chunk = chunk_for_budget(budget, src.record_bytes, fixed_bytes=BASE_BYTES + n)
     lo, hi, _, _ = bbox_pass(src, chunk, quiet=True)
     labels, _, _, _ = labels_pass(src, cfg, Path(base_dir), lo, hi, chunk, quiet=True,
                                   max_handle=0)
