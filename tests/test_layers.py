@@ -85,5 +85,76 @@ def test_nothing_below_the_config_layer_knows_the_config():
 def test_the_graph_reader_sees_lazy_imports():
     """The checks above would be empty if the reader missed imports inside functions."""
     found = imported(PACKAGE / "edit" / "run.py")
-    assert "splatdeform.edit.stream" in found  # imported inside run_edit
+    assert "splatdeform.edit.cache" in found  # imported inside run_edit
     assert "splatdeform.deform" in found
+
+
+def import_graph(package: str) -> dict[str, list[str]]:
+    """Module -> the modules of ``package`` it imports when run (lazy imports count; imports
+    under ``if TYPE_CHECKING:`` do not). ``from pkg import sub`` of a submodule is an edge to
+    ``pkg.sub`` only (Python finds a submodule while ``pkg`` is still initialising); of any
+    other name, an edge to ``pkg``."""
+    names = {module_name(p): p for p in MODULES + [PACKAGE / "__init__.py"]
+             if module_name(p) == package or module_name(p).startswith(package + ".")}
+
+    def typing_only(tree: ast.AST) -> set[ast.AST]:
+        return {n for node in ast.walk(tree) if isinstance(node, ast.If)
+                and "TYPE_CHECKING" in ast.unparse(node.test)
+                for stmt in node.body for n in ast.walk(stmt)}
+
+    def edges(m: str, path: Path) -> set[str]:
+        tree = ast.parse(path.read_text())
+        skip = typing_only(tree)
+        mod = m.split(".")
+        base = mod if path.name == "__init__.py" else mod[:-1]
+        found = set()
+        for node in ast.walk(tree):
+            if node in skip:
+                continue
+            if isinstance(node, ast.Import):
+                found.update(a.name for a in node.names)
+            elif isinstance(node, ast.ImportFrom):
+                name = (".".join(base[:len(base) - node.level + 1]
+                                 + ([node.module] if node.module else []))
+                        if node.level else node.module or "")
+                subs = {f"{name}.{a.name}" for a in node.names}
+                found.update(subs & names.keys() if subs <= names.keys() else subs | {name})
+        return {x for x in found if x in names and x != m}
+
+    return {m: sorted(edges(m, p)) for m, p in names.items()}
+
+
+def find_cycles(graph: dict[str, list[str]]) -> list[list[str]]:
+    """The cycles a depth-first walk of ``graph`` meets, each as its modules in import order;
+    [] when the graph is acyclic."""
+    cycles, state = [], {}
+
+    def visit(m: str, path: list[str]) -> None:
+        state[m] = "open"
+        for x in graph[m]:
+            if state.get(x) == "open":
+                cycles.append(path[path.index(x):] + [x])
+            elif x not in state:
+                visit(x, path + [x])
+        state[m] = "done"
+
+    for m in sorted(graph):
+        if m not in state:
+            visit(m, [m])
+    return cycles
+
+
+@pytest.mark.parametrize("package", ["splatdeform.edit", "splatdeform.deform"])
+def test_no_import_cycle(package):
+    """edit/run.py decides stream-or-not and calls edit/stream/, which builds its result in
+    edit/result.py: nothing imports back (a cycle would need a lazy import to work at all)."""
+    assert find_cycles(import_graph(package)) == []
+
+
+def test_the_cycle_finder_finds_cycles():
+    """The check above would pass vacuously if the finder missed cycles or the edges."""
+    assert find_cycles({"a": ["b"], "b": ["c"], "c": ["a"]}) == [["a", "b", "c", "a"]]
+    assert find_cycles({"a": ["b", "c"], "b": ["c"], "c": []}) == []
+    graph = import_graph("splatdeform.edit")
+    assert "splatdeform.edit.stream" in graph["splatdeform.edit.run"]
+    assert "splatdeform.edit.result" in graph["splatdeform.edit.stream"]
