@@ -8,7 +8,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import yaml
 
 from data_tools.synth import bumpy_bar
 from splatdeform.edit.config import load_edit
@@ -18,15 +17,16 @@ from splatdeform.edit.stream import StreamOptions, run_stream
 from splatdeform.errors import ConfigError
 from splatdeform.io import save
 
-EDIT = {
-    "regions": {"units": "relative",
-                "fixed": [{"box": {"min": [0, 0, 0], "max": [0.25, 1, 1]}}],
-                "handle": [{"box": {"min": [0.75, 0, 0], "max": [1, 1, 1]}}]},
-    "handle": {"transform": {"pivot": [0.75, 0.5, 0.5],
-                             "rotate": {"axis": [0, 0, 1], "degrees": 20},
-                             "translate": [0, 0.1, 0]}},
-    "fit": {"tolerance": 1e-3},
-}
+EDIT = """\
+input: bar.ply
+output: mem.ply
+regions:
+  units: relative
+  fixed: [{box: {min: [0, 0, 0], max: [0.2, 1, 1]}}]
+  handle: [{box: {min: [0.8, 0, 0], max: [1, 1, 1]}}]
+handle: {transform: {translate: [0, 0.15, 0.05]}}
+fit: {tolerance: 1.0e-3}
+"""
 IN_MEMORY_ONLY = {"refused_splats"}
 STREAMED_ONLY = {"border_points", "chunk"}
 
@@ -36,7 +36,7 @@ def edit(tmp_path_factory) -> tuple[Path, Path]:
     folder = tmp_path_factory.mktemp("result")
     save(bumpy_bar(20_000, seed=11), folder / "bar.ply")
     path = folder / "edit.yaml"
-    path.write_text(yaml.safe_dump(dict(EDIT, input="bar.ply", output="mem.ply")))
+    path.write_text(EDIT)
     return folder, path
 
 
