@@ -15,7 +15,8 @@ inside S: with r = the largest k-th-neighbour distance among the points within R
 interface, the rings are at most (rings + 1) r deep, so (rings + 1) r < R/2 makes every kNN
 ball that matters lie inside S. R starts from a sampled estimate and is enlarged (another pass)
 until that holds. Points near the interface whose kNN reach farther than that (isolated
-outliers) are reported.
+outliers) are reported. The geometry (voxel keys, distances, the frame from moments) is
+:mod:`splatdeform.deform.border`; here: the passes over the file and the labels.
 """
 
 from __future__ import annotations
