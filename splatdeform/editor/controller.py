@@ -46,11 +46,12 @@ from splatdeform.edit.selectors import Selector, select
 from .. import deform as df
 from ..basis import resolve_backend
 from ..errors import InputError, RegionError
+from ..geometry import full_from_triu6, triu6
 from ..io import check_output_path, save
 from ..model import PointModel
 from . import selectors as sl
 from .curve import CurveState, CurveView, curve_view
-from .fastpath import covariance_frame, full_from_triu6, triu6
+from .fastpath import covariance_frame
 
 ROLES = ("fixed", "handle")
 FREE, FIXED, HANDLE = 0, 1, 2
