@@ -137,8 +137,9 @@ def write_needles(deformed: PointModel, needle: np.ndarray, path: Path) -> None:
 
 
 def write_modes(model: PointModel, deformation, delta_c: np.ndarray, path: Path) -> None:
+    from splatdeform.io.image import save_png
     from splatdeform.render.compare import side_by_side
-    from splatdeform.render.renderer import deformation_session, save_png
+    from splatdeform.render.renderer import deformation_session
 
     values, gradients = df.full_basis(deformation)
     images, labels = [], []

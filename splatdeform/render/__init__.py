@@ -5,10 +5,11 @@ Importing this package creates no GL context; the first render does (see :mod:`.
 
 from __future__ import annotations
 
+from splatdeform.io.image import save_png  # the PNG writer, exported here as before
 from splatdeform.render.camera import Camera, frame_bbox, frame_points
 from splatdeform.render.compare import render_comparison, render_deformation_comparison
 from splatdeform.render.frames import render_frames
-from splatdeform.render.renderer import GpuModel, Renderer, render_image, save_png
+from splatdeform.render.renderer import GpuModel, Renderer, render_image
 
 __all__ = [
     "Camera",

@@ -9,10 +9,11 @@ from pathlib import Path
 import numpy as np
 
 from splatdeform.errors import InputError
+from splatdeform.io.image import save_png
 from splatdeform.model import PointModel
 from splatdeform.render.camera import Camera, default_up, frame_points, write_camera
 from splatdeform.render.overlay import Overlay, draw_overlays
-from splatdeform.render.renderer import Renderer, deformation_session, save_png
+from splatdeform.render.renderer import Renderer, deformation_session
 
 LABEL_HEIGHT = 18
 LABEL_COLOR = (20, 20, 20)

@@ -13,9 +13,10 @@ from pathlib import Path
 import numpy as np
 
 from splatdeform.errors import InputError
+from splatdeform.io.image import save_gif, save_png
 from splatdeform.model import PointModel
 from splatdeform.render.camera import Camera, write_camera
-from splatdeform.render.renderer import deformation_session, save_pil, save_png
+from splatdeform.render.renderer import deformation_session
 
 
 def render_frames(
@@ -55,20 +56,7 @@ def render_frames(
         ]
         panel = renderer.size
     if out.suffix.lower() == ".gif":
-        from PIL import Image
-
-        pil = [
-            Image.fromarray(f).quantize(colors=256, method=Image.Quantize.MEDIANCUT) for f in frames
-        ]
-        save_pil(
-            pil[0],
-            out,
-            format="GIF",
-            save_all=True,
-            append_images=pil[1:],
-            duration=int(duration_ms),
-            loop=0,
-        )
+        save_gif(frames, out, duration_ms=duration_ms)
         write_camera(out, camera, panel)
         return [out]
     out.mkdir(parents=True, exist_ok=True)

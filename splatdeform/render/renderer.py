@@ -33,11 +33,9 @@ invariant (p' - p and J do not depend on where the origin is).
 from __future__ import annotations
 
 import contextlib
-import os
 import time
 from collections.abc import Iterator
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -630,29 +628,6 @@ class Renderer:
             for obj in self._float.values():
                 obj.release()
             self._float = None
-
-
-def save_png(image: np.ndarray, path: str | os.PathLike[str]) -> Path:
-    """Write an (H, W, 3|4) uint8 image as PNG atomically (temp file in the folder, then
-    os.replace). Returns the path."""
-    from PIL import Image
-
-    arr = np.asarray(image)
-    if arr.dtype != np.uint8 or arr.ndim != 3 or arr.shape[2] not in (3, 4):
-        raise InputError(f"image: expected (H, W, 3|4) uint8, got {arr.shape} {arr.dtype}")
-    return save_pil(Image.fromarray(arr), path, format="PNG")
-
-
-def save_pil(image: Any, path: str | os.PathLike[str], **save_kwargs: Any) -> Path:
-    """Save a Pillow image atomically, with the file mode models get (the tool's one atomic
-    writer, :func:`splatdeform.io.atomic.atomic_write`: temp file in the target folder, then
-    rename)."""
-    from splatdeform.io.atomic import atomic_write
-
-    out = Path(path)
-    with atomic_write(out) as handle:
-        image.save(handle, **save_kwargs)
-    return out
 
 
 def deformed_positions(
