@@ -84,7 +84,7 @@ def shader_covariances(mode: str, sigma: np.ndarray, jac: np.ndarray, shape: np.
     vao = ctx.vertex_array(prog, [(vbo, "3f 3f 3f 3f 3f 2f", "in_j0", "in_j1", "in_j2",
                                    "in_cov_a", "in_cov_b", "in_shape")], skip_errors=True)
     try:
-        renderer._ms.use()
+        renderer.targets.ms.use()
         vao.transform(out, mode=ctx.POINTS, vertices=m)
         got = np.frombuffer(out.read(), dtype=np.float32).reshape(m, 6).astype(np.float64)
     finally:
