@@ -184,7 +184,7 @@ def test_vertex_stage_renders_each_mode_like_the_cpu(mode):
     from splatdeform.deform.arrays import displace, jacobians
     from splatdeform.io import load
     from splatdeform.model import Gaussians, PointModel
-    from splatdeform.render.camera import frame_points
+    from splatdeform.render.camera import View, frame_points
 
     scene = cut(load(shared_file("splats/guitar_3dgs_sh0.ply")), 2500)
     values, gradients = smooth_basis(scene.positions, seed=5)
@@ -196,7 +196,8 @@ def test_vertex_stage_renders_each_mode_like_the_cpu(mode):
     moved = PointModel(positions=displace(scene.positions, values.astype(np.float64), delta_c),
                        kind="gaussians",
                        gaussians=Gaussians(new.scale_log, new.rotation, g.opacity, g.sh_dc, None))
-    camera = frame_points([scene.positions, moved.positions], azimuth=20, elevation=15, up="-y")
+    camera = frame_points([scene.positions, moved.positions],
+                          View(azimuth=20, elevation=15, up="-y"))
     renderer = egl_renderer(SIZE)
     try:
         gpu = renderer.upload(scene, values, gradients, covariance=mode)

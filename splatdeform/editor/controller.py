@@ -616,8 +616,6 @@ class EditorController:
         r = self.settings.render
         if image_size is None:
             image_size = tuple(r.size) if r is not None else (1200, 600)
-        view = {} if r is None else {"azimuth": r.azimuth, "elevation": r.elevation,
-                                     "fov": r.fov, "up": r.up, "roll": r.roll}
         from ..io import atomic_write
 
         d_model, d_yaml, d_png = self.default_paths()
@@ -641,11 +639,13 @@ class EditorController:
             stream.write(("# splatdeform edit written by the editor; reproduce with:\n"
                           f"#   splatdeform deform {ypath.name}\n" + text).encode())
         if image:
-            from ..render import render_comparison
+            from ..render import View, render_comparison
 
-            render_comparison(self.model, deformed, png, **view,
-                              size=(max(image_size[0] // 2, 1), image_size[1]),
-                              labels=("before", "after"))
+            panel = (max(image_size[0] // 2, 1), image_size[1])
+            view = View(size=panel) if r is None else View(
+                size=panel, azimuth=r.azimuth, elevation=r.elevation, fov=r.fov, up=r.up,
+                roll=r.roll)
+            render_comparison(self.model, deformed, png, view, labels=("before", "after"))
         return SaveResult(written, ypath, png if image else None)
 
 

@@ -6,7 +6,7 @@ Importing this package creates no GL context; the first render does (see :mod:`.
 from __future__ import annotations
 
 from splatdeform.io.image import save_png  # the PNG writer, exported here as before
-from splatdeform.render.camera import Camera, frame_bbox, frame_points
+from splatdeform.render.camera import Camera, View, frame_bbox, frame_points
 from splatdeform.render.compare import render_comparison, render_deformation_comparison
 from splatdeform.render.frames import render_frames
 from splatdeform.render.renderer import GpuModel, Renderer, render_image
@@ -15,6 +15,7 @@ __all__ = [
     "Camera",
     "GpuModel",
     "Renderer",
+    "View",
     "frame_bbox",
     "frame_points",
     "render_comparison",

@@ -32,7 +32,7 @@ from splatdeform.deform.gaussians import COVARIANCE_MODES
 from splatdeform.errors import InputError
 from splatdeform.model import PointModel
 from splatdeform.render import gaussians, meshes, surfels
-from splatdeform.render.camera import Camera, default_up, frame_points
+from splatdeform.render.camera import DEFAULT_VIEW, Camera, View, frame_points
 from splatdeform.render.context import get_context
 from splatdeform.render.gpu import GpuModel, set_uniforms
 from splatdeform.render.packing import upload_basis
@@ -228,39 +228,25 @@ def deformation_session(
     values: np.ndarray | None,
     gradients: np.ndarray | None,
     delta_c: np.ndarray | None,
+    view: View = DEFAULT_VIEW,
     *,
-    size: tuple[int, int],
-    azimuth: float,
-    elevation: float,
-    fov: float,
-    camera: Camera | None = None,
-    up: str | None = None,
-    roll: float = 0.0,
     covariance: str = "jacobian",
 ) -> Iterator[tuple[Renderer, GpuModel, Camera]]:
-    """Upload ``model`` with its basis (values (N, k), gradients (N, k, 3), or None) once,
-    frame a camera on the undeformed and the ``delta_c`` (k, 3)-deformed positions (unless
-    ``camera`` is given; ``up`` None: the model's convention, see
+    """Upload ``model`` with its basis (values (N, k), gradients (N, k, 3), or None) once at
+    ``view.size``, frame a camera on the undeformed and the ``delta_c`` (k, 3)-deformed
+    positions (unless ``view.camera`` is given; ``view.up`` None: the model's convention, see
     :func:`~splatdeform.render.camera.default_up`), and release the GL objects on exit.
     covariance: how Gaussians' covariances deform (``gaussians.covariance``).
     Yields (renderer, gpu, camera)."""
-    renderer = Renderer(size)
+    renderer = Renderer(view.size)
     try:
         gpu = renderer.upload(model, values, gradients, covariance=covariance)
     except BaseException:
         renderer.release()
         raise
     try:
-        if camera is None:
-            camera = frame_points(
-                [model.positions, deformed_positions(model, values, delta_c)],
-                azimuth=azimuth,
-                elevation=elevation,
-                fov=fov,
-                aspect=renderer.size[0] / renderer.size[1],
-                up=up or default_up([model]),
-                roll=roll,
-            )
+        camera = view.framed([model.positions, deformed_positions(model, values, delta_c)],
+                             [model], renderer.size[0] / renderer.size[1])
         yield renderer, gpu, camera
     finally:
         gpu.release()
@@ -269,28 +255,21 @@ def deformation_session(
 
 def render_image(
     model: PointModel,
+    view: View = DEFAULT_VIEW,
     *,
     values: np.ndarray | None = None,
     gradients: np.ndarray | None = None,
     delta_c: np.ndarray | None = None,
-    camera: Camera | None = None,
-    size: tuple[int, int] = (256, 256),
-    azimuth: float = 30.0,
-    elevation: float = 20.0,
-    fov: float = 35.0,
-    up: str | None = None,
-    roll: float = 0.0,
     covariance: str = "jacobian",
 ) -> np.ndarray:
     """Render ``model`` (deformed on the GPU by ``delta_c`` (k, 3) when the basis ``values``
-    (N, k) / ``gradients`` (N, k, 3) are given) to an (H, W, 3) uint8 image.
+    (N, k) / ``gradients`` (N, k, 3) are given) to an (H, W, 3) uint8 image of ``view.size``.
 
-    camera: None frames the union of the bounding boxes before and after the deformation
-    from ``azimuth`` / ``elevation`` / ``fov`` (degrees) about the ``up`` axis (None: the
+    view: without a camera, frames the union of the bounding boxes before and after the
+    deformation from its azimuth / elevation / fov (degrees) about its ``up`` axis (None: the
     model's convention, -y for 3DGS scenes, else +y), rolled by ``roll`` degrees.
     covariance: how Gaussians' covariances deform (``gaussians.covariance``).
     """
-    with deformation_session(model, values, gradients, delta_c, size=size, azimuth=azimuth,
-                             elevation=elevation, fov=fov, camera=camera, up=up,
-                             roll=roll, covariance=covariance) as (renderer, gpu, cam):
+    with deformation_session(model, values, gradients, delta_c, view,
+                             covariance=covariance) as (renderer, gpu, cam):
         return renderer.draw(gpu, cam, delta_c)
