@@ -158,18 +158,11 @@ class Renderer:
             return surfels.draw(self.targets, gpu, view, proj, mode, delta_c, blend=blend)
         return meshes.draw(self.targets, gpu, view, proj, mode, delta_c)
 
-    def draw(
-        self,
-        gpu: GpuModel,
-        camera: Camera | None = None,
-        delta_c: np.ndarray | None = None,
-        *,
-        plain: bool = False,
-        blend: bool = True,
-    ) -> np.ndarray:
-        """Like :meth:`draw_rgba`, returning the (H, W, 3) uint8 RGB image."""
-        rgba = self.draw_rgba(gpu, camera, delta_c, plain=plain, blend=blend)
-        return np.ascontiguousarray(rgba[:, :, :3])
+    def draw(self, gpu: GpuModel, camera: Camera | None = None,
+             delta_c: np.ndarray | None = None, **flags: bool) -> np.ndarray:
+        """Like :meth:`draw_rgba` (``flags``: its ``plain`` and ``blend``), returning the
+        (H, W, 3) uint8 RGB image."""
+        return np.ascontiguousarray(self.draw_rgba(gpu, camera, delta_c, **flags)[:, :, :3])
 
     def draw_float(self, gpu: GpuModel, camera: Camera, delta_c: np.ndarray | None = None, *,
                    plain: bool = False) -> np.ndarray:
