@@ -1,6 +1,9 @@
 """Rendering: splats and meshes through the deforming vertex stage (moderngl, headless EGL).
 
-Importing this package creates no GL context; the first render does (see :mod:`.context`).
+A :class:`View` says how a render looks (size, orbit angles, up, roll, or a camera);
+:class:`Renderer` uploads a model once and draws it through its pipeline (:mod:`.surfels`,
+:mod:`.meshes`, :mod:`.gaussians`). Importing this package creates no GL context; the first
+render does (see :mod:`.context`).
 """
 
 from __future__ import annotations

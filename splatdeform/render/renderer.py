@@ -238,8 +238,9 @@ def deformation_session(
         renderer.release()
         raise
     try:
-        camera = view.framed([model.positions, deformed_positions(model, values, delta_c)],
-                             [model], renderer.size[0] / renderer.size[1])
+        camera = view.camera if view.camera is not None else view.framed(
+            [model.positions, deformed_positions(model, values, delta_c)], [model],
+            renderer.size[0] / renderer.size[1])   # the deformed positions only when framing
         yield renderer, gpu, camera
     finally:
         gpu.release()
