@@ -126,25 +126,26 @@ def measure(name: str, images: Path | None) -> list[dict]:
 
 
 def write_needles(deformed: PointModel, needle: np.ndarray, path: Path) -> None:
-    from splatdeform.render import render_comparison, save_png
+    from splatdeform.render import View, render_comparison, save_png
 
     shown = copy.copy(deformed)
     colors = np.full((deformed.n_points, 3), 200, np.uint8)
     colors[needle] = (220, 30, 30)
     shown.colors = colors
-    save_png(render_comparison(shown, None, None, size=(360, 300), labels=(
+    save_png(render_comparison(shown, None, None, View(size=(360, 300)), labels=(
         f"jacobian: {int(needle.sum()):,} needles (red, anisotropy grew > 4x)",)), path)
 
 
 def write_modes(model: PointModel, deformation, delta_c: np.ndarray, path: Path) -> None:
+    from splatdeform.io.image import save_png
+    from splatdeform.render.camera import View
     from splatdeform.render.compare import side_by_side
-    from splatdeform.render.renderer import deformation_session, save_png
+    from splatdeform.render.renderer import deformation_session
 
     values, gradients = df.full_basis(deformation)
     images, labels = [], []
     for mode in COVARIANCE_MODES:
-        with deformation_session(model, values, gradients, delta_c, size=(300, 300),
-                                 azimuth=30, elevation=20, fov=35,
+        with deformation_session(model, values, gradients, delta_c, View(size=(300, 300)),
                                  covariance=mode) as (renderer, gpu, camera):
             if not images:
                 images.append(renderer.draw(gpu, camera, None))

@@ -71,7 +71,7 @@ def cmd_deform(args: argparse.Namespace) -> int:
         args.roll = cfg.render.roll if args.roll is None else args.roll
         if cfg.render.camera and not args.camera:
             args.camera = str(base / cfg.render.camera)   # relative to the config file
-    view = _camera_args(args) if render_out else {}
+    view = _edit_view(cfg, args) if render_out else None
     _check_deform_paths(args, cfg, base, output, reuse, render_out)
     _check_streamed_frames(args, cfg, base, render_out)
     try:
@@ -182,15 +182,11 @@ def cmd_select(args: argparse.Namespace) -> int:
         from .render import render_comparison
 
         opts = cfg.render
-        size = (opts.size[0] // 2, opts.size[1]) if opts else (600, 600)
-        view = dict(azimuth=opts.azimuth, elevation=opts.elevation, fov=opts.fov) if opts \
-            else {}
         if opts:   # --up / --roll / --camera win over render.up / roll / camera
             args.up = args.up or opts.up
             args.roll = opts.roll if args.roll is None else args.roll
             args.camera = args.camera or (str(base / opts.camera) if opts.camera else None)
-        view.update(_camera_args(args))
-        size = view.pop("size", size)
+        view = _edit_view(cfg, args)
         overlays, legend = curve_overlays(cfg, model, base)
         color = args.color or (opts.color if opts else None) or "region"
         if color == "region":
@@ -198,10 +194,9 @@ def cmd_select(args: argparse.Namespace) -> int:
             label = (f"fixed (blue) / {counts.moving_name} (orange) / free (grey)"
                      + ("" if streamed else "; rings lighter") + legend)
         else:
-            shown = _colored(model, color, view.get("up"), [model])
+            shown = _colored(model, color, view.up, [model])
             label = f"{cfg.input} ({color})"
-        render_comparison(shown, None, args.output, size=size, labels=(label,),
-                          overlays=overlays, **view)
+        render_comparison(shown, None, args.output, view, labels=(label,), overlays=overlays)
         if streamed and counts.points > shown.n_points:
             print(f"rendered {shown.n_points:,} of {counts.points:,} points (memory budget)")
         print(f"wrote {args.output}")
@@ -243,12 +238,12 @@ def _size(text: str) -> tuple[int, int]:
     return w, h
 
 
-def _camera_args(args: argparse.Namespace) -> dict:
-    """--up / --roll / --camera as keyword arguments of the render functions (the camera file
-    wins over azimuth/elevation/fov/size and brings the panel size)."""
-    from .render.camera import camera_options
+def _edit_view(cfg, args: argparse.Namespace):
+    """The view of an edit's image: the config's ``render`` with --up / --roll / --camera (the
+    camera file wins over azimuth/elevation/fov/size and brings the panel size)."""
+    from splatdeform.edit.images import edit_view
 
-    return camera_options(args.up, args.roll, args.camera)
+    return edit_view(cfg, args.up, args.roll, args.camera)
 
 
 def _add_camera_args(p: argparse.ArgumentParser) -> None:
@@ -298,17 +293,21 @@ def cmd_render(args: argparse.Namespace) -> int:
                    + ([("--camera", args.camera)] if args.camera else []),
                    [("-o/--output", f) for f in with_camera_file(Path(args.output),
                                                                  [Path(args.output)])])
-    view = _camera_args(args)
+    from dataclasses import replace
+
+    from .render.camera import View
+
+    view = View(azimuth=args.azimuth, elevation=args.elevation,
+                fov=args.fov).with_options(args.up, args.roll, args.camera)
     inputs = _render_inputs(args.models, _budget(args.memory_budget), args.drop_nonfinite)
-    models = [_colored(r.model, args.color, view.get("up"), [i.model for i in inputs])
+    models = [_colored(r.model, args.color, view.up, [i.model for i in inputs])
               for r in inputs]
     after = models[1] if len(models) > 1 else None
     labels = tuple(args.labels.split(",")) if args.labels else (
         (models[0].path, models[1].path) if after is not None else (models[0].path,))
-    per = (size[0] // 2, size[1]) if after is not None else size
-    per = view.pop("size", per)
-    render_comparison(models[0], after, args.output, size=per, azimuth=args.azimuth,
-                      elevation=args.elevation, fov=args.fov, labels=labels, **view)
+    if view.camera is None:   # a camera file brings its panel size
+        view = replace(view, size=(size[0] // 2, size[1]) if after is not None else size)
+    render_comparison(models[0], after, args.output, view, labels=labels)
     for r in inputs:
         if r.sampled:
             print(f"{r.model.path}: {r.line()}")

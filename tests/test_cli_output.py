@@ -23,6 +23,7 @@ from PIL import Image
 import splatdeform as sd
 from data_tools.synth import bumpy_bar, sphere
 from splatdeform.edit.selection import CURVE_AFTER_COLOR, CURVE_BEFORE_COLOR
+from splatdeform.render.camera import View
 from splatdeform.render.compare import render_comparison
 
 
@@ -88,12 +89,12 @@ def test_two_different_models_each_framed_on_their_own(tmp_path):
     small = sphere(3000, radius=0.1, seed=1)
     big = sphere(4000, radius=5.0, seed=2)
     big.positions += 20.0
-    image = render_comparison(small, big, None, size=(200, 200), labels=("a", "b"))
+    image = render_comparison(small, big, None, View(size=(200, 200)), labels=("a", "b"))
     left, right = image[18:, :200], image[18:, 200:]
     assert filled_fraction(left) > 0.4 and filled_fraction(right) > 0.4
     # the same scene before/after (same point count) keeps one camera: the small sphere
     # moved far away stays small in the second panel
     moved = sphere(3000, radius=0.1, seed=1)
     moved.positions += 20.0
-    image = render_comparison(small, moved, None, size=(200, 200), labels=("a", "b"))
+    image = render_comparison(small, moved, None, View(size=(200, 200)), labels=("a", "b"))
     assert filled_fraction(image[18:, :200]) < 0.2

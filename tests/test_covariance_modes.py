@@ -84,7 +84,7 @@ def shader_covariances(mode: str, sigma: np.ndarray, jac: np.ndarray, shape: np.
     vao = ctx.vertex_array(prog, [(vbo, "3f 3f 3f 3f 3f 2f", "in_j0", "in_j1", "in_j2",
                                    "in_cov_a", "in_cov_b", "in_shape")], skip_errors=True)
     try:
-        renderer._ms.use()
+        renderer.targets.ms.use()
         vao.transform(out, mode=ctx.POINTS, vertices=m)
         got = np.frombuffer(out.read(), dtype=np.float32).reshape(m, 6).astype(np.float64)
     finally:
@@ -184,7 +184,7 @@ def test_vertex_stage_renders_each_mode_like_the_cpu(mode):
     from splatdeform.deform.arrays import displace, jacobians
     from splatdeform.io import load
     from splatdeform.model import Gaussians, PointModel
-    from splatdeform.render.camera import frame_points
+    from splatdeform.render.camera import View, frame_points
 
     scene = cut(load(shared_file("splats/guitar_3dgs_sh0.ply")), 2500)
     values, gradients = smooth_basis(scene.positions, seed=5)
@@ -196,7 +196,8 @@ def test_vertex_stage_renders_each_mode_like_the_cpu(mode):
     moved = PointModel(positions=displace(scene.positions, values.astype(np.float64), delta_c),
                        kind="gaussians",
                        gaussians=Gaussians(new.scale_log, new.rotation, g.opacity, g.sh_dc, None))
-    camera = frame_points([scene.positions, moved.positions], azimuth=20, elevation=15, up="-y")
+    camera = frame_points([scene.positions, moved.positions],
+                          View(azimuth=20, elevation=15, up="-y"))
     renderer = egl_renderer(SIZE)
     try:
         gpu = renderer.upload(scene, values, gradients, covariance=mode)

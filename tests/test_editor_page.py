@@ -836,9 +836,9 @@ def test_saves_from_request_threads_render_every_png(bar_path, tmp_path):
     (the second one failed: an OpenGL context is current in one thread only)."""
     shutil.copy(bar_path, tmp_path / "bar.ply")
     s = _fitted_session(tmp_path / "bar.ply")
-    from splatdeform.render import render_comparison  # a render on this thread first
+    from splatdeform.render import View, render_comparison  # a render on this thread first
 
-    render_comparison(s.ed.model, s.ed.model, tmp_path / "first.png", size=(32, 32))
+    render_comparison(s.ed.model, s.ed.model, tmp_path / "first.png", View(size=(32, 32)))
     out = []
     for i in range(2):
         t = threading.Thread(target=lambda i=i: out.append(s.act(

@@ -16,18 +16,18 @@ from conftest import shared_file
 from scipy.spatial.transform import Rotation
 
 import splatdeform as sd
-from splatdeform.deform.gaussians import (
-    deform_gaussians,
-    matrix_to_quaternion,
-    polar_rotation,
-    quaternion_multiply,
-    quaternion_to_matrix,
-    svd3,
-)
-from splatdeform.deform.sh import band_rotations, rotate_sh_rest, sh_degree
+from splatdeform.deform.gaussians import deform_gaussians, polar_rotation, svd3
 from splatdeform.edit.config import parse_edit
 from splatdeform.edit.run import run_edit
 from splatdeform.errors import InputError
+from splatdeform.geometry import (
+    band_rotations,
+    matrix_to_quaternion,
+    quaternion_multiply,
+    quaternion_to_matrix,
+    rotate_sh_rest,
+    sh_degree,
+)
 
 F32 = 2.0 ** -24  # float32 unit roundoff
 

@@ -280,9 +280,10 @@ def test_frames_interpolate_every_handle(two_handles, tmp_path):
     from PIL import Image
 
     from splatdeform.edit.images import render_result
+    from splatdeform.render import View
 
     cfg, res = two_handles
-    out = render_result(res, cfg, tmp_path / "multi.gif", frames=3, view={"size": (96, 64)})
+    out = render_result(res, cfg, tmp_path / "multi.gif", frames=3, view=View(size=(96, 64)))
     with Image.open(out) as gif:
         frames = []
         for i in range(gif.n_frames):

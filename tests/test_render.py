@@ -18,7 +18,7 @@ from scipy import ndimage
 
 from splatdeform.deform.arrays import displace, jacobians, transform_axes, transform_normals
 from splatdeform.model import PointModel
-from splatdeform.render import frame_points, render_deformation_comparison, render_frames
+from splatdeform.render import View, frame_points, render_deformation_comparison, render_frames
 from splatdeform.render.compare import LABEL_HEIGHT
 from splatdeform.render.renderer import Renderer
 from splatdeform.render.splats import splat_geometry
@@ -123,7 +123,7 @@ def test_storage_buffer_k7_deformation_equals_cpu_deformation_image(renderer, ba
     values, gradients = smooth_basis(bar.positions, k=k, seed=35)
     delta_c = random_delta(bar, k=k, seed=36, size=0.03)
     after_cpu = cpu_deformed(bar, values, gradients, delta_c)
-    camera = frame_points([bar.positions, after_cpu.positions], azimuth=30, elevation=20)
+    camera = frame_points([bar.positions, after_cpu.positions], View(azimuth=30, elevation=20))
     gpu = renderer.upload(bar, values, gradients)
     cpu = renderer.upload(after_cpu, fill_holes=False)
     try:
@@ -145,7 +145,8 @@ def test_shader_deformation_equals_cpu_deformation_image(renderer, head):
     values, gradients = smooth_basis(head.positions, seed=30)
     delta_c = random_delta(head, seed=31, size=0.03)
     after_cpu = cpu_deformed(head, values, gradients, delta_c)
-    camera = frame_points([head.positions, after_cpu.positions], azimuth=160, elevation=10)
+    camera = frame_points([head.positions, after_cpu.positions],
+                          View(azimuth=160, elevation=10))
     gpu = renderer.upload(head, values, gradients)
     cpu = renderer.upload(after_cpu, fill_holes=False)
     try:
@@ -178,7 +179,7 @@ def coverage(renderer: Renderer, model: PointModel, *, fill_holes: bool,
     gap up to ~4 px wide between splats, and any enclosed hole, counts against coverage."""
     gpu = renderer.upload(model, fill_holes=fill_holes)
     try:
-        camera = frame_points([model.positions], azimuth=90, elevation=0)  # frontal view
+        camera = frame_points([model.positions], View(azimuth=90, elevation=0))  # frontal
         rgba = renderer.draw_rgba(gpu, camera, blend=blend)
     finally:
         gpu.release()
@@ -222,7 +223,7 @@ def test_before_after_differ_only_where_the_model_moved(renderer, head, tmp_path
     delta_c[0] = [0.0, 0.08 * head.diagonal(), 0.0]
     out = tmp_path / "compare.png"
     image = render_deformation_comparison(
-        head, values, gradients, delta_c, out, size=SIZE, azimuth=180, elevation=0
+        head, values, gradients, delta_c, out, View(size=SIZE, azimuth=180, elevation=0)
     )
     assert out.is_file()
     w = SIZE[0]
@@ -243,8 +244,7 @@ def test_before_after_differ_only_where_the_model_moved(renderer, head, tmp_path
     part.axes = splat_geometry(head).axes[moving].astype(np.float64)
     camera = frame_points(
         [head.positions, displace(head.positions, values.astype(np.float64), delta_c)],
-        azimuth=180,
-        elevation=0,
+        View(azimuth=180, elevation=0),
     )
     gpu = renderer.upload(part, values[moving], gradients[moving], fill_holes=False)
     try:
@@ -260,8 +260,8 @@ def test_frames_gif_and_png_sequence(renderer, bar, tmp_path):
     values, gradients = step_basis(bar.positions, 2.0, 1.0)
     delta_c = np.zeros((4, 3))
     delta_c[0] = [0.0, 0.5, 0.0]
-    gif = render_frames(bar, values, gradients, delta_c, 3, tmp_path / "a.gif", size=(64, 64))
-    pngs = render_frames(bar, values, gradients, delta_c, 3, tmp_path / "seq", size=(64, 64))
+    gif = render_frames(bar, values, gradients, delta_c, 3, tmp_path / "a.gif", View(size=(64, 64)))
+    pngs = render_frames(bar, values, gradients, delta_c, 3, tmp_path / "seq", View(size=(64, 64)))
     from PIL import Image
 
     with Image.open(gif[0]) as im:
@@ -300,7 +300,7 @@ def test_mesh_renders_as_triangles_through_the_same_vertex_stage(renderer, tmp_p
     assert (diff > DIFF_LEVEL).mean() <= MAX_DIFF_FRACTION
     assert (np.abs(shader_img - 255).max(axis=2) > 0).mean() > 0.05
 
-    image = render_comparison(mesh, after, tmp_path / "cmp.png", size=(128, 128))
+    image = render_comparison(mesh, after, tmp_path / "cmp.png", View(size=(128, 128)))
     assert image.shape == (128 + LABEL_HEIGHT, 256, 3)
     for half in (image[LABEL_HEIGHT:, :128], image[LABEL_HEIGHT:, 128:]):
         assert (half.astype(int) - 255 != 0).any(axis=2).mean() > 0.05

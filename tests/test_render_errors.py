@@ -9,7 +9,7 @@ from conftest import egl_renderer
 
 from splatdeform.errors import InputError
 from splatdeform.model import PointModel
-from splatdeform.render.camera import frame_bbox, up_frame
+from splatdeform.render.camera import View, frame_bbox, up_frame
 from splatdeform.render.compare import side_by_side
 from splatdeform.render.frames import render_frames
 from splatdeform.render.renderer import Renderer
@@ -24,7 +24,7 @@ def test_camera_up_and_fov() -> None:
     with pytest.raises(InputError, match=r"^up: expected one of .*'\+w'"):
         up_frame("+w")
     with pytest.raises(InputError, match=r"^fov: expected degrees in \(0, 180\), got 180"):
-        frame_bbox(np.zeros(3), np.ones(3), fov=180)
+        frame_bbox(np.zeros(3), np.ones(3), View(fov=180))
 
 
 def test_frames_n_frames(tmp_path) -> None:

@@ -21,7 +21,7 @@ from splat_reference import psnr, reference_render
 
 from splatdeform.cli import main
 from splatdeform.model import Gaussians, PointModel
-from splatdeform.render import render_image
+from splatdeform.render import View, render_image
 from splatdeform.render.camera import (
     camera_sidecar,
     frame_points,
@@ -82,7 +82,7 @@ def test_gaussians_match_the_numpy_rasteriser_before_and_after_an_edit(renderer,
     values, gradients = smooth_basis(scene.positions, seed=5)
     delta_c = np.random.default_rng(6).normal(size=(4, 3)) * 0.1 * scene.diagonal()
     camera = frame_points([scene.positions, deformed_positions(scene, values, delta_c)],
-                          azimuth=20, elevation=15, up="-y")
+                          View(azimuth=20, elevation=15, up="-y"))
     gpu = renderer.upload(scene, values, gradients)
     try:
         before = renderer.draw(gpu, camera)
@@ -160,11 +160,11 @@ def rows_of(image: np.ndarray, channel: int) -> float:
 
 def test_3dgs_scenes_are_upright_by_default_and_up_roll_turn_them():
     scene = figure_3dgs()
-    default = render_image(scene, size=(64, 64), azimuth=0, elevation=0)
+    default = render_image(scene, View(size=(64, 64), azimuth=0, elevation=0))
     assert rows_of(default, 0) < rows_of(default, 2)  # red (file up = -y) on top
-    plus_y = render_image(scene, size=(64, 64), azimuth=0, elevation=0, up="+y")
+    plus_y = render_image(scene, View(size=(64, 64), azimuth=0, elevation=0, up="+y"))
     assert rows_of(plus_y, 0) > rows_of(plus_y, 2)
-    rolled = render_image(scene, size=(64, 64), azimuth=0, elevation=0, roll=180)
+    rolled = render_image(scene, View(size=(64, 64), azimuth=0, elevation=0, roll=180))
     assert rows_of(rolled, 0) > rows_of(rolled, 2)
     # an oriented point cloud keeps +y up: red on top at y = +1
     gx, gy = np.meshgrid(np.linspace(-0.2, 0.2, 12), np.linspace(-1.0, 1.0, 60))
@@ -173,7 +173,7 @@ def test_3dgs_scenes_are_upright_by_default_and_up_roll_turn_them():
                                                                [128, 128, 128]))
     cloud = PointModel(positions=pts, normals=np.tile([0.0, 0.0, 1.0], (len(pts), 1)),
                        colors=colors.astype(np.uint8), kind="oriented_cloud")
-    image = render_image(cloud, size=(64, 64), azimuth=0, elevation=0)
+    image = render_image(cloud, View(size=(64, 64), azimuth=0, elevation=0))
     assert rows_of(image, 0) < rows_of(image, 2)
 
 
@@ -268,7 +268,7 @@ def test_head_surfels_blend_without_specks_or_holes_before_and_after(head):
     gpu = r.upload(part, values, gradients)
     try:
         camera = frame_points([part.positions, deformed_positions(part, values, delta_c)],
-                              azimuth=90, elevation=0)
+                              View(azimuth=90, elevation=0))
         before = r.draw_rgba(gpu, camera)
         after = r.draw_rgba(gpu, camera, delta_c)
         opaque = r.draw_rgba(gpu, camera, blend=False)
@@ -291,7 +291,7 @@ def test_armadillo_cloud_blends_without_specks():
     gpu = r.upload(model)
     try:
         # from the front (seen along x the file holds only an outline)
-        rgba = r.draw_rgba(gpu, frame_points([model.positions], azimuth=180, elevation=0))
+        rgba = r.draw_rgba(gpu, frame_points([model.positions], View(azimuth=180, elevation=0)))
     finally:
         gpu.release()
         r.release()

@@ -11,7 +11,7 @@ Deforming a splat by the Jacobian J of the deformation (:func:`deform_gaussians`
   relative accuracy (J R is well conditioned, S only scales its columns) and keeps each axis in
   its column (no sorting). Scales are never clamped in absolute terms.
 - SH bands 1..3 are rotated by R of the polar decomposition J = R U (R proper), see
-  :mod:`splatdeform.deform.sh`.
+  :mod:`splatdeform.geometry`.
 
 Covariance modes (``gaussians.covariance``; the same three in ``shaders/covariance.glsl``):
 - ``jacobian``: Sigma' = J Sigma J^T as above (exact to first order, but where the field
@@ -31,6 +31,12 @@ from dataclasses import dataclass
 import numpy as np
 
 from splatdeform.errors import InputError
+from splatdeform.geometry import (
+    matrix_to_quaternion,
+    quaternion_multiply,
+    quaternion_to_matrix,
+    rotate_sh_rest,
+)
 from splatdeform.model import SH_C0, dc_to_colors, dc_to_rgb  # noqa: F401  (defined with the data)
 
 COVARIANCE_MODES = ("jacobian", "rotation", "limited")
@@ -38,42 +44,6 @@ DEFAULT_COVARIANCE = "limited"  # no needles under strong edits: benchmarks/benc
 ANISOTROPY_GROWTH = 2.0  # ``limited``: largest/smallest axis ratio may grow by this factor
 SIMILARITY_TOL = 1e-9  # max |J^T J / s^2 - I| for J = s R to count as a similarity
 _JACOBI_SWEEPS = 12  # one-sided Jacobi on 3x3 converges quadratically; ~4-6 sweeps in practice
-
-
-def quaternion_to_matrix(q: np.ndarray) -> np.ndarray:
-    """(M, 4) quaternions (w, x, y, z), any length -> (M, 3, 3) rotation matrices."""
-    q = np.asarray(q, dtype=np.float64)
-    norm = np.linalg.norm(q, axis=1, keepdims=True)
-    q = np.divide(q, norm, out=np.tile([1.0, 0, 0, 0], (q.shape[0], 1)), where=norm > 0)
-    w, x, y, z = q.T
-    return np.stack([
-        np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
-        np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
-        np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1),
-    ], axis=1)
-
-
-def matrix_to_quaternion(r: np.ndarray) -> np.ndarray:
-    """(M, 3, 3) proper rotations -> (M, 4) unit quaternions (w, x, y, z), w >= 0."""
-    m = np.asarray(r, dtype=np.float64)
-    t = np.einsum("mii->m", m)
-    cands = np.stack([
-        np.stack([1 + t, m[:, 2, 1] - m[:, 1, 2], m[:, 0, 2] - m[:, 2, 0],
-                  m[:, 1, 0] - m[:, 0, 1]], -1),
-        np.stack([m[:, 2, 1] - m[:, 1, 2], 1 + m[:, 0, 0] - m[:, 1, 1] - m[:, 2, 2],
-                  m[:, 0, 1] + m[:, 1, 0], m[:, 0, 2] + m[:, 2, 0]], -1),
-        np.stack([m[:, 0, 2] - m[:, 2, 0], m[:, 0, 1] + m[:, 1, 0],
-                  1 - m[:, 0, 0] + m[:, 1, 1] - m[:, 2, 2], m[:, 1, 2] + m[:, 2, 1]], -1),
-        np.stack([m[:, 1, 0] - m[:, 0, 1], m[:, 0, 2] + m[:, 2, 0], m[:, 1, 2] + m[:, 2, 1],
-                  1 - m[:, 0, 0] - m[:, 1, 1] + m[:, 2, 2]], -1),
-    ], axis=1)  # (M, 4 candidates, 4); pick the numerically largest
-    best = np.argmax(np.stack([1 + t, 1 + m[:, 0, 0] - m[:, 1, 1] - m[:, 2, 2],
-                               1 - m[:, 0, 0] + m[:, 1, 1] - m[:, 2, 2],
-                               1 - m[:, 0, 0] - m[:, 1, 1] + m[:, 2, 2]], -1), axis=1)
-    q = cands[np.arange(m.shape[0]), best]
-    q /= np.linalg.norm(q, axis=1, keepdims=True)
-    q[q[:, 0] < 0] *= -1
-    return q
 
 
 def scale_rotation_to_factor(scale_log: np.ndarray, rotation: np.ndarray) -> np.ndarray:
@@ -90,18 +60,6 @@ def covariance_to_scale_rotation(cov: np.ndarray) -> tuple[np.ndarray, np.ndarra
     evecs[flip, :, 0] *= -1
     scale_log = 0.5 * np.log(np.maximum(evals, 1e-30))
     return scale_log.astype(np.float32), matrix_to_quaternion(evecs).astype(np.float32)
-
-
-def quaternion_multiply(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Hamilton product a b of (M, 4) quaternions (w, x, y, z) -> (M, 4); rotation b, then a."""
-    aw, ax, ay, az = np.moveaxis(np.asarray(a, dtype=np.float64), -1, 0)
-    bw, bx, by, bz = np.moveaxis(np.asarray(b, dtype=np.float64), -1, 0)
-    return np.stack([
-        aw * bw - ax * bx - ay * by - az * bz,
-        aw * bx + ax * bw + ay * bz - az * by,
-        aw * by - ax * bz + ay * bw + az * bx,
-        aw * bz + ax * by - ay * bx + az * bw,
-    ], axis=-1)
 
 
 def svd3(m: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -211,8 +169,6 @@ def deform_gaussians(scale_log: np.ndarray, rotation: np.ndarray, sh_rest: np.nd
     """Deform M splats by their Jacobians J (M, 3, 3): the covariance by ``covariance`` (one of
     :data:`COVARIANCE_MODES`), SH rotated by the polar R of J. Splats with J exactly I come back
     bit-identical. See the module docstring."""
-    from splatdeform.deform.sh import rotate_sh_rest
-
     if covariance not in COVARIANCE_MODES:
         raise InputError(f"covariance: expected one of {', '.join(COVARIANCE_MODES)}, "
                          f"got {covariance!r}")

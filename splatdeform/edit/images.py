@@ -5,11 +5,15 @@ from __future__ import annotations
 import time
 from dataclasses import replace
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from splatdeform.deform import full_basis
 from splatdeform.edit.config import EditConfig, RenderCfg
 from splatdeform.edit.result import EditResult
 from splatdeform.errors import InputError
+
+if TYPE_CHECKING:
+    from splatdeform.render.camera import View
 
 
 def with_camera_file(image: Path, files: list[Path]) -> list[Path]:
@@ -54,15 +58,26 @@ def refuse_streamed_frames() -> None:
                      "edit is streamed (raise --memory-budget, or render one image)")
 
 
+def edit_view(cfg: EditConfig, up: str | None = None, roll: float | None = None,
+              camera_file: str | Path | None = None) -> View:
+    """The view of an edit's before/after image: one panel is half of ``render.size``'s width,
+    azimuth / elevation / fov from ``render``, then the user's ``up``, ``roll`` and camera file
+    (which wins over the size and the framing)."""
+    from splatdeform.render.camera import View
+
+    opts = cfg.render or RenderCfg()
+    return View(size=(opts.size[0] // 2, opts.size[1]), azimuth=opts.azimuth,
+                elevation=opts.elevation, fov=opts.fov).with_options(up, roll, camera_file)
+
+
 def render_result(result: EditResult, cfg: EditConfig, out: str | Path, *,
-                  frames: int = 0, view: dict | None = None, budget: int | None = None,
+                  frames: int = 0, view: View | None = None, budget: int | None = None,
                   color: str | None = None, input_path: Path | None = None) -> Path:
     """Write the before/after PNG (or, with frames >= 2, a GIF/PNG sequence of the handle
     moving from identity to the target). The vertex shader deforms, for any number of control
     DOFs k (k > 4, e.g. curves, reads the basis from a storage buffer); one basis upload.
     Each panel is half of ``render.size``'s width (plus an 18 px label strip on top of the
-    before/after image). ``view``: the render functions' up / roll / camera / size keywords
-    (:func:`splatdeform.render.camera.camera_options`); default from ``render.up``,
+    before/after image). ``view``: default :func:`edit_view` with ``render.up``,
     ``render.roll`` and ``render.camera`` (a camera file wins over the other view keys).
     ``color``: ``--color`` (else ``render.color``). A streamed result (no model in memory)
     renders ``input_path`` beside the output file, sampled within ``budget`` bytes."""
@@ -74,35 +89,29 @@ def render_result(result: EditResult, cfg: EditConfig, out: str | Path, *,
     target, _ = render_target(out, frames)
     t0 = time.perf_counter()
     if view is None:
-        from splatdeform.render.camera import camera_options
-
-        view = camera_options(opts.up, opts.roll, opts.camera)
-    view = dict(view)
-    size = view.pop("size", (opts.size[0] // 2, opts.size[1]))
-    view.update(azimuth=opts.azimuth, elevation=opts.elevation, fov=opts.fov)
+        view = edit_view(cfg, opts.up, opts.roll, opts.camera)
     if result.model is None:   # streamed: the model was never whole; render the two files
-        render_streamed(result, input_path or Path(cfg.input), target, frames, budget, size,
+        render_streamed(result, input_path or Path(cfg.input), target, frames, budget,
                         color or opts.color, view)
         result.timings["render"] = time.perf_counter() - t0
         return target
     from splatdeform.render.camera import default_up
     from splatdeform.render.colors import colored
 
-    model = colored(result.model, color or opts.color, view.get("up") or
-                    default_up([result.model]))
+    model = colored(result.model, color or opts.color, view.up or default_up([result.model]))
     values, gradients = full_basis(result.deformation)
     if frames >= 2:
-        render_frames(model, values, gradients, result.delta_c, frames, target,
-                      size=size, covariance=covariance, **view)
+        render_frames(model, values, gradients, result.delta_c, frames, target, view,
+                      covariance=covariance)
     else:
-        render_deformation_comparison(model, values, gradients, result.delta_c, target,
-                                      size=size, covariance=covariance, **view)
+        render_deformation_comparison(model, values, gradients, result.delta_c, target, view,
+                                      covariance=covariance)
     result.timings["render"] = time.perf_counter() - t0
     return target
 
 
 def render_streamed(result: EditResult, input_path: Path, target: Path, frames: int,
-                    budget: int | None, size, color: str | None, view: dict) -> None:
+                    budget: int | None, color: str | None, view: View) -> None:
     """Before/after of a streamed edit from its input and output files, each a sample within
     half the budget when it does not fit (the same seeded rows of both: same count, same
     order); prints the 'rendered N of M points' line."""
@@ -118,10 +127,10 @@ def render_streamed(result: EditResult, input_path: Path, target: Path, frames: 
     inputs = [load_for_render(p, budget, share=0.5)
               for p in (input_path, result.output)]
     models = [r.model for r in inputs]
-    up = view.get("up") or default_up(models)
+    up = view.up or default_up(models)
     before, after = (colored(m, color, up) for m in models)
     if before.n_points == after.n_points and before.colors is not None:
         after = replace(after, colors=before.colors)   # one colour scale: the input's
-    render_comparison(before, after, target, size=size, labels=("before", "after"), **view)
+    render_comparison(before, after, target, view, labels=("before", "after"))
     if inputs[0].sampled:
         print(inputs[0].line())

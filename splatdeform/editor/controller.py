@@ -46,11 +46,12 @@ from splatdeform.edit.selectors import Selector, select
 from .. import deform as df
 from ..basis import resolve_backend
 from ..errors import InputError, RegionError
+from ..geometry import full_from_triu6, triu6
 from ..io import check_output_path, save
 from ..model import PointModel
 from . import selectors as sl
 from .curve import CurveState, CurveView, curve_view
-from .fastpath import covariance_frame, full_from_triu6, triu6
+from .fastpath import covariance_frame
 
 ROLES = ("fixed", "handle")
 FREE, FIXED, HANDLE = 0, 1, 2
@@ -613,8 +614,6 @@ class EditorController:
         r = self.settings.render
         if image_size is None:
             image_size = tuple(r.size) if r is not None else (1200, 600)
-        view = {} if r is None else {"azimuth": r.azimuth, "elevation": r.elevation,
-                                     "fov": r.fov, "up": r.up, "roll": r.roll}
         from ..io import atomic_write
 
         d_model, d_yaml, d_png = self.default_paths()
@@ -638,11 +637,13 @@ class EditorController:
             stream.write(("# splatdeform edit written by the editor; reproduce with:\n"
                           f"#   splatdeform deform {ypath.name}\n" + text).encode())
         if image:
-            from ..render import render_comparison
+            from ..render import View, render_comparison
 
-            render_comparison(self.model, deformed, png, **view,
-                              size=(max(image_size[0] // 2, 1), image_size[1]),
-                              labels=("before", "after"))
+            panel = (max(image_size[0] // 2, 1), image_size[1])
+            view = View(size=panel) if r is None else View(
+                size=panel, azimuth=r.azimuth, elevation=r.elevation, fov=r.fov, up=r.up,
+                roll=r.roll)
+            render_comparison(self.model, deformed, png, view, labels=("before", "after"))
         return SaveResult(written, ypath, png if image else None)
 
 

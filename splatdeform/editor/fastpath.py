@@ -6,21 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 
-TRIU = np.array([0, 1, 2, 4, 5, 8])
 _PAIRS = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
-
-
-def triu6(cov: np.ndarray) -> np.ndarray:
-    """(N, 3, 3) symmetric -> (N, 6) float32 upper triangle (xx, xy, xz, yy, yz, zz)."""
-    return np.ascontiguousarray(cov.reshape(-1, 9)[:, TRIU], dtype=np.float32)
-
-
-def full_from_triu6(c6: np.ndarray) -> np.ndarray:
-    """(N, 6) upper triangle -> (N, 3, 3) symmetric, same dtype."""
-    c6 = np.asarray(c6)
-    xx, xy, xz, yy, yz, zz = c6.T
-    return np.stack([np.stack([xx, xy, xz], -1), np.stack([xy, yy, yz], -1),
-                     np.stack([xz, yz, zz], -1)], axis=1)
 
 
 def covariance_frame(gradients: np.ndarray, delta_c: np.ndarray, cov6: np.ndarray, *,

@@ -18,7 +18,7 @@ from typing import Any
 
 import numpy as np
 
-from splatdeform.deform.gaussians import quaternion_to_matrix
+from splatdeform.geometry import quaternion_to_matrix
 
 from ..errors import ConfigError, SplatdeformError
 from . import view

@@ -18,7 +18,7 @@ import math
 import os
 import stat
 from collections.abc import Iterable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -96,6 +96,54 @@ class Camera:
         return m
 
 
+@dataclass(frozen=True)
+class View:
+    """How a render looks at its models, one value for what used to be seven loose arguments.
+
+    size: (W, H) pixels of one panel. azimuth, elevation, fov: degrees of the orbit framing
+    (:func:`orbit`). up: one of :data:`UP_AXES`, or None for the models' convention
+    (:func:`default_up`). roll: degrees about the viewing direction. camera: a :class:`Camera`
+    that replaces the framing (e.g. from a camera file), or None.
+    """
+
+    size: tuple[int, int] = (256, 256)
+    azimuth: float = 30.0
+    elevation: float = 20.0
+    fov: float = 35.0
+    up: str | None = None
+    roll: float = 0.0
+    camera: Camera | None = None
+
+    def framed(self, point_sets: Iterable[np.ndarray], models: Iterable[Any],
+               aspect: float) -> Camera:
+        """``camera`` when set, else the framing of the (M_i, 3) ``point_sets`` about ``up``
+        (None: the convention of ``models``) at width / height ``aspect``."""
+        if self.camera is not None:
+            return self.camera
+        return frame_points(point_sets, replace(self, up=self.up or default_up(models)),
+                            aspect=aspect)
+
+    def with_options(self, up: str | None = None, roll: float | None = None,
+                     camera_file: str | os.PathLike[str] | None = None) -> View:
+        """This view with the user's camera options: ``up`` (None: the file's convention),
+        ``roll`` degrees (None: 0), and a camera file, which wins: it brings ``camera`` and
+        ``size`` (one panel, W x H). Raises InputError for a bad value or file."""
+        if up is not None and up not in UP_AXES:
+            raise InputError(f"--up/render.up: expected one of {' '.join(UP_AXES)}, got {up!r}")
+        roll = 0.0 if roll is None else float(roll)
+        if not math.isfinite(roll):
+            raise InputError(
+                f"--roll/render.roll: expected a finite number of degrees, got {roll}")
+        view = replace(self, up=up, roll=roll)
+        if camera_file is not None:
+            camera, size = load_camera(camera_file)
+            view = replace(view, camera=camera, size=size)
+        return view
+
+
+DEFAULT_VIEW = View()
+
+
 def up_frame(up: str) -> np.ndarray:
     """(3, 3) rotation taking the y-up orbit frame to the ``up`` axis (``+x`` ... ``-z``)."""
     if up not in _FRAMES:
@@ -149,21 +197,13 @@ def union_bbox(point_sets: Iterable[np.ndarray]) -> tuple[np.ndarray, np.ndarray
     return np.min(los, axis=0), np.max(his, axis=0)
 
 
-def frame_bbox(
-    lo: np.ndarray,
-    hi: np.ndarray,
-    *,
-    azimuth: float = 30.0,
-    elevation: float = 20.0,
-    fov: float = 35.0,
-    aspect: float = 1.0,
-    margin: float = 1.05,
-    up: str = "+y",
-    roll: float = 0.0,
-) -> Camera:
+def frame_bbox(lo: np.ndarray, hi: np.ndarray, view: View = DEFAULT_VIEW, *, aspect: float = 1.0,
+               margin: float = 1.05) -> Camera:
     """A camera that sees the whole box (lo, hi) from any direction: its bounding sphere fits the
-    narrower of the two fields of view, times ``margin``."""
+    narrower of the two fields of view, times ``margin``. ``view``: azimuth, elevation, fov,
+    up (None: ``+y``) and roll of the orbit (its size and camera are not used)."""
     lo, hi = np.asarray(lo, dtype=np.float64), np.asarray(hi, dtype=np.float64)
+    fov = view.fov
     if not (fov > 0 and fov < 180):
         raise InputError(f"fov: expected degrees in (0, 180), got {fov}")
     center = (lo + hi) / 2.0
@@ -174,31 +214,23 @@ def frame_bbox(
     return orbit(
         center,
         distance,
-        azimuth=azimuth,
-        elevation=elevation,
+        azimuth=view.azimuth,
+        elevation=view.elevation,
         fov=fov,
-        up=up,
-        roll=roll,
+        up=view.up or "+y",
+        roll=view.roll,
         near=max(distance - 2.0 * radius, distance * 1e-3),
         far=distance + 2.0 * radius,
     )
 
 
-def frame_points(
-    point_sets: Iterable[np.ndarray],
-    *,
-    azimuth: float = 30.0,
-    elevation: float = 20.0,
-    fov: float = 35.0,
-    aspect: float = 1.0,
-    up: str = "+y",
-    roll: float = 0.0,
-) -> Camera:
+def frame_points(point_sets: Iterable[np.ndarray], view: View = DEFAULT_VIEW, *,
+                 aspect: float = 1.0) -> Camera:
     """Auto-framing on the union of the bounding boxes of (M_i, 3) point arrays (e.g. a model
-    before and after a deformation, so both images share one camera)."""
+    before and after a deformation, so both images share one camera); ``view`` as in
+    :func:`frame_bbox`."""
     lo, hi = union_bbox(point_sets)
-    return frame_bbox(lo, hi, azimuth=azimuth, elevation=elevation, fov=fov, aspect=aspect,
-                      up=up, roll=roll)
+    return frame_bbox(lo, hi, view, aspect=aspect)
 
 
 def default_up(models: Iterable[Any]) -> str:
@@ -331,20 +363,3 @@ def load_camera(path: str | os.PathLike[str]) -> tuple[Camera, tuple[int, int]]:
             "nested too deeply"
         raise InputError(f"{path}: not valid JSON ({msg})") from None
     return parse_camera(data, str(path))
-
-
-def camera_options(up: str | None = None, roll: float | None = None,
-                   camera_file: str | os.PathLike[str] | None = None) -> dict[str, Any]:
-    """Keyword arguments for the render functions from the user's camera options: ``up``
-    (None: the file's convention), ``roll`` degrees, and a camera file, which wins: it adds
-    ``camera`` and ``size`` (one panel, W x H). Raises InputError for a bad value or file."""
-    if up is not None and up not in UP_AXES:
-        raise InputError(f"--up/render.up: expected one of {' '.join(UP_AXES)}, got {up!r}")
-    roll = 0.0 if roll is None else float(roll)
-    if not math.isfinite(roll):
-        raise InputError(f"--roll/render.roll: expected a finite number of degrees, got {roll}")
-    out: dict[str, Any] = {"up": up, "roll": roll}
-    if camera_file is not None:
-        camera, size = load_camera(camera_file)
-        out.update(camera=camera, size=size)
-    return out

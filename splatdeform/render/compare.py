@@ -9,10 +9,11 @@ from pathlib import Path
 import numpy as np
 
 from splatdeform.errors import InputError
+from splatdeform.io.image import save_png
 from splatdeform.model import PointModel
-from splatdeform.render.camera import Camera, default_up, frame_points, write_camera
+from splatdeform.render.camera import Camera, View, write_camera
 from splatdeform.render.overlay import Overlay, draw_overlays
-from splatdeform.render.renderer import Renderer, deformation_session, save_png
+from splatdeform.render.renderer import Renderer, deformation_session
 
 LABEL_HEIGHT = 18
 LABEL_COLOR = (20, 20, 20)
@@ -41,47 +42,39 @@ def side_by_side(images: Sequence[np.ndarray], labels: Sequence[str] | None = No
     return np.asarray(canvas)
 
 
+PANEL = View(size=(512, 512))  # the comparisons' default view: one 512 x 512 panel
+
+
 def render_comparison(
     before: PointModel,
     after: PointModel | None,
     out_path: str | os.PathLike[str] | None,
+    view: View = PANEL,
     *,
-    size: tuple[int, int] = (512, 512),
-    azimuth: float = 30.0,
-    elevation: float = 20.0,
-    fov: float = 35.0,
     labels: Sequence[str] = ("before", "after"),
-    up: str | None = None,
-    roll: float = 0.0,
-    camera: Camera | None = None,
     overlays: Sequence[Overlay] = (),
 ) -> np.ndarray:
     """Render two CPU-side models side by side, or ``before`` alone when ``after`` is None.
-    ``size`` is one panel (W, H). One camera frames both when they are one scene before and
-    after an edit (:func:`same_scene`: the same number of points); two different models each
-    get their own framing. ``up`` (None: the models' convention), ``roll``: see
-    :func:`splatdeform.render.camera.orbit`; ``camera`` replaces the framing (both panels).
-    ``overlays`` (model coordinates, framed too) are drawn over every panel. Writes a PNG to
-    ``out_path`` (atomically) and the first panel's camera to ``OUT.camera.json`` when given;
-    returns the composed (H', W', 3) uint8 image."""
+    ``view.size`` is one panel (W, H). One camera frames both when they are one scene before
+    and after an edit (:func:`same_scene`: the same number of points); two different models
+    each get their own framing. ``view.up`` (None: the models' convention), ``view.roll``: see
+    :func:`splatdeform.render.camera.orbit`; ``view.camera`` replaces the framing (both
+    panels). ``overlays`` (model coordinates, framed too) are drawn over every panel. Writes a
+    PNG to ``out_path`` (atomically) and the first panel's camera to ``OUT.camera.json`` when
+    given; returns the composed (H', W', 3) uint8 image."""
     models = [before] if after is None else [before, after]
-    renderer = Renderer(size)
+    renderer = Renderer(view.size)
     try:
         extra = [np.asarray(o.points, np.float64) for o in overlays]
+        aspect = renderer.size[0] / renderer.size[1]
 
         def framed(group: list[PointModel]) -> Camera:
-            return frame_points([m.positions for m in group] + extra, azimuth=azimuth,
-                                elevation=elevation, fov=fov,
-                                aspect=renderer.size[0] / renderer.size[1],
-                                up=up or default_up(models), roll=roll)
+            return view.framed([m.positions for m in group] + extra, models, aspect)
 
-        if camera is not None:
-            cameras = [camera] * len(models)
-        elif after is None or same_scene(before, after):
+        if after is None or same_scene(before, after):
             cameras = [framed(models)] * len(models)
         else:
             cameras = [framed([m]) for m in models]
-        camera = cameras[0]
         images = []
         for model, cam in zip(models, cameras, strict=True):
             gpu = renderer.upload(model)
@@ -92,10 +85,19 @@ def render_comparison(
             images.append(draw_overlays(image, cam, list(overlays)) if overlays else image)
     finally:
         renderer.release()
-    image = side_by_side(images, list(labels)[: len(images)])
+    return _compose(images, list(labels)[: len(images)], out_path, cameras[0], renderer.size)
+
+
+def _compose(images: list[np.ndarray], labels: Sequence[str],
+             out_path: str | os.PathLike[str] | None, camera: Camera,
+             panel: tuple[int, int]) -> np.ndarray:
+    """The panels side by side under their ``labels``; written as PNG with its
+    ``OUT.camera.json`` (the first panel's ``camera`` and ``panel`` size) when ``out_path`` is
+    given."""
+    image = side_by_side(images, list(labels))
     if out_path is not None:
-        save_png(image, out_path)
-        write_camera(out_path, camera, renderer.size)
+        save_png(image, Path(out_path))
+        write_camera(out_path, camera, panel)
     return image
 
 
@@ -111,28 +113,17 @@ def render_deformation_comparison(
     gradients: np.ndarray,
     delta_c: np.ndarray,
     out_path: str | os.PathLike[str] | None,
+    view: View = PANEL,
     *,
-    size: tuple[int, int] = (512, 512),
-    azimuth: float = 30.0,
-    elevation: float = 20.0,
-    fov: float = 35.0,
     labels: Sequence[str] = ("before", "after"),
-    up: str | None = None,
-    roll: float = 0.0,
-    camera: Camera | None = None,
     covariance: str = "jacobian",
 ) -> np.ndarray:
     """Before (delta C = 0) and after (``delta_c`` (k, 3)) from ONE upload of the basis
     ``values`` (N, k) / ``gradients`` (N, k, 3): the shader deforms, the CPU only frames
-    (``up``, ``roll``, ``camera`` as in :func:`render_comparison`). Writes a PNG to
-    ``out_path`` and its ``OUT.camera.json`` when given; returns the composed image."""
-    with deformation_session(model, values, gradients, delta_c, size=size, azimuth=azimuth,
-                             elevation=elevation, fov=fov, camera=camera, up=up,
-                             roll=roll, covariance=covariance) as (renderer, gpu, camera):
+    (``view`` as in :func:`render_comparison`). Writes a PNG to ``out_path`` and its
+    ``OUT.camera.json`` when given; returns the composed image."""
+    with deformation_session(model, values, gradients, delta_c, view,
+                             covariance=covariance) as (renderer, gpu, camera):
         images = [renderer.draw(gpu, camera, None), renderer.draw(gpu, camera, delta_c)]
         panel = renderer.size
-    image = side_by_side(images, list(labels))
-    if out_path is not None:
-        save_png(image, Path(out_path))
-        write_camera(out_path, camera, panel)
-    return image
+    return _compose(images, labels, out_path, camera, panel)

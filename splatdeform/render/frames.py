@@ -13,9 +13,10 @@ from pathlib import Path
 import numpy as np
 
 from splatdeform.errors import InputError
+from splatdeform.io.image import save_gif, save_png
 from splatdeform.model import PointModel
-from splatdeform.render.camera import Camera, write_camera
-from splatdeform.render.renderer import deformation_session, save_pil, save_png
+from splatdeform.render.camera import DEFAULT_VIEW, View, write_camera
+from splatdeform.render.renderer import deformation_session
 
 
 def render_frames(
@@ -25,21 +26,15 @@ def render_frames(
     delta_c: np.ndarray,
     n_frames: int,
     out_path: str | os.PathLike[str],
+    view: View = DEFAULT_VIEW,
     *,
-    size: tuple[int, int] = (256, 256),
-    azimuth: float = 30.0,
-    elevation: float = 20.0,
-    fov: float = 35.0,
     duration_ms: int = 80,
-    up: str | None = None,
-    roll: float = 0.0,
-    camera: Camera | None = None,
     covariance: str = "jacobian",
 ) -> list[Path]:
     """Render ``n_frames`` (>= 2) frames with delta C = t * ``delta_c`` (k, 3), t = i / (n - 1),
     one camera framing the whole motion. ``out_path``: ``*.gif`` (one animated GIF, looping,
     ``duration_ms`` per frame) or a folder (PNG sequence), plus one ``OUT.camera.json`` beside it
-    (``up``, ``roll``, ``camera`` as in :func:`~splatdeform.render.compare.render_comparison`).
+    (``view`` as in :func:`~splatdeform.render.compare.render_comparison`).
     Returns the written image paths."""
     if int(n_frames) < 2:
         raise InputError(f"n_frames: expected an integer >= 2, got {n_frames}")
@@ -47,28 +42,14 @@ def render_frames(
     if out.suffix and out.suffix.lower() != ".gif":
         raise InputError(f"out_path: expected a .gif file or a folder, got {out}")
     d = np.asarray(delta_c, dtype=np.float64)
-    with deformation_session(model, values, gradients, delta_c, size=size, azimuth=azimuth,
-                             elevation=elevation, fov=fov, camera=camera, up=up,
-                             roll=roll, covariance=covariance) as (renderer, gpu, camera):
+    with deformation_session(model, values, gradients, delta_c, view,
+                             covariance=covariance) as (renderer, gpu, camera):
         frames = [
             renderer.draw(gpu, camera, d * (i / (n_frames - 1))) for i in range(int(n_frames))
         ]
         panel = renderer.size
     if out.suffix.lower() == ".gif":
-        from PIL import Image
-
-        pil = [
-            Image.fromarray(f).quantize(colors=256, method=Image.Quantize.MEDIANCUT) for f in frames
-        ]
-        save_pil(
-            pil[0],
-            out,
-            format="GIF",
-            save_all=True,
-            append_images=pil[1:],
-            duration=int(duration_ms),
-            loop=0,
-        )
+        save_gif(frames, out, duration_ms=duration_ms)
         write_camera(out, camera, panel)
         return [out]
     out.mkdir(parents=True, exist_ok=True)

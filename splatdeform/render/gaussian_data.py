@@ -18,8 +18,9 @@ import numpy as np
 
 from splatdeform.deform.gaussians import dc_to_colors, dc_to_rgb
 from splatdeform.errors import InputError
+from splatdeform.geometry import quaternion_to_matrix, triu6
 from splatdeform.model import PointModel
-from splatdeform.render.splats import DEFAULT_COLOR, quaternion_matrices
+from splatdeform.render.splats import DEFAULT_COLOR
 
 SH_REST_PER_DEGREE = {1: 3, 2: 8, 3: 15}
 
@@ -44,7 +45,7 @@ class GaussianData:
 def covariances(scale_log: np.ndarray, rotation: np.ndarray) -> np.ndarray:
     """(N, 3, 3) float64 Sigma = R diag(exp(scale_log))^2 R^T from (N, 3) log-scales and (N, 4)
     quaternions (w, x, y, z)."""
-    rot = quaternion_matrices(rotation)
+    rot = quaternion_to_matrix(rotation)
     s2 = np.exp(2.0 * np.asarray(scale_log, dtype=np.float64))
     return np.einsum("nij,nj,nkj->nik", rot, s2, rot)
 
@@ -89,8 +90,6 @@ def gaussian_data(model: PointModel) -> GaussianData:
         raise InputError("model: expected 3D Gaussian splat fields (model.gaussians), got none")
     n = model.n_points
     sigma = covariances(g.scale_log, g.rotation)
-    cov = np.stack([sigma[:, 0, 0], sigma[:, 0, 1], sigma[:, 0, 2],
-                    sigma[:, 1, 1], sigma[:, 1, 2], sigma[:, 2, 2]], axis=1)
     color = np.empty((n, 4), dtype=np.float64)
     own_colors = _own_colors(model)
     if own_colors:  # stored colours win (also: previews coloured by region)
@@ -107,7 +106,7 @@ def gaussian_data(model: PointModel) -> GaussianData:
         if degree:
             sh_rest = np.ascontiguousarray(np.asarray(g.sh_rest)[:, : 3 * rest], dtype=np.float32)
     return GaussianData(
-        cov=np.ascontiguousarray(cov, dtype=np.float32),
+        cov=triu6(sigma),
         color=np.ascontiguousarray(color, dtype=np.float32),
         sh_rest=sh_rest,
         degree=degree,

@@ -21,8 +21,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from splatdeform.deform.arrays import axes_to_radius, normalize_rows, radius_to_axes
-from splatdeform.deform.gaussians import dc_to_colors, quaternion_to_matrix
+from splatdeform.deform.gaussians import dc_to_colors
 from splatdeform.deform.normals import pca_normals  # the one estimator; also importable here
+from splatdeform.geometry import quaternion_to_matrix
 from splatdeform.interrupts import knn_query
 from splatdeform.model import PointModel
 from splatdeform.render.colors import is_lidar
@@ -65,13 +66,10 @@ def model_colors(model: PointModel, default: tuple[int, int, int] = DEFAULT_COLO
     return np.tile(np.array(default, dtype=np.uint8), (model.n_points, 1))
 
 
-quaternion_matrices = quaternion_to_matrix  # one quaternion helper (splatdeform.deform.gaussians)
-
-
 def gaussian_axes(scale_log: np.ndarray, rotation: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Ellipse of each Gaussian: (N, 2, 3) axes along its two largest principal directions,
     ``GAUSSIAN_EXTENT`` sigma long, and (N, 3) unit normals along the smallest one."""
-    rot = quaternion_matrices(rotation)  # columns are the principal directions
+    rot = quaternion_to_matrix(rotation)  # columns are the principal directions
     sigma = np.exp(np.asarray(scale_log, dtype=np.float64))
     order = np.argsort(-sigma, axis=1)  # largest first
     idx = np.arange(sigma.shape[0])[:, None]

@@ -1,7 +1,10 @@
-"""Real spherical harmonics of 3D Gaussian splats (3DGS conventions) and their rotation.
+"""Geometry helpers shared by deform/, render/ and the editor (numpy only, float64 maths):
+quaternions (w, x, y, z, the 3DGS convention), symmetric 3x3 matrices packed as their upper
+triangle (xx, xy, xz, yy, yz, zz), and real spherical harmonics of 3D Gaussian splats with their
+rotation.
 
-Basis, constants and signs are those of the reference 3DGS ``sh_utils.eval_sh``: the colour seen
-along the unit direction d (from the camera to the splat) is
+Spherical harmonics: basis, constants and signs are those of the reference 3DGS
+``sh_utils.eval_sh``: the colour seen along the unit direction d (from the camera to the splat) is
 ``0.5 + sum_i c_i Y_i(d)`` with Y_0 = C0, band 1 = (-C1 y, C1 z, -C1 x), bands 2 and 3 as below.
 Within a band the functions are orthonormal on the sphere.
 
@@ -33,8 +36,73 @@ C3 = (-0.5900435899266435, 2.890611442640554, -0.4570457994644658, 0.37317633259
 MAX_DEGREE = 3
 REST_COUNTS = {3 * ((d + 1) ** 2 - 1): d for d in range(1, MAX_DEGREE + 1)}  # 9, 24, 45
 _CHUNK = 32768  # rotations per block (bounds the (M, K, 15) temporary)
+TRIU = np.array([0, 1, 2, 4, 5, 8])  # the upper triangle of a flattened 3x3
 
 
+# -- quaternions ------------------------------------------------------------------------
+def quaternion_to_matrix(q: np.ndarray) -> np.ndarray:
+    """(M, 4) quaternions (w, x, y, z), any length -> (M, 3, 3) rotation matrices."""
+    q = np.asarray(q, dtype=np.float64)
+    norm = np.linalg.norm(q, axis=1, keepdims=True)
+    q = np.divide(q, norm, out=np.tile([1.0, 0, 0, 0], (q.shape[0], 1)), where=norm > 0)
+    w, x, y, z = q.T
+    return np.stack([
+        np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
+        np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
+        np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1),
+    ], axis=1)
+
+
+def matrix_to_quaternion(r: np.ndarray) -> np.ndarray:
+    """(M, 3, 3) proper rotations -> (M, 4) unit quaternions (w, x, y, z), w >= 0."""
+    m = np.asarray(r, dtype=np.float64)
+    t = np.einsum("mii->m", m)
+    cands = np.stack([
+        np.stack([1 + t, m[:, 2, 1] - m[:, 1, 2], m[:, 0, 2] - m[:, 2, 0],
+                  m[:, 1, 0] - m[:, 0, 1]], -1),
+        np.stack([m[:, 2, 1] - m[:, 1, 2], 1 + m[:, 0, 0] - m[:, 1, 1] - m[:, 2, 2],
+                  m[:, 0, 1] + m[:, 1, 0], m[:, 0, 2] + m[:, 2, 0]], -1),
+        np.stack([m[:, 0, 2] - m[:, 2, 0], m[:, 0, 1] + m[:, 1, 0],
+                  1 - m[:, 0, 0] + m[:, 1, 1] - m[:, 2, 2], m[:, 1, 2] + m[:, 2, 1]], -1),
+        np.stack([m[:, 1, 0] - m[:, 0, 1], m[:, 0, 2] + m[:, 2, 0], m[:, 1, 2] + m[:, 2, 1],
+                  1 - m[:, 0, 0] - m[:, 1, 1] + m[:, 2, 2]], -1),
+    ], axis=1)  # (M, 4 candidates, 4); pick the numerically largest
+    best = np.argmax(np.stack([1 + t, 1 + m[:, 0, 0] - m[:, 1, 1] - m[:, 2, 2],
+                               1 - m[:, 0, 0] + m[:, 1, 1] - m[:, 2, 2],
+                               1 - m[:, 0, 0] - m[:, 1, 1] + m[:, 2, 2]], -1), axis=1)
+    q = cands[np.arange(m.shape[0]), best]
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    q[q[:, 0] < 0] *= -1
+    return q
+
+
+def quaternion_multiply(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Hamilton product a b of (M, 4) quaternions (w, x, y, z) -> (M, 4); rotation b, then a."""
+    aw, ax, ay, az = np.moveaxis(np.asarray(a, dtype=np.float64), -1, 0)
+    bw, bx, by, bz = np.moveaxis(np.asarray(b, dtype=np.float64), -1, 0)
+    return np.stack([
+        aw * bw - ax * bx - ay * by - az * bz,
+        aw * bx + ax * bw + ay * bz - az * by,
+        aw * by - ax * bz + ay * bw + az * bx,
+        aw * bz + ax * by - ay * bx + az * bw,
+    ], axis=-1)
+
+
+# -- symmetric 3x3 packing ----------------------------------------------------------------
+def triu6(cov: np.ndarray) -> np.ndarray:
+    """(N, 3, 3) symmetric -> (N, 6) float32 upper triangle (xx, xy, xz, yy, yz, zz)."""
+    return np.ascontiguousarray(cov.reshape(-1, 9)[:, TRIU], dtype=np.float32)
+
+
+def full_from_triu6(c6: np.ndarray) -> np.ndarray:
+    """(N, 6) upper triangle -> (N, 3, 3) symmetric, same dtype."""
+    c6 = np.asarray(c6)
+    xx, xy, xz, yy, yz, zz = c6.T
+    return np.stack([np.stack([xx, xy, xz], -1), np.stack([xy, yy, yz], -1),
+                     np.stack([xz, yz, zz], -1)], axis=1)
+
+
+# -- spherical harmonics ------------------------------------------------------------------
 def sh_degree(n_rest: int) -> int:
     """SH degree (1, 2 or 3) from the number of ``f_rest_*`` values (9, 24 or 45); 0 for 0."""
     if n_rest == 0:
