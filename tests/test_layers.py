@@ -1,7 +1,7 @@
 """The package's layers, read from the source: the config layer (splatdeform.edit) is the only
 one that knows the edit config, and every import points down the data flow.
 
-    errors, interrupts < model, resources < io, rbf, info, memory < basis < deform < render
+    errors, interrupts, blas < model, resources < io, rbf, info, memory < basis < deform < render
     < edit < editor, batch < cli
 
 (import statements anywhere in a module count, lazy ones inside functions too).
@@ -18,6 +18,7 @@ PACKAGE = Path(__file__).resolve().parents[1] / "splatdeform"
 RANK = {"errors": 0, "lazy": 0, "interrupts": 0, "model": 1, "resources": 1, "io": 2, "rbf": 2,
         "info": 2, "memory": 2, "basis": 3, "deform": 4, "render": 5, "edit": 6, "editor": 7,
         "batch": 7, "cli": 8}
+RANK["blas"] = 0   # the one BLAS limiter, below rbf/ and editor/
 CONFIG_LAYER = "edit"
 BELOW_CONFIG = [name for name, rank in RANK.items() if rank < RANK[CONFIG_LAYER]]
 

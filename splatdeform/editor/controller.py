@@ -37,6 +37,7 @@ from typing import Any
 import numpy as np
 import yaml
 
+from splatdeform.blas import blas_threads
 from splatdeform.deform import arrays as ap
 from splatdeform.deform.handle import delta_for_transform
 from splatdeform.deform.regions import check_regions
@@ -111,20 +112,6 @@ def _gaussian_cov6(model: PointModel) -> np.ndarray:
     g = model.gaussians
     f = scale_rotation_to_factor(g.scale_log, g.rotation)
     return triu6(f @ f.transpose(0, 2, 1))
-
-
-_BLAS = None
-
-
-def _one_blas_thread():
-    """Context: one BLAS thread for the per-frame products (an oversubscribed OpenBLAS pool on
-    a busy 2-core machine made them 10-30x slower, measured)."""
-    global _BLAS
-    if _BLAS is None:
-        from threadpoolctl import ThreadpoolController
-
-        _BLAS = ThreadpoolController()
-    return _BLAS.limit(limits=1, user_api="blas")
 
 
 class EditorController:
@@ -488,7 +475,7 @@ class EditorController:
         delta = self.delta_c()
         fd = self._frame_data
         active = fd["active"]
-        with _one_blas_thread():
+        with blas_threads(1):  # oversubscribed: 10-30x slower
             p, n = ap.deform_frame(fd["base_active"], fd.get("normals_active"), fd["values"],
                                    fd["grads"], delta)
             axes = cov6 = None
