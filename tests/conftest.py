@@ -28,10 +28,14 @@ def shared_data() -> Path:
 
 
 def shared_file(relative: str) -> Path:
-    """A file under ../shared/data, skipping when absent."""
+    """A file under ../shared/data: skips when the whole folder is absent (a fresh clone), fails
+    when the folder is there but the file is not (a renamed or lost file must not pass as a
+    skip)."""
+    if not SHARED_DATA.is_dir():
+        pytest.skip(f"real data folder {SHARED_DATA} is absent (fresh clone without ../shared)")
     path = SHARED_DATA / relative
     if not path.is_file():
-        pytest.skip(f"real data file {path} is absent (fresh clone without ../shared)")
+        pytest.fail(f"real data file {path} is missing from {SHARED_DATA}")
     return path
 
 

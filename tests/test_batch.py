@@ -119,7 +119,8 @@ def test_zip_archive_matches_folder(scans: Path, local_run: Path) -> None:
 
 
 def test_dask_local_cluster_matches_local(scans: Path, local_run: Path) -> None:
-    distributed = pytest.importorskip("distributed")
+    import distributed
+
     from splatdeform.batch import run_batch
 
     cfg = write_batch(scans / "dask.yaml", scans="scans/*.ply", output_dir="out_dask")

@@ -356,7 +356,8 @@ def test_bad_timeouts_exit_2_one_line(tmp_path: Path, bars, args, key, capsys) -
 
 def test_dask_scan_timeout(tmp_path: Path, bars) -> None:
     """On Dask each scan runs in a child process of the worker when a time limit is set."""
-    distributed = pytest.importorskip("distributed")
+    import distributed
+
     from splatdeform.batch import run_batch
 
     (tmp_path / "scans").mkdir()

@@ -11,6 +11,7 @@ import threading
 import time
 from pathlib import Path
 
+import distributed
 import pytest
 import yaml
 from test_stream import assert_same_result
@@ -20,8 +21,6 @@ from splatdeform.cli import main
 from splatdeform.edit.config import load_edit
 from splatdeform.edit.stream import run_stream
 from splatdeform.io import save
-
-distributed = pytest.importorskip("distributed")
 
 EDIT = {
     "regions": {"units": "relative",
