@@ -52,6 +52,7 @@ def cmd_deform(args: argparse.Namespace) -> int:
     from splatdeform.edit.run import format_report, run_edit
 
     _check_workers(args)
+    _check_budget_alone(args, "--reuse/--reuse-file" if args.reuse or args.reuse_file else None)
     cfg = load_edit(args.config)
     if args.backend:
         cfg.backend = args.backend
@@ -105,6 +106,17 @@ def _check_workers(args: argparse.Namespace) -> None:
                          "workers); give one of them")
 
 
+def _check_budget_alone(args: argparse.Namespace, whole: str | None) -> None:
+    """--memory-budget streams a big scan; --drop-nonfinite (and ``whole``, e.g. --reuse) need
+    the whole model in memory, so together the budget would be silently ignored: refused."""
+    if args.memory_budget is None:
+        return
+    whole = whole or ("--drop-nonfinite" if args.drop_nonfinite else None)
+    if whole:
+        raise InputError(f"--memory-budget: not with {whole} (that needs the whole model in "
+                         "memory, which the budget may not hold); give one of them")
+
+
 def _check_streamed_frames(args: argparse.Namespace, cfg, base, render_out) -> None:
     """Frames need the model in memory: refused before any work when the edit will stream."""
     from splatdeform.edit.images import render_frames_count
@@ -151,6 +163,7 @@ def cmd_select(args: argparse.Namespace) -> int:
 
     from .io.atomic import check_io_paths
 
+    _check_budget_alone(args, None)
     cfg = load_edit(args.config)
     base = Path(args.config).resolve().parent
     if args.output is not None and not args.output.lower().endswith(".png"):
@@ -425,6 +438,9 @@ def build_parser() -> argparse.ArgumentParser:
     from .batch import register as register_batch
 
     register_batch(sub)
+    for verb in sub.choices.values():   # --debug after the verb too (SUPPRESS: absent there,
+        verb.add_argument("--debug", action="store_true",  # the top level's value stands)
+                          default=argparse.SUPPRESS, help="show tracebacks on errors")
     return parser
 
 

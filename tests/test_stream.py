@@ -13,7 +13,7 @@ import laspy
 import numpy as np
 import pytest
 import yaml
-from conftest import ROOT, shared_file
+from conftest import ROOT, bar_edit, shared_file
 
 from data_tools.synth import bumpy_bar
 from splatdeform import memory
@@ -25,15 +25,8 @@ from splatdeform.errors import InputError
 from splatdeform.io import save
 from splatdeform.io.ply_format import read_ply
 
-EDIT = {
-    "regions": {"units": "relative",
-                "fixed": [{"box": {"min": [0, 0, 0], "max": [0.25, 1, 1]}}],
-                "handle": [{"box": {"min": [0.75, 0, 0], "max": [1, 1, 1]}}]},
-    "handle": {"transform": {"pivot": [0.75, 0.5, 0.5],
-                             "rotate": {"axis": [0, 0, 1], "degrees": 35},
-                             "translate": [0, 0.1, 0]}},
-    "fit": {"tolerance": 1e-3},
-}
+EDIT = bar_edit({"pivot": [0.75, 0.5, 0.5], "rotate": {"axis": [0, 0, 1], "degrees": 35},
+                 "translate": [0, 0.1, 0]}, backend=None)
 
 
 def write_edit(folder: Path, inp: Path, out: str, **extra) -> Path:
