@@ -51,7 +51,7 @@ from ..io import check_output_path, save
 from ..model import PointModel
 from . import selectors as sl
 from .curve import CurveState, CurveView, curve_view
-from .fastpath import covariance_frame, full_from_triu6, triu6
+from .fastpath import full_from_triu6, triu6
 
 ROLES = ("fixed", "handle")
 FREE, FIXED, HANDLE = 0, 1, 2
@@ -424,6 +424,13 @@ class EditorController:
             data["cov6_active"] = np.ascontiguousarray(data["cov6"][active])
         return data
 
+    def moving_points(self) -> np.ndarray | None:
+        """(M,) int64 indices of the points a pose moves (the non-fixed ones, the order of
+        ``frame.index`` in ``set_pose(full=False)``); None while there is no fresh fit."""
+        if self._frame_data is None or self.stale:
+            return None
+        return self._frame_data["active"]
+
     def base_frame(self) -> Frame:
         """The undeformed model as a :class:`Frame` (what the viewer shows before a fit)."""
         m = self.model
@@ -483,7 +490,7 @@ class EditorController:
                 jac = ap.jacobians(fd["grads"], delta.astype(np.float32))
                 axes = ap.transform_axes(jac, fd["axes"][active]).astype(np.float32)
             if "cov6" in fd:
-                cov6 = covariance_frame(fd["grads"], delta, fd["cov6_active"])
+                cov6 = ap.covariance_frame(fd["grads"], delta, fd["cov6_active"])
         if not full:
             return Frame(p, n, axes, cov6, delta, time.perf_counter() - t0, index=active)
 
