@@ -27,7 +27,6 @@ Example::
 
 from __future__ import annotations
 
-import os
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -35,7 +34,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import yaml
 
 from splatdeform.blas import blas_threads
 from splatdeform.deform import arrays as ap
@@ -43,6 +41,7 @@ from splatdeform.deform.handle import delta_for_transform
 from splatdeform.deform.regions import check_regions
 from splatdeform.edit.config import EditConfig, load_edit, parse_edit
 from splatdeform.edit.selectors import Selector, select
+from splatdeform.edit.writer import edit_yaml, yaml_text
 
 from .. import deform as df
 from ..basis import resolve_backend
@@ -529,44 +528,20 @@ class EditorController:
         """The edit config mapping (what :meth:`save` writes as YAML)."""
         cdir = Path(config_dir).resolve() if config_dir is not None else self.base_dir
         out = Path(output) if output is not None else self.default_paths()[0]
-        s = self.settings
 
-        def rows(m: np.ndarray) -> list[list[float]]:
-            return [[float(v) for v in row] for row in m]
+        def pose(h: HandleState) -> dict[str, Any]:
+            return {"region": [sl.to_yaml(x, self.base_dir) for x in h.selectors],
+                    "matrix": [[float(v) for v in row] for row in h.matrix]}
 
-        def region(h: HandleState) -> list[dict[str, Any]]:
-            return [sl.to_yaml(x, self.base_dir) for x in h.selectors]
-
-        data: dict[str, Any] = {
-            "input": _relative(self.model_path, cdir),
-            "output": _relative(out.resolve(), cdir),
-            "regions": {"units": self.units,
-                        "fixed": [sl.to_yaml(x, self.base_dir) for x in self.fixed]},
-        }
-        if self.curve is None and len(self.handles) == 1:
-            data["regions"]["handle"] = region(self.handles[0])
-            data["handle"] = {"matrix": rows(self.handles[0].matrix)}
-        elif self.live_handles():  # several, or handles with a curve: the handles: form
-            data["handles"] = [{"region": region(h), "matrix": rows(h.matrix)}
-                               for h in self.live_handles()]
-        if self.curve is not None:
-            data["curve"] = self.curve.to_yaml()
-        data.update({
-            "boundary": s.boundary.model_dump(),
-            "fit": s.fit.model_dump(),
-            "normals": s.normals,
-            "backend": s.backend,  # "auto" stays "auto": the YAML also runs without OpenCL
-        })
-        if s.device is not None:
-            data["device"] = s.device
-        if self.model.gaussians is not None or "gaussians" in s.model_fields_set:
-            data["gaussians"] = s.gaussians.model_dump()  # the mode the saved splats used
-        if s.render is not None:
-            render = s.render.model_dump()
-            if s.render.output is not None:
-                render["output"] = _relative((self.base_dir / s.render.output).resolve(), cdir)
-            data["render"] = render
-        return data
+        one = self.curve is None and len(self.handles) == 1
+        return edit_yaml(
+            self.settings, input_path=self.model_path, output_path=out.resolve(),
+            config_dir=cdir, base_dir=self.base_dir, units=self.units,
+            fixed=[sl.to_yaml(x, self.base_dir) for x in self.fixed],
+            handle=pose(self.handles[0]) if one else None,
+            handles=None if one else [pose(h) for h in self.live_handles()],
+            curve=None if self.curve is None else self.curve.to_yaml(),
+            gaussians=self.model.gaussians is not None)  # the mode the saved splats used
 
     def default_paths(self) -> tuple[Path, Path, Path]:
         """(model, yaml, png) Save writes by default. From a bare MODEL: MODEL_edited.<ext>,
@@ -627,12 +602,12 @@ class EditorController:
             if png.suffix.lower() != ".png":
                 raise InputError(f"{png}: expected a .png image file name")
         deformed = self.deformed_model()
-        text = yaml.safe_dump(self.to_yaml_dict(output=out, config_dir=ypath.resolve().parent),
-                              sort_keys=False, default_flow_style=None)
+        text = yaml_text(self.to_yaml_dict(output=out, config_dir=ypath.resolve().parent),
+                         "splatdeform edit written by the editor; reproduce with:\n"
+                         f"  splatdeform deform {ypath.name}")
         written = save(deformed, out)
         with atomic_write(ypath) as stream:
-            stream.write(("# splatdeform edit written by the editor; reproduce with:\n"
-                          f"#   splatdeform deform {ypath.name}\n" + text).encode())
+            stream.write(text.encode())
         if image:
             from ..render import render_comparison
 
@@ -647,12 +622,3 @@ def _bare_settings(model_path: Path) -> dict[str, Any]:
     return {"input": str(model_path), "output": "unused.ply",
             "regions": {"fixed": [{"indices": [0]}], "handle": [{"indices": [0]}]},
             "handle": {"matrix": np.eye(4).tolist()}}
-
-
-def _relative(path: Path, base: Path) -> str:
-    """``path`` relative to ``base`` when it is inside it, else absolute."""
-    try:
-        return str(Path(os.path.relpath(path, base))) if path.is_relative_to(base) else str(path)
-    except ValueError:
-        return str(path)
-
