@@ -438,9 +438,10 @@ def build_parser() -> argparse.ArgumentParser:
     from .batch import register as register_batch
 
     register_batch(sub)
-    for verb in sub.choices.values():   # --debug after the verb too (SUPPRESS: absent there,
-        verb.add_argument("--debug", action="store_true",  # the top level's value stands)
-                          default=argparse.SUPPRESS, help="show tracebacks on errors")
+    # --debug after the verb too; SUPPRESS: when absent there, the top level's value stands
+    for verb in sub.choices.values():
+        verb.add_argument("--debug", action="store_true", default=argparse.SUPPRESS,
+                          help="show tracebacks on errors")
     return parser
 
 
