@@ -54,6 +54,7 @@ def cmd_deform(args: argparse.Namespace) -> int:
     from splatdeform.edit.stream import StreamOptions
 
     _check_workers(args)
+    _check_budget_alone(args, "--reuse/--reuse-file" if args.reuse or args.reuse_file else None)
     cfg = load_edit(args.config)
     if args.backend:
         cfg.backend = args.backend
@@ -106,6 +107,17 @@ def _check_workers(args: argparse.Namespace) -> None:
                          "workers); give one of them")
 
 
+def _check_budget_alone(args: argparse.Namespace, whole: str | None) -> None:
+    """--memory-budget streams a big scan; --drop-nonfinite (and ``whole``, e.g. --reuse) need
+    the whole model in memory, so together the budget would be silently ignored: refused."""
+    if args.memory_budget is None:
+        return
+    whole = whole or ("--drop-nonfinite" if args.drop_nonfinite else None)
+    if whole:
+        raise InputError(f"--memory-budget: not with {whole} (that needs the whole model in "
+                         "memory, which the budget may not hold); give one of them")
+
+
 def _check_streamed_frames(args: argparse.Namespace, cfg, base, render_out) -> None:
     """Frames need the model in memory: refused before any work when the edit will stream."""
     from splatdeform.edit.images import refuse_streamed_frames, render_frames_count
@@ -151,6 +163,7 @@ def cmd_select(args: argparse.Namespace) -> int:
 
     from .io.atomic import check_io_paths
 
+    _check_budget_alone(args, None)
     cfg = load_edit(args.config)
     base = Path(args.config).resolve().parent
     if args.output is not None and not args.output.lower().endswith(".png"):
@@ -424,6 +437,10 @@ def build_parser() -> argparse.ArgumentParser:
     from .batch import register as register_batch
 
     register_batch(sub)
+    # --debug after the verb too; SUPPRESS: when absent there, the top level's value stands
+    for verb in sub.choices.values():
+        verb.add_argument("--debug", action="store_true", default=argparse.SUPPRESS,
+                          help="show tracebacks on errors")
     return parser
 
 

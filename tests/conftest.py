@@ -27,11 +27,34 @@ def shared_data() -> Path:
     return SHARED_DATA
 
 
+def bar_edit(transform: dict | None = None, *, fit: dict | None = None,
+             backend: str | None = "numpy", **keys) -> dict:
+    """The edit most tests run on a bar along x (a fresh dict to change or dump as YAML): the
+    quarter at x <= 0.25 fixed, the quarter at x >= 0.75 the handle (relative units),
+    ``transform`` the handle's (default: a small translation), ``fit`` the fit settings
+    (default: tolerance 1e-3), ``backend`` (None: left out); ``keys``: other top-level keys
+    (input, output, ...)."""
+    import copy
+
+    edit = {"regions": {"units": "relative",
+                        "fixed": [{"box": {"min": [0, 0, 0], "max": [0.25, 1, 1]}}],
+                        "handle": [{"box": {"min": [0.75, 0, 0], "max": [1, 1, 1]}}]},
+            "handle": {"transform": copy.deepcopy(transform or {"translate": [0, 0.1, 0]})},
+            "fit": copy.deepcopy({"tolerance": 1e-3} if fit is None else fit)}
+    if backend is not None:
+        edit["backend"] = backend
+    return {**keys, **edit}
+
+
 def shared_file(relative: str) -> Path:
-    """A file under ../shared/data, skipping when absent."""
+    """A file under ../shared/data: skips when the whole folder is absent (a fresh clone), fails
+    when the folder is there but the file is not (a renamed or lost file must not pass as a
+    skip)."""
+    if not SHARED_DATA.is_dir():
+        pytest.skip(f"real data folder {SHARED_DATA} is absent (fresh clone without ../shared)")
     path = SHARED_DATA / relative
     if not path.is_file():
-        pytest.skip(f"real data file {path} is absent (fresh clone without ../shared)")
+        pytest.fail(f"real data file {path} is missing from {SHARED_DATA}")
     return path
 
 

@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
+from conftest import bar_edit
 
 from data_tools.make_archive import make_scans
 from splatdeform.batch.config import deep_merge
@@ -22,16 +23,8 @@ from splatdeform.io import load
 ROOT = Path(__file__).resolve().parents[1]
 PY = sys.executable
 
-EDIT = {
-    "regions": {"units": "relative",
-                "fixed": [{"box": {"min": [0, 0, 0], "max": [0.25, 1, 1]}}],
-                "handle": [{"box": {"min": [0.75, 0, 0], "max": [1, 1, 1]}}]},
-    "handle": {"transform": {"pivot": [0.75, 0.5, 0.5],
-                             "rotate": {"axis": [0, 0, 1], "degrees": 30},
-                             "translate": [0, 0.1, 0]}},
-    "fit": {"tolerance": 1e-3, "max_centers": 400},
-    "backend": "numpy",
-}
+EDIT = bar_edit({"pivot": [0.75, 0.5, 0.5], "rotate": {"axis": [0, 0, 1], "degrees": 30},
+                 "translate": [0, 0.1, 0]}, fit={"tolerance": 1e-3, "max_centers": 400})
 GOOD = ["bar_000", "bar_001", "bar_002", "sphere_003", "bar_004", "bar_005"]
 BROKEN = ["bar_006_truncated", "sphere_007_nan"]
 
@@ -119,7 +112,8 @@ def test_zip_archive_matches_folder(scans: Path, local_run: Path) -> None:
 
 
 def test_dask_local_cluster_matches_local(scans: Path, local_run: Path) -> None:
-    distributed = pytest.importorskip("distributed")
+    import distributed
+
     from splatdeform.batch import run_batch
 
     cfg = write_batch(scans / "dask.yaml", scans="scans/*.ply", output_dir="out_dask")

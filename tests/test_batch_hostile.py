@@ -21,6 +21,7 @@ from pathlib import Path
 
 import pytest
 import yaml
+from conftest import bar_edit
 
 from data_tools.make_archive import make_scans
 from splatdeform.batch.probe import HEAD_BYTES, check, estimate_memory, probe
@@ -31,14 +32,8 @@ from splatdeform.io import load
 
 ROOT = Path(__file__).resolve().parents[1]
 PY = sys.executable
-EDIT = {
-    "regions": {"units": "relative",
-                "fixed": [{"box": {"min": [0, 0, 0], "max": [0.25, 1, 1]}}],
-                "handle": [{"box": {"min": [0.75, 0, 0], "max": [1, 1, 1]}}]},
-    "handle": {"transform": {"pivot": [0.75, 0.5, 0.5], "translate": [0, 0.1, 0]}},
-    "fit": {"tolerance": 1e-3, "max_centers": 200},
-    "backend": "numpy",
-}
+EDIT = bar_edit({"pivot": [0.75, 0.5, 0.5], "translate": [0, 0.1, 0]},
+                fit={"tolerance": 1e-3, "max_centers": 200})
 BIN_HEADER = (b"ply\nformat binary_little_endian 1.0\ncomment element vertex 999999999\n"
               b"element vertex 10\nproperty float x\nproperty float y\nproperty float z\n"
               b"end_header\n")
@@ -356,7 +351,8 @@ def test_bad_timeouts_exit_2_one_line(tmp_path: Path, bars, args, key, capsys) -
 
 def test_dask_scan_timeout(tmp_path: Path, bars) -> None:
     """On Dask each scan runs in a child process of the worker when a time limit is set."""
-    distributed = pytest.importorskip("distributed")
+    import distributed
+
     from splatdeform.batch import run_batch
 
     (tmp_path / "scans").mkdir()

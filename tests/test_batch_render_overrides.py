@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
+from conftest import bar_edit
 from PIL import Image
 
 from data_tools.make_archive import make_scans
@@ -16,14 +17,7 @@ from splatdeform.batch import load_batch
 from splatdeform.batch.worker import process_scan
 from splatdeform.errors import ConfigError
 
-EDIT = {
-    "regions": {"units": "relative",
-                "fixed": [{"box": {"min": [0, 0, 0], "max": [0.25, 1, 1]}}],
-                "handle": [{"box": {"min": [0.75, 0, 0], "max": [1, 1, 1]}}]},
-    "handle": {"transform": {"translate": [0, 0.1, 0]}},
-    "fit": {"tolerance": 1e-3, "max_centers": 400},
-    "backend": "numpy",
-}
+EDIT = bar_edit(fit={"tolerance": 1e-3, "max_centers": 400})
 
 
 @pytest.fixture(scope="module")

@@ -535,3 +535,24 @@ def test_example_configs_parse():
     for path in paths:
         cfg = load_edit(path)
         assert cfg.handle is not None or cfg.curve is not None
+
+
+def test_covariance_frame_is_j_sigma_jt() -> None:
+    """The editor's blocked per-frame covariances equal J Sigma J^T built with jacobians() in
+    float64 (chunk boundaries inside the points included)."""
+    from splatdeform.deform.arrays import covariance_frame, jacobians
+
+    rng = np.random.default_rng(4)
+    m, k = 1000, 4
+    grads = rng.normal(size=(m, k, 3)).astype(np.float32)
+    delta = 0.1 * rng.normal(size=(k, 3))
+    a = rng.normal(size=(m, 3, 3))
+    sigma = a @ a.transpose(0, 2, 1) + 0.1 * np.eye(3)
+    cov6 = sigma.reshape(m, 9)[:, [0, 1, 2, 4, 5, 8]].astype(np.float32)
+    got = covariance_frame(grads, delta, cov6, chunk=300)
+    j = jacobians(grads.astype(np.float64), delta)
+    want = (j @ sigma @ j.transpose(0, 2, 1)).reshape(m, 9)[:, [0, 1, 2, 4, 5, 8]]
+    assert got.dtype == np.float32 and got.shape == (m, 6)
+    scale = np.abs(want).max(axis=1, keepdims=True)
+    assert np.abs(got - want).max() <= 1e-5 * scale.max()
+    assert (np.abs(got - want) <= 1e-5 * scale).all()

@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
-from conftest import shared_file
+from conftest import bar_edit, shared_file
 
 from data_tools.synth import bumpy_bar
 from splatdeform import deform as df
@@ -85,12 +85,8 @@ def bar_dir(tmp_path_factory) -> Path:
 
 
 def write_edit(root: Path, name: str, **fit) -> Path:
-    cfg = {"input": "bar.ply", "output": f"{name}.ply",
-           "regions": {"units": "relative",
-                       "fixed": [{"box": {"min": [0, 0, 0], "max": [0.25, 1, 1]}}],
-                       "handle": [{"box": {"min": [0.75, 0, 0], "max": [1, 1, 1]}}]},
-           "handle": {"transform": {"rotate": {"axis": [0, 0, 1], "degrees": 30}}},
-           "fit": fit, "backend": "numpy"}
+    cfg = bar_edit({"rotate": {"axis": [0, 0, 1], "degrees": 30}}, fit=fit,
+                   input="bar.ply", output=f"{name}.ply")
     path = root / f"{name}.yaml"
     path.write_text(yaml.safe_dump(cfg))
     return path

@@ -15,6 +15,7 @@ from io import BytesIO
 from pathlib import Path
 
 import numpy as np
+import plyfile
 from conftest import SHARED_DATA
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
@@ -81,7 +82,7 @@ def _seeds() -> list[bytes]:
     for rel, rows in (("splats/tile_3dgs_sh3.ply", 3), ("edge_cases/pepper_extra_elements.ply", 6),
                       ("edge_cases/horse_big_endian.ply", 8), ("scans/head_surfels.ply", 6),
                       ("edge_cases/igea_tristrips.ply", 10)):
-        if (SHARED_DATA / rel).is_file():
+        if SHARED_DATA.is_dir():   # a file missing from the folder fails (FileNotFoundError)
             seeds.append(_slice(SHARED_DATA / rel, rows))
     return seeds
 
@@ -176,6 +177,58 @@ def _load_within_bound(path: Path, size: int) -> None:
     if model is not None:
         info = json.loads(to_json(describe(model)), parse_constant=lambda c: 1 / 0)
         assert info["points"] == model.n_points >= 1
+        _same_as_plyfile(path, model)
+
+
+def _same_values(a: np.ndarray, b: np.ndarray) -> bool:
+    return a.shape == b.shape and np.array_equal(a, b, equal_nan=a.dtype.kind == "f")
+
+
+def _canonical(raw: bytes) -> bytes:
+    """``raw`` without the leniencies our reader allows and plyfile does not: one ``format``
+    line of version 1.0 right after ``ply`` (ours takes the first, wherever it is, and any
+    version), no blank header lines, and for ASCII no blank body lines (ours reads
+    whitespace-separated tokens)."""
+    end = raw.index(b"end_header")
+    lines = raw[:end].split(b"\n")
+    fmt = next(ln.split() for ln in lines if ln.startswith(b"format"))
+    rest = [ln for ln in lines[1:] if ln.strip() and not ln.startswith(b"format")]
+    head = b"".join(ln + b"\n" for ln in [lines[0], b"format " + fmt[1] + b" 1.0", *rest])
+    newline = raw.index(b"\n", end) + 1
+    body = raw[newline:]
+    if fmt[1] == b"ascii":
+        body = b"".join(ln + b"\n" for ln in body.split(b"\n") if ln.strip())
+    return head + raw[end:newline] + body
+
+
+def _same_as_plyfile(path: Path, model) -> None:
+    """A file our loader accepts is one plyfile (the independent reader) reads, once put in
+    canonical form (:func:`_canonical`), to the same elements, counts, names and values; the
+    loaded model's positions are plyfile's x, y, z."""
+    ours = read_ply(path)
+    canonical = path.with_name("canonical.ply")
+    canonical.write_bytes(_canonical(path.read_bytes()))
+    try:
+        ref = plyfile.PlyData.read(str(canonical))
+    except Exception as exc:  # noqa: BLE001 - any refusal is a disagreement
+        raise AssertionError(f"our loader accepts a file plyfile refuses: {exc}") from exc
+    assert [e.name for e in ours.elements] == [e.name for e in ref.elements]
+    for el, rel in zip(ours.elements, ref.elements, strict=True):
+        assert el.data.dtype.names == rel.data.dtype.names, el.name
+        assert len(el.data) == len(rel.data), el.name
+        for name in el.data.dtype.names:
+            a, b = el.data[name], rel.data[name]
+            if a.dtype == object:
+                bad = [i for i, (x, y) in enumerate(zip(a, b, strict=True))
+                       if not _same_values(np.asarray(x), np.asarray(y))]
+                assert not bad, f"{el.name}.{name}: list rows {bad[:5]} differ from plyfile's"
+            else:
+                assert (a.dtype.kind, a.dtype.itemsize) == (b.dtype.kind, b.dtype.itemsize)
+                assert _same_values(a, b.astype(a.dtype)), f"{el.name}.{name} differs"
+    names = ref["vertex"].data.dtype.names if "vertex" in ref else ()
+    if {"x", "y", "z"} <= set(names):
+        xyz = np.column_stack([ref["vertex"].data[c].astype(np.float64) for c in "xyz"])
+        assert _same_values(model.positions, xyz), "positions differ from plyfile's x, y, z"
 
 
 @settings(max_examples=400, derandomize=True, deadline=None, database=None,

@@ -1,7 +1,7 @@
 """The package's layers, read from the source: the config layer (splatdeform.edit) is the only
 one that knows the edit config, and every import points down the data flow.
 
-    errors, interrupts < model, geometry, resources < io, rbf, info, memory < basis < deform
+    errors, interrupts, blas < model, geometry, resources < io, rbf, info, memory < basis < deform
     < render < edit < editor, batch < cli
 
 (import statements anywhere in a module count, lazy ones inside functions too).
@@ -15,7 +15,7 @@ from pathlib import Path
 import pytest
 
 PACKAGE = Path(__file__).resolve().parents[1] / "splatdeform"
-RANK = {"errors": 0, "lazy": 0, "interrupts": 0, "model": 1, "geometry": 1, "resources": 1,
+RANK = {"errors": 0, "lazy": 0, "interrupts": 0, "blas": 0, "model": 1, "geometry": 1, "resources": 1,
         "io": 2, "rbf": 2, "info": 2, "memory": 2, "basis": 3, "deform": 4, "render": 5, "edit": 6,
         "editor": 7, "batch": 7, "cli": 8}
 CONFIG_LAYER = "edit"

@@ -10,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import bar_edit
 
 # VmHWM, not ru_maxrss: the latter keeps the forking parent's peak across exec
 MEASURE = """
@@ -92,13 +93,10 @@ def test_deform_bytes_bounds_the_measured_deform_peak(tmp_path: Path) -> None:
 
     (scan,), _ = make_scans(tmp_path, 1, 150_000, spheres=False, zip_name=None)
     cfg = tmp_path / "e.yaml"
-    cfg.write_text(yaml.safe_dump({
-        "input": str(scan), "output": str(tmp_path / "out.ply"), "backend": "numpy",
-        "regions": {"units": "relative",
-                    "fixed": [{"box": {"min": [0, 0, 0], "max": [0.25, 1, 1]}}],
-                    "handle": [{"box": {"min": [0.75, 0, 0], "max": [1, 1, 1]}}]},
-        "handle": {"transform": {"pivot": [0.75, 0.5, 0.5],
-                                 "rotate": {"axis": [0, 0, 1], "degrees": 35}}}}))
+    edit = bar_edit({"pivot": [0.75, 0.5, 0.5], "rotate": {"axis": [0, 0, 1], "degrees": 35}},
+                    input=str(scan), output=str(tmp_path / "out.ply"))
+    del edit["fit"]   # the default fit, the one the estimate is for
+    cfg.write_text(yaml.safe_dump(edit))
     r = subprocess.run([sys.executable, "-c", DEFORM, str(cfg), str(scan)], capture_output=True,
                        text=True, timeout=600, check=True)
     measured, estimate = map(int, r.stdout.split()[-2:])

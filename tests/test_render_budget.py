@@ -13,7 +13,7 @@ import laspy
 import numpy as np
 import pytest
 import yaml
-from conftest import ROOT
+from conftest import ROOT, bar_edit
 from PIL import Image
 
 from data_tools.lidar import write_lidar
@@ -171,12 +171,7 @@ def test_streamed_deform_renders_before_after(tmp_path: Path, capsys) -> None:
     input and output files side by side, each within half the budget."""
     src = tmp_path / "bar.ply"
     save(bumpy_bar(120_000, seed=5), src)
-    cfg = {"input": str(src), "output": "out.ply",
-           "regions": {"units": "relative",
-                       "fixed": [{"box": {"min": [0, 0, 0], "max": [0.25, 1, 1]}}],
-                       "handle": [{"box": {"min": [0.75, 0, 0], "max": [1, 1, 1]}}]},
-           "handle": {"transform": {"translate": [0, 0.3, 0]}},
-           "fit": {"tolerance": 1e-3}, "backend": "numpy"}
+    cfg = bar_edit({"translate": [0, 0.3, 0]}, input=str(src), output="out.ply")
     path = tmp_path / "edit.yaml"
     path.write_text(yaml.safe_dump(cfg))
     png = tmp_path / "ba.png"

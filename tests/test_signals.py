@@ -23,8 +23,6 @@ from test_stream import EDIT
 from data_tools.synth import bumpy_bar
 from splatdeform.io import save
 
-pytest.importorskip("distributed")
-
 TIMEOUT = 300
 Trigger = Callable[[Path, str], bool]
 

@@ -5,7 +5,6 @@ bad budgets."""
 
 from __future__ import annotations
 
-import resource
 import subprocess
 import sys
 from pathlib import Path
@@ -14,7 +13,7 @@ import laspy
 import numpy as np
 import pytest
 import yaml
-from conftest import ROOT, shared_file
+from conftest import ROOT, bar_edit, shared_file
 
 from data_tools.synth import bumpy_bar
 from splatdeform import memory
@@ -22,18 +21,12 @@ from splatdeform.cli import main
 from splatdeform.edit.config import load_edit
 from splatdeform.edit.run import run_edit
 from splatdeform.edit.stream import parse_size, run_stream
+from splatdeform.errors import InputError
 from splatdeform.io import save
 from splatdeform.io.ply_format import read_ply
 
-EDIT = {
-    "regions": {"units": "relative",
-                "fixed": [{"box": {"min": [0, 0, 0], "max": [0.25, 1, 1]}}],
-                "handle": [{"box": {"min": [0.75, 0, 0], "max": [1, 1, 1]}}]},
-    "handle": {"transform": {"pivot": [0.75, 0.5, 0.5],
-                             "rotate": {"axis": [0, 0, 1], "degrees": 35},
-                             "translate": [0, 0.1, 0]}},
-    "fit": {"tolerance": 1e-3},
-}
+EDIT = bar_edit({"pivot": [0.75, 0.5, 0.5], "rotate": {"axis": [0, 0, 1], "degrees": 35},
+                 "translate": [0, 0.1, 0]}, backend=None)
 
 
 def write_edit(folder: Path, inp: Path, out: str, **extra) -> Path:
@@ -192,18 +185,18 @@ def test_not_streamable_inputs(tmp_path: Path, capsys) -> None:
     model = bumpy_bar(2_000, seed=1)
     save(model, tmp_path / "a.ply", text=True)
     cfg = write_edit(tmp_path, tmp_path / "a.ply", "o.ply")
-    with pytest.raises(Exception, match="binary PLY"):
+    with pytest.raises(InputError, match="binary PLY"):
         run_stream(load_edit(cfg), tmp_path, quiet=True)
     save(model, tmp_path / "b.ply")
     cfg = write_edit(tmp_path, tmp_path / "b.ply", "o.las")
-    with pytest.raises(Exception, match="input's format"):
+    with pytest.raises(InputError, match="input's format"):
         run_stream(load_edit(cfg), tmp_path, quiet=True)
     two = dict(EDIT, input="b.ply", output="o.ply", handles=[
         {"region": EDIT["regions"]["handle"], **EDIT["handle"]}])
     two["regions"] = {k: v for k, v in EDIT["regions"].items() if k != "handle"}
     (tmp_path / "two.yaml").write_text(yaml.safe_dump({k: v for k, v in two.items()
                                                        if k != "handle"}))
-    with pytest.raises(Exception, match="several handles"):
+    with pytest.raises(InputError, match="several handles"):
         run_stream(load_edit(tmp_path / "two.yaml"), tmp_path, quiet=True)
 
 
@@ -241,7 +234,6 @@ def test_peak_memory_bounded_by_budget(tmp_path: Path) -> None:
     assert rc == 0
     assert peak_kb * 1024 < budget_mb * 2**20, f"peak RSS {peak_kb / 1024:.0f} MB"
     assert vertex(tmp_path / "out.ply").shape == (n,)
-    assert resource.getrusage(resource.RUSAGE_SELF).ru_maxrss > 0
 
 
 def test_big_handle_frame_from_streamed_moments(bar: Path, tmp_path: Path) -> None:

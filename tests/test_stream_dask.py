@@ -11,8 +11,10 @@ import threading
 import time
 from pathlib import Path
 
+import distributed
 import pytest
 import yaml
+from conftest import bar_edit
 from test_stream import assert_same_result
 
 from data_tools.synth import bumpy_bar
@@ -21,17 +23,7 @@ from splatdeform.edit.config import load_edit
 from splatdeform.edit.stream import run_stream
 from splatdeform.io import save
 
-distributed = pytest.importorskip("distributed")
-
-EDIT = {
-    "regions": {"units": "relative",
-                "fixed": [{"box": {"min": [0, 0, 0], "max": [0.25, 1, 1]}}],
-                "handle": [{"box": {"min": [0.75, 0, 0], "max": [1, 1, 1]}}]},
-    "handle": {"transform": {"rotate": {"axis": [0, 0, 1], "degrees": 30},
-                             "translate": [0, 0.1, 0]}},
-    "fit": {"tolerance": 1e-3},
-    "backend": "numpy",
-}
+EDIT = bar_edit({"rotate": {"axis": [0, 0, 1], "degrees": 30}, "translate": [0, 0.1, 0]})
 CHUNK = 2_500
 
 

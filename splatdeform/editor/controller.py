@@ -27,7 +27,6 @@ Example::
 
 from __future__ import annotations
 
-import os
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -35,13 +34,14 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import yaml
 
+from splatdeform.blas import blas_threads
 from splatdeform.deform import arrays as ap
 from splatdeform.deform.handle import delta_for_transform
 from splatdeform.deform.regions import check_regions
 from splatdeform.edit.config import EditConfig, load_edit, parse_edit
 from splatdeform.edit.selectors import Selector, select
+from splatdeform.edit.writer import edit_yaml, yaml_text
 
 from .. import deform as df
 from ..basis import resolve_backend
@@ -51,7 +51,6 @@ from ..io import check_output_path, save
 from ..model import PointModel
 from . import selectors as sl
 from .curve import CurveState, CurveView, curve_view
-from .fastpath import covariance_frame
 
 ROLES = ("fixed", "handle")
 FREE, FIXED, HANDLE = 0, 1, 2
@@ -112,20 +111,6 @@ def _gaussian_cov6(model: PointModel) -> np.ndarray:
     g = model.gaussians
     f = scale_rotation_to_factor(g.scale_log, g.rotation)
     return triu6(f @ f.transpose(0, 2, 1))
-
-
-_BLAS = None
-
-
-def _one_blas_thread():
-    """Context: one BLAS thread for the per-frame products (an oversubscribed OpenBLAS pool on
-    a busy 2-core machine made them 10-30x slower, measured)."""
-    global _BLAS
-    if _BLAS is None:
-        from threadpoolctl import ThreadpoolController
-
-        _BLAS = ThreadpoolController()
-    return _BLAS.limit(limits=1, user_api="blas")
 
 
 class EditorController:
@@ -436,6 +421,13 @@ class EditorController:
             data["cov6_active"] = np.ascontiguousarray(data["cov6"][active])
         return data
 
+    def moving_points(self) -> np.ndarray | None:
+        """(M,) int64 indices of the points a pose moves (the non-fixed ones, the order of
+        ``frame.index`` in ``set_pose(full=False)``); None while there is no fresh fit."""
+        if self._frame_data is None or self.stale:
+            return None
+        return self._frame_data["active"]
+
     def base_frame(self) -> Frame:
         """The undeformed model as a :class:`Frame` (what the viewer shows before a fit)."""
         m = self.model
@@ -487,7 +479,7 @@ class EditorController:
         delta = self.delta_c()
         fd = self._frame_data
         active = fd["active"]
-        with _one_blas_thread():
+        with blas_threads(1):  # oversubscribed: 10-30x slower
             p, n = ap.deform_frame(fd["base_active"], fd.get("normals_active"), fd["values"],
                                    fd["grads"], delta)
             axes = cov6 = None
@@ -495,7 +487,7 @@ class EditorController:
                 jac = ap.jacobians(fd["grads"], delta.astype(np.float32))
                 axes = ap.transform_axes(jac, fd["axes"][active]).astype(np.float32)
             if "cov6" in fd:
-                cov6 = covariance_frame(fd["grads"], delta, fd["cov6_active"])
+                cov6 = ap.covariance_frame(fd["grads"], delta, fd["cov6_active"])
         if not full:
             return Frame(p, n, axes, cov6, delta, time.perf_counter() - t0, index=active)
 
@@ -534,44 +526,20 @@ class EditorController:
         """The edit config mapping (what :meth:`save` writes as YAML)."""
         cdir = Path(config_dir).resolve() if config_dir is not None else self.base_dir
         out = Path(output) if output is not None else self.default_paths()[0]
-        s = self.settings
 
-        def rows(m: np.ndarray) -> list[list[float]]:
-            return [[float(v) for v in row] for row in m]
+        def pose(h: HandleState) -> dict[str, Any]:
+            return {"region": [sl.to_yaml(x, self.base_dir) for x in h.selectors],
+                    "matrix": [[float(v) for v in row] for row in h.matrix]}
 
-        def region(h: HandleState) -> list[dict[str, Any]]:
-            return [sl.to_yaml(x, self.base_dir) for x in h.selectors]
-
-        data: dict[str, Any] = {
-            "input": _relative(self.model_path, cdir),
-            "output": _relative(out.resolve(), cdir),
-            "regions": {"units": self.units,
-                        "fixed": [sl.to_yaml(x, self.base_dir) for x in self.fixed]},
-        }
-        if self.curve is None and len(self.handles) == 1:
-            data["regions"]["handle"] = region(self.handles[0])
-            data["handle"] = {"matrix": rows(self.handles[0].matrix)}
-        elif self.live_handles():  # several, or handles with a curve: the handles: form
-            data["handles"] = [{"region": region(h), "matrix": rows(h.matrix)}
-                               for h in self.live_handles()]
-        if self.curve is not None:
-            data["curve"] = self.curve.to_yaml()
-        data.update({
-            "boundary": s.boundary.model_dump(),
-            "fit": s.fit.model_dump(),
-            "normals": s.normals,
-            "backend": s.backend,  # "auto" stays "auto": the YAML also runs without OpenCL
-        })
-        if s.device is not None:
-            data["device"] = s.device
-        if self.model.gaussians is not None or "gaussians" in s.model_fields_set:
-            data["gaussians"] = s.gaussians.model_dump()  # the mode the saved splats used
-        if s.render is not None:
-            render = s.render.model_dump()
-            if s.render.output is not None:
-                render["output"] = _relative((self.base_dir / s.render.output).resolve(), cdir)
-            data["render"] = render
-        return data
+        one = self.curve is None and len(self.handles) == 1
+        return edit_yaml(
+            self.settings, input_path=self.model_path, output_path=out.resolve(),
+            config_dir=cdir, base_dir=self.base_dir, units=self.units,
+            fixed=[sl.to_yaml(x, self.base_dir) for x in self.fixed],
+            handle=pose(self.handles[0]) if one else None,
+            handles=None if one else [pose(h) for h in self.live_handles()],
+            curve=None if self.curve is None else self.curve.to_yaml(),
+            gaussians=self.model.gaussians is not None)  # the mode the saved splats used
 
     def default_paths(self) -> tuple[Path, Path, Path]:
         """(model, yaml, png) Save writes by default. From a bare MODEL: MODEL_edited.<ext>,
@@ -630,12 +598,12 @@ class EditorController:
             if png.suffix.lower() != ".png":
                 raise InputError(f"{png}: expected a .png image file name")
         deformed = self.deformed_model()
-        text = yaml.safe_dump(self.to_yaml_dict(output=out, config_dir=ypath.resolve().parent),
-                              sort_keys=False, default_flow_style=None)
+        text = yaml_text(self.to_yaml_dict(output=out, config_dir=ypath.resolve().parent),
+                         "splatdeform edit written by the editor; reproduce with:\n"
+                         f"  splatdeform deform {ypath.name}")
         written = save(deformed, out)
         with atomic_write(ypath) as stream:
-            stream.write(("# splatdeform edit written by the editor; reproduce with:\n"
-                          f"#   splatdeform deform {ypath.name}\n" + text).encode())
+            stream.write(text.encode())
         if image:
             from ..render import View, render_comparison
 
@@ -652,12 +620,3 @@ def _bare_settings(model_path: Path) -> dict[str, Any]:
     return {"input": str(model_path), "output": "unused.ply",
             "regions": {"fixed": [{"indices": [0]}], "handle": [{"indices": [0]}]},
             "handle": {"matrix": np.eye(4).tolist()}}
-
-
-def _relative(path: Path, base: Path) -> str:
-    """``path`` relative to ``base`` when it is inside it, else absolute."""
-    try:
-        return str(Path(os.path.relpath(path, base))) if path.is_relative_to(base) else str(path)
-    except ValueError:
-        return str(path)
-

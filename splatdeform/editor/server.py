@@ -123,12 +123,11 @@ class EditorApp:
         pose moves (non-fixed, ``frame.index`` of later frames) first, so a pose change writes
         one contiguous block instead of scattering. Called after each fit (the order changes;
         rows that became fixed show the undeformed points again)."""
-        d = self.ed._frame_data
+        active = self.ed.moving_points()
         n = self.model.n_points
-        if d is None or self.ed.stale:
+        if active is None:
             self._perm, self._n_act = np.arange(n), n
         else:
-            active = d["active"]
             fixed = np.ones(n, dtype=bool)
             fixed[active] = False
             self._perm, self._n_act = np.concatenate([active, np.flatnonzero(fixed)]), len(active)

@@ -13,15 +13,14 @@ R W = Q1^T rhs once.
 
 from __future__ import annotations
 
-import functools
 from collections.abc import Callable, Iterator
-from contextlib import AbstractContextManager, nullcontext
 from typing import Literal
 
 import numpy as np
 from scipy.linalg import lapack, solve_triangular
 from scipy.spatial.distance import cdist
 
+from splatdeform.blas import blas_threads
 from splatdeform.errors import InputError, ProcessingError
 from splatdeform.rbf.defaults import DEFAULT_MAX_CENTERS, DEFAULT_TOLERANCE
 from splatdeform.rbf.kernel import triharmonic
@@ -200,26 +199,6 @@ def _tail_residuals(rows: np.ndarray) -> np.ndarray:
 
 Selection = Literal["greedy", "fps"]
 
-
-
-def blas_threads(threads: int | None) -> AbstractContextManager:
-    """Limit the BLAS thread pool to ``threads`` inside the block (None: leave it alone).
-
-    The fitter makes many small BLAS calls; on a busy machine an unlimited OpenBLAS pool spins
-    threads against other processes (measured 8x slower on 2 cores), so it limits itself.
-    """
-    if threads is None:
-        return nullcontext()
-    return _controller().limit(limits=int(threads), user_api="blas")
-
-
-@functools.cache
-def _controller():
-    """One threadpoolctl controller per process: creating one scans the loaded libraries
-    (about a millisecond, as much as a whole small fit)."""
-    from threadpoolctl import ThreadpoolController
-
-    return ThreadpoolController()
 
 
 class _Centers:

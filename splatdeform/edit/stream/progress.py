@@ -1,4 +1,6 @@
-"""Progress lines for the long passes: points done, percent, points per second (stderr)."""
+"""Progress of the long passes on stderr: a tqdm bar when stderr is a terminal, else a plain
+line (points done, percent, points per second) at most every few seconds; a closing line either
+way. Batch runs use tqdm the same way (a bar on a terminal, a line per scan otherwise)."""
 
 from __future__ import annotations
 
@@ -19,7 +21,8 @@ def _peak() -> str:
 
 class Progress:
     """Reports a pass over ``total`` points at most every ``every`` seconds, and once at the
-    end; silent when ``quiet``. ``sink`` receives each line (default: stderr)."""
+    end; silent when ``quiet``. ``sink`` receives each line (default: stderr, where a terminal
+    gets a tqdm bar instead of the intermediate lines)."""
 
     def __init__(self, name: str, total: int, *, quiet: bool = False, every: float = 2.0,
                  sink: Callable[[str], None] | None = None) -> None:
@@ -27,12 +30,21 @@ class Progress:
         self.sink = sink or (lambda line: print(line, file=sys.stderr, flush=True))
         self.done = 0
         self.t0 = self.last = time.perf_counter()
+        self.bar = None
+        if not quiet and sink is None and sys.stderr.isatty():
+            from tqdm import tqdm
+
+            self.bar = tqdm(total=self.total, desc=name, unit=" points", unit_scale=True,
+                            mininterval=min(every, 0.5), dynamic_ncols=True, leave=False)
 
     def rate(self) -> float:
         return self.done / max(time.perf_counter() - self.t0, 1e-9)
 
     def update(self, points: int) -> None:
         self.done += int(points)
+        if self.bar is not None:
+            self.bar.update(int(points))
+            return
         now = time.perf_counter()
         if not self.quiet and now - self.last >= self.every and self.done < self.total:
             self.last = now
@@ -43,6 +55,9 @@ class Progress:
     def finish(self) -> float:
         """Print the closing line; returns the pass's seconds."""
         seconds = time.perf_counter() - self.t0
+        if self.bar is not None:
+            self.bar.close()
+            self.bar = None
         if not self.quiet:
             self.sink(f"{self.name}: {self.done:,} points in {seconds:.1f} s "
                       f"({self.rate() / 1e6:.2f} M points/s)" + _peak())
