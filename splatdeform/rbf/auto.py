@@ -21,7 +21,7 @@ dense solve through the kept points is many times cheaper. So ``auto``
    solve once its predicted cost so far has passed that dense cost, or once the centers it is
    heading for (log-linear extrapolation of the largest |r| from half its centers to now, down
    to the tolerance, the remaining centers times :data:`HEADING_FACTOR`) predict a remaining
-   cost above it at two checks in a row;
+   cost above it at two checks in a row (or :data:`FAR_PAST` times above it at one);
 3. also switches when the incremental fit stops at ``max_centers`` above the tolerance, so every
    scene the dense solve can take converges;
 4. and when the incremental fit met the tolerance on the kept constraints but misses a dropped
@@ -85,6 +85,9 @@ HEADING_AFTER = 160
 #: end than from 112 to 176 on the scenes of ``benchmarks/fit_table.py``); with it the
 #: heading at 176 centers was within -20% .. +40% of the final count on every scene.
 HEADING_FACTOR = 3.0
+#: A heading whose remaining cost passes the dense cost this many times over stops the
+#: incremental fit at once (else it takes two checks in a row).
+FAR_PAST = 2.0
 #: Largest |r| over every ring point (kept or dropped) that ``auto`` accepts from a thinned
 #: incremental fit, in tolerances; above it the dense solve runs (README: "Fit benchmark").
 BOUNDARY_FACTOR = 10.0
@@ -221,9 +224,12 @@ def fit_auto(points: np.ndarray, rhs: np.ndarray, *, kept: np.ndarray | None = N
         if spent >= choice.target:
             return True
         heading = heading_for(history, tol) if n >= HEADING_AFTER else None
-        passed = heading is not None and \
-            incremental_seconds(m_kept, min(heading, 1e9)) - spent > choice.target
-        give_up, over[0] = passed and over[0], passed  # twice in a row: not one plateau
+        left = math.inf if heading is None else \
+            incremental_seconds(m_kept, min(heading, 1e9)) - spent
+        passed = heading is not None and left > choice.target
+        # twice in a row (not one plateau), or once by far
+        give_up = passed and (over[0] or left > FAR_PAST * choice.target)
+        over[0] = passed
         return give_up
 
     try:
