@@ -23,6 +23,7 @@ from scipy.linalg import lapack, solve_triangular
 
 from splatdeform.errors import InputError, ProcessingError
 from splatdeform.rbf.defaults import DEFAULT_MAX_CENTERS, DEFAULT_TOLERANCE
+from splatdeform.rbf.fps import squared_distances
 from splatdeform.rbf.result import Normalization, RbfFit
 
 _NB = 64  # LAPACK workspace block size hint
@@ -263,14 +264,7 @@ class _Centers:
 
     def _take(self, i: int, d2: np.ndarray) -> None:
         """Pick i: d2 (m,) <- squared distances to it; fold them into the nearest distances."""
-        c, tmp = self.coords, self._tmp
-        np.subtract(c[0], c[0, i], out=d2)
-        np.multiply(d2, d2, out=d2)
-        for a in (1, 2):
-            np.subtract(c[a], c[a, i], out=tmp)
-            np.multiply(tmp, tmp, out=tmp)
-            d2 += tmp
-        np.minimum(self.dist2, d2, out=self.dist2)
+        np.minimum(self.dist2, squared_distances(self.coords, i, d2, self._tmp), out=self.dist2)
         self.count += 1
 
     def next_block(self, size: int, residual: np.ndarray | None) -> list[int]:
