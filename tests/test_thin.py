@@ -25,6 +25,7 @@ from splatdeform.edit.run import format_report, run_edit
 from splatdeform.io import save
 from splatdeform.model import PointModel
 from splatdeform.rbf.auto import (
+    SMALL_DENSE,
     choose_method,
     dense_seconds,
     fit_auto,
@@ -171,8 +172,12 @@ def test_default_fit_close_to_scipy_through_every_ring_point(shell):
 def test_auto_picks_by_predicted_cost():
     small = choose_method(300, 280, 2)
     assert small.method == "exact" and small.dense <= small.incremental_start
-    # a small scene solves through every point at once, however much thinning dropped
-    assert choose_method(1200, 300, 1).method == "exact"
+    # a small scene solves densely at once, through the kept points (predicted cheaper)
+    small_thinned = choose_method(1200, 300, 1)
+    assert small_thinned.method == "exact-kept"
+    assert small_thinned.dense_kept < small_thinned.dense <= SMALL_DENSE
+    # a tiny one (a few milliseconds) through every point, however much thinning dropped
+    assert choose_method(500, 100, 1).method == "exact"
     large = choose_method(9000, 3000, 2)
     assert large.method == "incremental" and large.incremental_start < large.dense
     assert choose_method(20_000, 5000, 16).method == "incremental"  # beyond the dense limit
@@ -313,6 +318,6 @@ def test_auto_dense_through_the_kept_points_meets_every_ring_point():
     assert np.array_equal(again.weights, fit.weights)  # deterministic
     two = fit_auto(pts, rhs, kept=kept, tolerance=tol, threads=2, max_centers=20)
     assert (two.method, two.n_centers) == (fit.method, fit.n_centers)  # whatever the threads
-    # a small scene (the solve through all of it predicted cheap) goes through every point
-    small = fit_auto(pts[:1000], rhs[:1000], kept=kept[:1000], tolerance=tol, threads=1)
-    assert small.method == "exact" and small.n_centers == 1000
+    # a tiny scene (the solve through all of it predicted a few ms) goes through every point
+    small = fit_auto(pts[:500], rhs[:500], kept=kept[:500], tolerance=tol, threads=1)
+    assert small.method == "exact" and small.n_centers == 500

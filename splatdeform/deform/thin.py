@@ -76,7 +76,15 @@ def thin_rings(positions: np.ndarray, rings: list[np.ndarray], neighbors: int,
     """Mask (sum of ring sizes,) bool over the concatenated rings: the kept constraints.
 
     positions: (N, 3) of the model; rings: index arrays into it, in constraint order.
+    Rings totalling so few points that ``fit.method: auto`` solves through every one of them
+    (:data:`splatdeform.rbf.auto.TINY_DENSE`) are kept whole: thinning them would cost as much
+    as that solve.
     """
+    from splatdeform.rbf.auto import TINY_DENSE, dense_seconds
+
+    total = sum(int(ring.size) for ring in rings)
+    if dense_seconds(total, 1) <= TINY_DENSE:
+        return np.ones(total, dtype=bool)
     parts = []
     for ring in rings:
         keep = np.zeros(ring.size, dtype=bool)

@@ -12,25 +12,27 @@ per-block overheads. On thick noisy rings it needs a center for most kept points
 dense solve through the kept points is many times cheaper. So ``auto``
 
 1. solves densely through every point at once when that is predicted to take at most
-   :data:`SMALL_DENSE` seconds (small scenes: nothing worth a failed thinned attempt to win);
-   else solves densely at once (through the kept points when that is predicted cheaper than
-   through all, method "exact-kept"; else "exact") when even the incremental fit's first
-   blocks are predicted to cost more;
+   :data:`TINY_DENSE` seconds (nothing to win); else densely at once (through the kept points
+   when that is predicted cheaper than through all, method "exact-kept"; else "exact") when
+   the solve through every point is predicted to take at most :data:`SMALL_DENSE` seconds
+   (small scenes: little to win), or when even the incremental fit's first blocks are
+   predicted to cost more;
 2. else runs the incremental fit and, after each block, stops and switches to the cheaper dense
    solve once its predicted cost so far has passed that dense cost, or once the centers it is
    heading for (log-linear extrapolation of the largest |r| from half its centers to now, down
-   to the tolerance) predict a remaining cost above it at two checks in a row;
+   to the tolerance, the remaining centers times :data:`HEADING_FACTOR`) predict a remaining
+   cost above it at two checks in a row (or :data:`FAR_PAST` times above it at one);
 3. also switches when the incremental fit stops at ``max_centers`` above the tolerance, so every
    scene the dense solve can take converges;
 4. and when the incremental fit met the tolerance on the kept constraints but misses a dropped
-   ring point by more than :data:`BOUNDARY_FACTOR` times the tolerance (|r| over every ring
+   ring point by more than :data:`BOUNDARY_FACTOR` times the tolerance (|r| over the dropped ring
    point, one cheap evaluation): thinning is only used where it keeps the boundary.
 
 A dense solve through the kept points is checked the same way; the dropped ring points it
 misses by more than :data:`BOUNDARY_FACTOR` tolerances join the kept set and it is solved again
-(the fit's ``kept`` says which points it went through), as long as the predicted costs so far
-stay below half the dense solve through every point (the first always runs when it is the
-cheaper), which runs otherwise.
+(the fit's ``kept`` says which points it went through), as long as the predicted costs of
+these retries stay below :data:`DENSE_KEPT_SHARE` of the dense solve through every point,
+which runs otherwise.
 
 The constants are from ``benchmarks/fit_table.py`` on the development machine (README: "Fit
 benchmark"); they are costs in seconds on one core, only their ratios matter. Decisions use the
@@ -48,7 +50,7 @@ import numpy as np
 from splatdeform.errors import InputError
 from splatdeform.rbf.defaults import DEFAULT_MAX_CENTERS, DEFAULT_TOLERANCE
 from splatdeform.rbf.exact import EXACT_MAX_CONSTRAINTS, dense_threads, fit_exact
-from splatdeform.rbf.fit import fit_incremental
+from splatdeform.rbf.fit import blas_threads, fit_incremental
 from splatdeform.rbf.result import Normalization, RbfFit
 
 #: Flop rate of one thread in the dense Cholesky (BLAS-3, large blocks; ~40-50 measured).
@@ -57,22 +59,35 @@ DENSE_FLOPS = 40e9
 DENSE_SCALING = 0.8
 #: Seconds per kernel-matrix entry (cdist, cube, the rank-8 update).
 DENSE_ENTRY = 5e-9
-#: Seconds per (ring point x center) of the boundary check of a thinned dense solve.
-CHECK_ENTRY = 1e-8
-#: Effective flop rate of the incremental fit's blocked QR on its one thread (~5-7 measured).
-INCREMENTAL_FLOPS = 6e9
+#: Seconds per (dropped ring point x center) of the boundary check of a thinned fit (the kept
+#: points are met by the fit itself: a dense solve interpolates them, the incremental fit
+#: meets the tolerance there).
+CHECK_ENTRY = 7e-9
+#: Effective flop rate of the incremental fit's blocked QR on its one thread (~10-12 measured
+#: with one compact-WY T per block).
+INCREMENTAL_FLOPS = 10e9
 #: Seconds per (kept constraint x center) for the picks, kernel columns and residual checks.
-INCREMENTAL_ENTRY = 1.5e-8
+INCREMENTAL_ENTRY = 1e-8
 #: Seconds of fixed cost per center block (Python, LAPACK calls, the residual recovery).
 INCREMENTAL_BLOCK = 1.5e-3
-#: Predicted seconds below which the dense solve through every point runs at once (m up to
-#: about 1,500 on one thread): a thinned attempt that fails its boundary check costs about as
-#: much again, and there is at most this much to win.
+#: Predicted seconds below which a dense solve runs at once (m up to about 1,500 on one
+#: thread): the cheaper of the solve through every point and through the kept points.
 SMALL_DENSE = 0.04
+#: Predicted seconds below which the solve through every point runs at once (m up to about
+#: 800): a few milliseconds, about the cost of one thinned solve and its boundary check.
+TINY_DENSE = 0.006
 #: Centers of the first blocks (16 + 32 + 64): the least work an incremental fit does.
 FIRST_CENTERS = 112
 #: Centers before the extrapolated heading is trusted.
-HEADING_AFTER = 128
+HEADING_AFTER = 160
+#: The centers still to add, as the log-linear extrapolation predicts them, times this: the
+#: largest |r| falls more slowly as the fit goes on (3-7x more slowly from 176 centers to the
+#: end than from 112 to 176 on the scenes of ``benchmarks/fit_table.py``); with it the
+#: heading at 176 centers was within -20% .. +40% of the final count on every scene.
+HEADING_FACTOR = 3.0
+#: A heading whose remaining cost passes the dense cost this many times over stops the
+#: incremental fit at once (else it takes two checks in a row).
+FAR_PAST = 2.0
 #: Largest |r| over every ring point (kept or dropped) that ``auto`` accepts from a thinned
 #: incremental fit, in tolerances; above it the dense solve runs (README: "Fit benchmark").
 BOUNDARY_FACTOR = 10.0
@@ -105,8 +120,8 @@ def _blocks(n: int, block: int) -> int:
 
 def dense_kept_seconds(m_all: int, m_kept: int, threads: int) -> float:
     """Predicted seconds of the dense solve through ``m_kept`` of ``m_all`` constraints and its
-    boundary check at all of them."""
-    return dense_seconds(m_kept, threads) + CHECK_ENTRY * m_all * m_kept
+    boundary check at the ``m_all - m_kept`` dropped ones."""
+    return dense_seconds(m_kept, threads) + CHECK_ENTRY * (m_all - m_kept) * m_kept
 
 
 @dataclass(frozen=True)
@@ -139,8 +154,10 @@ def choose_method(m_all: int, m_kept: int, threads: int) -> Choice:
     kept = dense_kept_seconds(m_all, m_kept, threads) if m_kept < m_all else math.inf
     start = incremental_seconds(m_kept, min(m_kept, FIRST_CENTERS))
     first = Choice("incremental", dense, kept, start)
-    if dense <= SMALL_DENSE:
+    if dense <= TINY_DENSE:
         return Choice("exact", dense, kept, start)
+    if dense <= SMALL_DENSE:
+        return Choice(first.dense_method, dense, kept, start)
     if start >= first.target:
         return Choice(first.dense_method, dense, kept, start)
     return first
@@ -154,7 +171,7 @@ def heading_for(history: list[tuple[int, float]], tolerance: float) -> float | N
     if len(history) < 2 or tolerance <= 0:
         return None
     n1, e1 = history[-1]
-    n0, e0 = next((h for h in history if h[0] >= n1 // 2), history[-2])
+    n0, e0 = next((h for h in history if h[0] >= n1 // 3), history[-2])
     if n0 >= n1:
         n0, e0 = history[-2]
     if not (n1 > n0 and e0 > 0 and e1 > 0 and e1 < e0):
@@ -162,7 +179,7 @@ def heading_for(history: list[tuple[int, float]], tolerance: float) -> float | N
     if e1 <= tolerance:
         return float(n1)
     slope = (math.log(e0) - math.log(e1)) / (n1 - n0)
-    return n1 + (math.log(e1) - math.log(tolerance)) / slope
+    return n1 + HEADING_FACTOR * (math.log(e1) - math.log(tolerance)) / slope
 
 
 def fit_auto(points: np.ndarray, rhs: np.ndarray, *, kept: np.ndarray | None = None,
@@ -207,9 +224,12 @@ def fit_auto(points: np.ndarray, rhs: np.ndarray, *, kept: np.ndarray | None = N
         if spent >= choice.target:
             return True
         heading = heading_for(history, tol) if n >= HEADING_AFTER else None
-        passed = heading is not None and \
-            incremental_seconds(m_kept, min(heading, 1e9)) - spent > choice.target
-        give_up, over[0] = passed and over[0], passed  # twice in a row: not one plateau
+        left = math.inf if heading is None else \
+            incremental_seconds(m_kept, min(heading, 1e9)) - spent
+        passed = heading is not None and left > choice.target
+        # twice in a row (not one plateau), or once by far
+        give_up = passed and (over[0] or left > FAR_PAST * choice.target)
+        over[0] = passed
         return give_up
 
     try:
@@ -222,7 +242,8 @@ def fit_auto(points: np.ndarray, rhs: np.ndarray, *, kept: np.ndarray | None = N
         return fit_exact(pts, b, normalization=normalization, threads=n_threads)
     if math.isinf(choice.target):
         return fit
-    if fit.converged and (kept is None or all_errors(fit, pts, b) <= BOUNDARY_FACTOR * tol):
+    if fit.converged and (kept is None or
+                          all_errors(fit, pts[~kept], b[~kept]) <= BOUNDARY_FACTOR * tol):
         return fit
     return dense(choice.dense_method, fit)
 
@@ -231,7 +252,7 @@ def fit_auto(points: np.ndarray, rhs: np.ndarray, *, kept: np.ndarray | None = N
 DENSE_ROUNDS = 4
 #: The kept-set solves stop once their predicted costs pass this share of the solve through
 #: every point (the most they can waste before it).
-DENSE_KEPT_SHARE = 0.5
+DENSE_KEPT_SHARE = 0.3
 
 
 def _dense(pts: np.ndarray, b: np.ndarray, kept: np.ndarray | None, tol: float,
@@ -243,17 +264,20 @@ def _dense(pts: np.ndarray, b: np.ndarray, kept: np.ndarray | None, tol: float,
     if kept is not None:
         mask = np.asarray(kept, dtype=bool).copy()
         m_all, spent = pts.shape[0], 0.0
-        for _ in range(DENSE_ROUNDS):
+        for round_ in range(DENSE_ROUNDS):
             count = int(np.count_nonzero(mask))
-            spent += dense_kept_seconds(m_all, count, 1)
-            if spent >= DENSE_KEPT_SHARE * dense_all and count > np.count_nonzero(kept):
-                break  # too many misses: thinning does not keep this boundary
+            if round_:  # the first was chosen as the cheapest: only the retries can waste
+                spent += dense_kept_seconds(m_all, count, 1)
+                if spent >= DENSE_KEPT_SHARE * dense_all:
+                    break  # too many misses: thinning does not keep this boundary
             try:
                 fit = fit_exact(pts[mask], b[mask], normalization=normalization,
                                 threads=threads)
             except InputError:
                 break  # the kept subset alone is degenerate (e.g. flat)
-            miss = point_errors(fit, pts, b) > BOUNDARY_FACTOR * tol
+            out = np.flatnonzero(~mask)  # the points it went through it interpolates
+            miss = np.zeros_like(mask)
+            miss[out] = point_errors(fit, pts[out], b[out]) > BOUNDARY_FACTOR * tol
             if not miss.any():
                 return replace(fit, method="exact-kept", tolerance=tol,
                                kept=None if np.array_equal(mask, kept) else mask)
@@ -277,6 +301,13 @@ def point_errors(fit: RbfFit, points: np.ndarray, rhs: np.ndarray,
 
     x = fit.normalization.apply(points)
     out = np.zeros(x.shape[0])
+    with blas_threads(1):  # k right-hand sides: a thread pool only spins (10x slower when busy)
+        _point_errors(fit, x, rhs, chunk, cdist, out)
+    return out
+
+
+def _point_errors(fit: RbfFit, x: np.ndarray, rhs: np.ndarray, chunk: int, cdist,
+                  out: np.ndarray) -> None:
     for a in range(0, x.shape[0], chunk):
         xa = x[a:a + chunk]
         val = fit.weights[0] + xa @ fit.weights[1:4]
@@ -285,4 +316,3 @@ def point_errors(fit: RbfFit, points: np.ndarray, rhs: np.ndarray,
             val = val + (dist * dist * dist) @ fit.weights[4:]
         out[a:a + chunk] = np.abs(np.asarray(rhs[a:a + chunk], dtype=np.float64) - val).max(
             axis=1)
-    return out

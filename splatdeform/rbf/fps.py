@@ -14,6 +14,19 @@ import numpy as np
 from splatdeform.errors import InputError
 
 
+def squared_distances(coords: np.ndarray, i: int, out: np.ndarray,
+                      tmp: np.ndarray) -> np.ndarray:
+    """out (M,) <- squared distances of the points coords (3, M) (one contiguous row per
+    coordinate) to point i; tmp (M,) is scratch. Returns out."""
+    np.subtract(coords[0], coords[0, i], out=out)
+    np.multiply(out, out, out=out)
+    for c in (1, 2):
+        np.subtract(coords[c], coords[c, i], out=tmp)
+        np.multiply(tmp, tmp, out=tmp)
+        out += tmp
+    return out
+
+
 def iter_farthest_points(points: np.ndarray) -> Iterator[int]:
     """Yield indices of ``points`` (M, 3) in farthest-point order, lazily.
 
@@ -30,13 +43,7 @@ def iter_farthest_points(points: np.ndarray) -> Iterator[int]:
     tmp = np.empty(pts.shape[0])
     while True:
         yield nxt
-        np.subtract(coords[0], coords[0, nxt], out=d2)
-        np.multiply(d2, d2, out=d2)
-        for c in (1, 2):
-            np.subtract(coords[c], coords[c, nxt], out=tmp)
-            np.multiply(tmp, tmp, out=tmp)
-            d2 += tmp
-        np.minimum(dist2, d2, out=dist2)
+        np.minimum(dist2, squared_distances(coords, nxt, d2, tmp), out=dist2)
         nxt = int(np.argmax(dist2))
         if not dist2[nxt] > 0.0:
             return
