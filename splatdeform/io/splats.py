@@ -166,6 +166,35 @@ def note_lossy(path: str | Path, fmt: str, losses: str | None, model: PointModel
 
 
 FIELD_ORDER = ("positions", "sh_dc", "sh_rest", "opacity", "scale_log", "rotation")
+FIELD_WIDTH = {"positions": 3, "sh_dc": 3, "opacity": 1, "scale_log": 3, "rotation": 4}
+
+
+def gaussian_names(n_rest: int) -> list[str]:
+    """The standard 3DGS vertex property names with ``n_rest`` f_rest_* values."""
+    return [*"xyz", *(f"f_dc_{i}" for i in range(3)), *(f"f_rest_{i}" for i in range(n_rest)),
+            "opacity", *(f"scale_{i}" for i in range(3)), *(f"rot_{i}" for i in range(4))]
+
+
+def gaussian_table(n: int, n_rest: int) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+    """An empty (N, 14 + n_rest) float32 table in the standard 3DGS property order and, by
+    field name (:data:`FIELD_ORDER`), its (N, width) column views: a decoder writes each decoded
+    field straight into them (no intermediate float arrays), then calls :func:`table_source`."""
+    table = np.empty((n, 14 + n_rest), dtype="<f4")
+    views, at = {}, 0
+    for name in FIELD_ORDER:
+        width = n_rest if name == "sh_rest" else FIELD_WIDTH[name]
+        views[name] = table[:, at:at + width]
+        at += width
+    return table, views
+
+
+def table_source(table: np.ndarray, comments: list[str]) -> PlySource:
+    """The 3DGS PlySource viewing a :func:`gaussian_table` (no copy)."""
+    names = gaussian_names(table.shape[1] - 14)
+    data = table.view([(name, "<f4") for name in names]).reshape(len(table))
+    props = [PlyProperty(name, "f4", "float") for name in names]
+    return PlySource(elements=[PlyElementData("vertex", props, data)], comments=comments,
+                     text=False, byte_order="<")
 
 
 def gaussian_source(fields: SplatFields, comments: list[str], *,
@@ -177,22 +206,12 @@ def gaussian_source(fields: SplatFields, comments: list[str], *,
     n = fields.count
     k = fields.sh_rest.shape[1] * fields.sh_rest.shape[2] if fields.sh_rest.ndim == 3 else \
         fields.sh_rest.shape[1]
-    names = [*"xyz", *(f"f_dc_{i}" for i in range(3)),
-             *(f"f_rest_{i}" for i in range(k)), "opacity",
-             *(f"scale_{i}" for i in range(3)), *(f"rot_{i}" for i in range(4))]
-    table = np.empty((n, len(names)), dtype="<f4")  # filled by contiguous blocks, then viewed
-    at = 0
+    table, views = gaussian_table(n, k)  # filled by contiguous blocks, then viewed
     for name in FIELD_ORDER:
-        block = getattr(fields, name).reshape(n, -1)
-        table[:, at:at + block.shape[1]] = block
-        at += block.shape[1]
-        del block
+        views[name][:] = getattr(fields, name).reshape(n, -1)
         if release:
             setattr(fields, name, np.empty((0,) * getattr(fields, name).ndim, np.float32))
-    data = table.view([(name, "<f4") for name in names]).reshape(n)
-    props = [PlyProperty(name, "f4", "float") for name in names]
-    return PlySource(elements=[PlyElementData("vertex", props, data)], comments=comments,
-                     text=False, byte_order="<")
+    return table_source(table, comments)
 
 
 def to_model(fields: SplatFields, path: str | Path, comments: list[str], *,
