@@ -55,14 +55,9 @@ def _rotations(packed: np.ndarray) -> np.ndarray:
     """(N,) uint32 -> (N, 4) quaternions (rot_0..rot_3), the dropped largest one restored."""
     norm = np.sqrt(2.0)  # the other three lie in [-1/sqrt(2), 1/sqrt(2)]
     others = np.stack([(_unorm(packed, s, 10) - 0.5) * norm for s in (20, 10, 0)], axis=1)
-    largest = np.sqrt(np.maximum(0.0, 1.0 - (others**2).sum(axis=1)))
-    which = (packed >> np.uint32(30)).astype(np.intp)
-    # component c is others[c] before the dropped index, others[c - 1] after it
-    column = np.arange(4)[None, :]
-    pick = np.minimum(column - (column > which[:, None]), 2)
-    quat = np.take_along_axis(others, pick, axis=1)
-    quat[np.arange(len(packed)), which] = largest
-    return quat
+    from .splats import restore_largest
+
+    return restore_largest(others, (packed >> np.uint32(30)).astype(np.intp))
 
 
 def _sh_codes(sh: PlyElementData, names: list[str]) -> np.ndarray:

@@ -87,6 +87,18 @@ def normalised_quaternions(q: np.ndarray) -> np.ndarray:
     return out
 
 
+def restore_largest(others: np.ndarray, which: np.ndarray) -> np.ndarray:
+    """Smallest-three quaternions: (N, 3) float64 kept components (in order, the largest one
+    left out) and (N,) its index 0..3 -> (N, 4) with the largest restored as
+    sqrt(1 - |others|^2) (components keep the order the format stores them in)."""
+    largest = np.sqrt(np.maximum(0.0, 1.0 - (others**2).sum(axis=1)))
+    column = np.arange(4)[None, :]  # component c is others[c] before the index, others[c - 1] after
+    pick = np.minimum(column - (column > which[:, None]), 2)
+    quat = np.take_along_axis(others, pick, axis=1)
+    quat[np.arange(len(which)), which] = largest
+    return quat
+
+
 def fields_of(model: PointModel, path: str | Path, fmt: str) -> SplatFields:
     """The splat fields a write of ``model`` to ``path`` (format name ``fmt``) encodes; raises
     FormatError naming the file when the model is not a 3D Gaussian splat scene."""
