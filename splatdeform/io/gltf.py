@@ -157,8 +157,8 @@ def _accessor(path: Path, doc: dict, buffers: list[bytes], index: int, name: str
                           "buffer view")
     view = np.ndarray((count, width), dtype=dtype, buffer=data, offset=start,
                       strides=(stride, dtype.itemsize))
-    if kind == FLOAT:
-        return view.astype(np.float32)  # float32 stays float32 (no float64 copy of 45 SH)
+    if kind == FLOAT:  # float32 stays float32: a read-only view of the buffer, copied once later
+        return view.astype(np.float32, copy=False)
     if not acc.get("normalized"):
         raise FormatError(f"{path}: glTF attribute {name}: integer values must be normalized")
     return NORMALISE[kind](view.astype(np.float64))
@@ -240,9 +240,10 @@ def read_model(path: str | Path, *, drop_nonfinite: bool = False) -> PointModel:
     parts = [_fields(path, doc, buffers, p) for p in splat_primitives(path, doc)]
     if len({f.sh_rest.shape[2] for f in parts}) > 1:
         raise FormatError(f"{path}: {EXT} primitives with different SH degrees")
-    f = SplatFields(*(np.concatenate([getattr(p, a) for p in parts]) for a in (
-        "positions", "scale_log", "rotation", "opacity", "sh_dc", "sh_rest")))
-    del parts  # the concatenation is the copy the model is built from
+    f = parts[0] if len(parts) == 1 else SplatFields(*(
+        np.concatenate([getattr(p, a) for p in parts]) for a in (
+            "positions", "scale_log", "rotation", "opacity", "sh_dc", "sh_rest")))
+    del parts, buffers  # the table to_model fills is the copy the model is built from
     used = ", ".join(doc.get("extensionsUsed", []))
     return to_model(f, path, [f"read from glTF ({used}) by splatdeform"],
                     drop_nonfinite=drop_nonfinite)
