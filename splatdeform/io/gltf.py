@@ -20,6 +20,7 @@ from __future__ import annotations
 import base64
 import json
 import struct
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import numpy as np
@@ -253,65 +254,89 @@ def read_model(path: str | Path, *, drop_nonfinite: bool = False) -> PointModel:
 # writing
 
 
-def _document(f: SplatFields) -> tuple[dict, bytes]:
-    n, k = f.count, f.sh_rest.shape[2]
+def _attributes(f: SplatFields) -> list[tuple[str, int, str, dict, Callable[[], np.ndarray]]]:
+    """(name, width, dtype, accessor extras, make) per attribute: ``make()`` builds that one
+    (N, width) array when its bytes are written (one attribute's temporaries at a time)."""
+    k = f.sh_rest.shape[2]
     degree = {c: d for d, c in SH_COEFFS.items()}[k]
-    wxyz = _turn(normalised_quaternions(f.rotation))
-    color = np.clip(np.round(dc_to_color(f.sh_dc) * 255), 0, 255)
-    alpha = sigmoid(f.opacity)
-    rest = f.sh_rest * SH_FLIP[:k]
-    arrays: list[tuple[str, np.ndarray, dict]] = [
-        ("POSITION", (f.positions * FLIP).astype("<f4"), {}),
-        ("COLOR_0", np.concatenate([color, np.round(alpha * 255)[:, None]], axis=1)
-         .astype("u1"), {"normalized": True}),
-        (f"{EXT}:ROTATION", np.stack([wxyz[:, 1], wxyz[:, 2], wxyz[:, 3], wxyz[:, 0]], axis=1)
-         .astype("<f4"), {}),
-        (f"{EXT}:SCALE", np.exp(f.scale_log.astype(np.float64)).astype("<f4"), {}),
-        (f"{EXT}:OPACITY", alpha.astype("<f4")[:, None], {}),
-        (f"{EXT}:SH_DEGREE_0_COEF_0", f.sh_dc.astype("<f4"), {}),
-        *((name, np.ascontiguousarray(rest[:, :, j]).astype("<f4"), {})
-          for j, name in enumerate(_sh_names(degree))),
+
+    def color() -> np.ndarray:
+        rgb = np.clip(np.round(dc_to_color(f.sh_dc) * 255), 0, 255)
+        return np.concatenate([rgb, np.round(sigmoid(f.opacity) * 255)[:, None]], axis=1) \
+            .astype("u1")
+
+    def rotation() -> np.ndarray:
+        wxyz = _turn(normalised_quaternions(f.rotation))
+        return np.stack([wxyz[:, 1], wxyz[:, 2], wxyz[:, 3], wxyz[:, 0]], axis=1).astype("<f4")
+
+    def sh(j: int) -> Callable[[], np.ndarray]:
+        return lambda: (f.sh_rest[:, :, j] * SH_FLIP[j]).astype("<f4")
+
+    return [
+        ("POSITION", 3, "<f4", {}, lambda: (f.positions * FLIP).astype("<f4")),
+        ("COLOR_0", 4, "u1", {"normalized": True}, color),
+        (f"{EXT}:ROTATION", 4, "<f4", {}, rotation),
+        (f"{EXT}:SCALE", 3, "<f4", {}, lambda: np.exp(f.scale_log.astype(np.float64))
+         .astype("<f4")),
+        (f"{EXT}:OPACITY", 1, "<f4", {}, lambda: sigmoid(f.opacity).astype("<f4")[:, None]),
+        (f"{EXT}:SH_DEGREE_0_COEF_0", 3, "<f4", {}, lambda: f.sh_dc.astype("<f4")),
+        *((name, 3, "<f4", {}, sh(j)) for j, name in enumerate(_sh_names(degree))),
     ]
-    accessors, views, blobs, at = [], [], [], 0
-    for i, (name, values, extra) in enumerate(arrays):
-        blob = values.tobytes()
-        views.append({"buffer": 0, "byteOffset": at, "byteLength": len(blob), "target": 34962})
-        acc = {"bufferView": i, "componentType": FLOAT if values.dtype.kind == "f" else UBYTE,
-               "count": n, "type": {1: "SCALAR", 3: "VEC3", 4: "VEC4"}[values.shape[1]], **extra}
+
+
+def _document(f: SplatFields) -> tuple[dict, Iterator[bytes | memoryview]]:
+    """The glTF JSON document and the binary buffer's pieces (each attribute built and
+    yielded in turn, 4-byte aligned), so a write never holds the whole buffer."""
+    n = f.count
+    attributes = _attributes(f)
+    positions = attributes[0][4]()
+    accessors, views, at = [], [], 0
+    for i, (name, width, dtype, extra, _) in enumerate(attributes):
+        size = n * width * np.dtype(dtype).itemsize
+        views.append({"buffer": 0, "byteOffset": at, "byteLength": size, "target": 34962})
+        acc = {"bufferView": i, "componentType": FLOAT if dtype == "<f4" else UBYTE,
+               "count": n, "type": {1: "SCALAR", 3: "VEC3", 4: "VEC4"}[width], **extra}
         if name == "POSITION":
-            acc["min"] = values.min(axis=0).tolist()
-            acc["max"] = values.max(axis=0).tolist()
+            acc["min"] = positions.min(axis=0).tolist()
+            acc["max"] = positions.max(axis=0).tolist()
         accessors.append(acc)
-        pad = (-len(blob)) % 4
-        blobs.append(blob + b"\0" * pad)
-        at += len(blob) + pad
-    binary = b"".join(blobs)
+        at += size + (-size) % 4
     doc = {"asset": {"version": "2.0", "generator": "splatdeform"},
            "extensionsUsed": [EXT], "scene": 0, "scenes": [{"nodes": [0]}],
            "nodes": [{"mesh": 0}],
            "meshes": [{"primitives": [{
-               "attributes": {name: i for i, (name, _, _) in enumerate(arrays)}, "mode": 0,
+               "attributes": {a[0]: i for i, a in enumerate(attributes)}, "mode": 0,
                "extensions": {EXT: {"kernel": "ellipse", "colorSpace": "srgb_rec709_display",
                                     "sortingMethod": "cameraDistance",
                                     "projection": "perspective"}}}]}],
            "accessors": accessors, "bufferViews": views,
-           "buffers": [{"byteLength": len(binary)}]}
-    return doc, binary
+           "buffers": [{"byteLength": at}]}
+
+    def pieces() -> Iterator[bytes | memoryview]:
+        for i, (_, _, _, _, make) in enumerate(attributes):
+            values = np.ascontiguousarray(positions if i == 0 else make())
+            yield memoryview(values).cast("B")
+            yield b"\0" * ((-values.nbytes) % 4)
+            del values
+
+    return doc, pieces()
 
 
 def write_model(model: PointModel, path: Path, stream) -> None:
     f = fields_of(model, path, Path(path).suffix.lower())
     note_lossy(path, "glTF", None, model)
-    doc, binary = _document(f)
+    doc, pieces = _document(f)
     if Path(path).suffix.lower() == ".gltf":
         doc["buffers"][0]["uri"] = ("data:application/octet-stream;base64,"
-                                    + base64.b64encode(binary).decode("ascii"))
+                                    + base64.b64encode(b"".join(pieces)).decode("ascii"))
         stream.write(json.dumps(doc, separators=(",", ":")).encode("utf-8"))
         return
     text = json.dumps(doc, separators=(",", ":")).encode("utf-8")
     text += b" " * ((-len(text)) % 4)
-    total = 12 + 8 + len(text) + 8 + len(binary)
+    size = doc["buffers"][0]["byteLength"]
+    total = 12 + 8 + len(text) + 8 + size
     stream.write(struct.pack("<III", GLB_MAGIC, 2, total))
     stream.write(struct.pack("<II", len(text), JSON_CHUNK) + text)
-    stream.write(struct.pack("<II", len(binary), BIN_CHUNK))
-    stream.write(binary)
+    stream.write(struct.pack("<II", size, BIN_CHUNK))
+    for piece in pieces:
+        stream.write(piece)
