@@ -20,13 +20,14 @@ from __future__ import annotations
 import base64
 import json
 import struct
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
 
 import numpy as np
 
 from ..errors import FormatError
 from ..model import PointModel
+from . import spz
 from .splats import (
     SH_COEFFS,
     SplatFields,
@@ -41,6 +42,9 @@ from .splats import (
 
 EXTENSIONS = (".glb", ".gltf")
 EXT = "KHR_gaussian_splatting"
+#: SPZ compression, nested in the primitive's KHR_gaussian_splatting extension (the draft and
+#: its v2 name); the SPZ blob's versions are the ones :mod:`.spz` reads
+SPZ_EXTS = ("KHR_gaussian_splatting_compression_spz", "KHR_gaussian_splatting_compression_spz_2")
 GLB_MAGIC = 0x46546C67  # 'glTF'
 JSON_CHUNK, BIN_CHUNK = 0x4E4F534A, 0x004E4942
 FLOAT, UBYTE, BYTE, USHORT, SHORT = 5126, 5121, 5120, 5123, 5122
@@ -50,8 +54,7 @@ NORMALISE = {UBYTE: lambda v: v / 255.0, USHORT: lambda v: v / 65535.0,
              SHORT: lambda v: np.maximum(v / 32767.0, -1.0)}
 WIDTH = {"SCALAR": 1, "VEC2": 2, "VEC3": 3, "VEC4": 4}
 # SH rest sign under the 180-degree turn about z (x -> -x, y -> -y), coefficients in PLY order
-SH_FLIP = np.array([-1, 1, -1, 1, -1, 1, -1, 1, -1, 1, -1, 1, -1, 1, -1], dtype=np.float32)
-FLIP = np.array([-1.0, -1.0, 1.0])
+SH_FLIP, FLIP = spz.LUF_SH_FLIP, spz.LUF_FLIP
 OPACITY_EPS = 1e-7
 
 
@@ -173,15 +176,17 @@ def splat_primitives(path: str | Path, doc: dict) -> list[dict]:
         raise FormatError(f"{path}: no glTF primitive with the {EXT} extension")
     if EXT not in doc.get("extensionsUsed", []):
         raise FormatError(f"{path}: {EXT} is used but not listed in extensionsUsed")
-    unknown = [e for e in doc.get("extensionsRequired", []) if e != EXT]
+    unknown = [e for e in doc.get("extensionsRequired", []) if e != EXT and e not in SPZ_EXTS]
     if unknown:
         raise FormatError(f"{path}: glTF requires extension(s) {', '.join(unknown)}, which "
                           "this reader does not support")
     for p in prims:
         if p.get("mode", 4) != 0:
             raise FormatError(f"{path}: a {EXT} primitive must have mode 0 (POINTS)")
-        missing = [a for a in ("POSITION", f"{EXT}:ROTATION", f"{EXT}:SCALE", f"{EXT}:OPACITY",
-                               f"{EXT}:SH_DEGREE_0_COEF_0") if a not in p.get("attributes", {})]
+        needed = ("POSITION",) if _spz_view(path, p) is not None else (
+            "POSITION", f"{EXT}:ROTATION", f"{EXT}:SCALE", f"{EXT}:OPACITY",
+            f"{EXT}:SH_DEGREE_0_COEF_0")
+        missing = [a for a in needed if a not in p.get("attributes", {})]
         if missing:
             raise FormatError(f"{path}: {EXT} primitive lacks attribute(s) {', '.join(missing)}")
     for node in doc.get("nodes", []):
@@ -191,8 +196,46 @@ def splat_primitives(path: str | Path, doc: dict) -> list[dict]:
     return prims
 
 
+def _spz_view(path: str | Path, prim: dict) -> int | None:
+    """The bufferView of the primitive's SPZ compression extension (None: not compressed)."""
+    nested = prim["extensions"][EXT]
+    nested = nested.get("extensions") if isinstance(nested, dict) else None
+    for name in SPZ_EXTS:
+        if isinstance(nested, dict) and name in nested:
+            view = nested[name].get("bufferView") if isinstance(nested[name], dict) else None
+            if not isinstance(view, int) or isinstance(view, bool):
+                raise FormatError(f"{path}: glTF {name} needs an integer bufferView (got "
+                                  f"{view!r})")
+            return view
+    return None
+
+
+def _spz_fields(path: Path, doc: dict, buffers: list[bytes], prim: dict,
+                index: int) -> SplatFields:
+    """The splats of an SPZ-compressed primitive: the gzip'd SPZ blob in its bufferView,
+    packed in glTF's LUF frame (the extension's specification), decoded to PLY space."""
+    try:
+        view = doc["bufferViews"][index]
+        data = buffers[view["buffer"]]
+        start, size = int(view.get("byteOffset", 0)), int(view["byteLength"])
+        count = doc["accessors"][prim["attributes"]["POSITION"]].get("count")
+    except (KeyError, IndexError, TypeError, ValueError) as exc:
+        raise FormatError(f"{path}: glTF SPZ bufferView {index} is incomplete ({exc})") from exc
+    if start < 0 or size < 0 or start + size > len(data):
+        raise FormatError(f"{path}: glTF SPZ bufferView {index} runs past its buffer")
+    raw = spz.gunzip_blob(path, bytes(data[start:start + size]))
+    fields, info = spz.decode(raw, path, spz.LUF)
+    if count is not None and count != fields.count:
+        raise FormatError(f"{path}: glTF POSITION accessor count {count} differs from the "
+                          f"{fields.count} splats of its SPZ data")
+    return fields
+
+
 def _fields(path: Path, doc: dict, buffers: list[bytes], prim: dict) -> SplatFields:
     attrs = prim["attributes"]
+    view = _spz_view(path, prim)
+    if view is not None:
+        return _spz_fields(path, doc, buffers, prim, view)
 
     def get(name: str) -> np.ndarray:
         return _accessor(path, doc, buffers, attrs[name], name)
@@ -331,6 +374,12 @@ def write_model(model: PointModel, path: Path, stream) -> None:
                                     + base64.b64encode(b"".join(pieces)).decode("ascii"))
         stream.write(json.dumps(doc, separators=(",", ":")).encode("utf-8"))
         return
+    write_glb(stream, doc, pieces)
+
+
+def write_glb(stream, doc: dict, pieces: Iterable[bytes | memoryview]) -> None:
+    """The GLB container: header, JSON chunk (space padded), BIN chunk of ``pieces`` (whose
+    total is the document's ``buffers[0].byteLength``, a multiple of 4)."""
     text = json.dumps(doc, separators=(",", ":")).encode("utf-8")
     text += b" " * ((-len(text)) % 4)
     size = doc["buffers"][0]["byteLength"]
