@@ -42,13 +42,20 @@ def is_compressed(source: PlySource) -> bool:
 
 def _unorm(packed: np.ndarray, shift: int, bits: int) -> np.ndarray:
     mask = (1 << bits) - 1
-    return ((packed >> np.uint32(shift)) & np.uint32(mask)).astype(np.float64) / mask
+    field = packed >> np.uint32(shift)
+    field &= np.uint32(mask)
+    out = field.astype(np.float64)
+    out /= mask
+    return out
 
 
 def _lerp(chunk: np.ndarray, low: str, high: str, t: np.ndarray, owner: np.ndarray) -> np.ndarray:
-    a = chunk[low].astype(np.float64)[owner]
-    b = chunk[high].astype(np.float64)[owner]
-    return a * (1 - t) + b * t
+    """a * (1 - t) + b * t with a, b the splat's chunk bounds (in place: ``t`` is consumed)."""
+    out = np.subtract(1.0, t)
+    out *= chunk[low].astype(np.float64)[owner]
+    t *= chunk[high].astype(np.float64)[owner]
+    out += t
+    return out
 
 
 def _rotations(packed: np.ndarray) -> np.ndarray:
