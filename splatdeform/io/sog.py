@@ -441,7 +441,8 @@ def _encode_sh(f: SplatFields, keep: SogCodes | None, same: np.ndarray | None,
                iterations: int, width: int, height: int, effort: int
                ) -> tuple[dict, dict[str, bytes]]:
     n, k = f.count, f.sh_rest.shape[2]
-    rows = f.sh_rest.transpose(0, 2, 1).reshape(n, 3 * k)  # (N, K*3): coefficient-major, rgb
+    # (N, K, 3) view: coefficient-major, rgb inside (rows of K*3 values, flattened by block)
+    rows = f.sh_rest.transpose(0, 2, 1)
     palette_n = _palette_size(n)
     if keep is not None:
         used = np.unique(keep.labels[same])
