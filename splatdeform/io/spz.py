@@ -31,11 +31,14 @@ from .splats import (
     SH_COEFFS,
     SplatFields,
     fields_of,
+    gaussian_table,
     logit,
     normalised_quaternions,
     note_lossy,
+    restore_largest,
     sigmoid,
-    to_model,
+    source_model,
+    table_source,
 )
 
 EXTENSIONS = (".spz",)
@@ -136,22 +139,14 @@ def read_info(path: str | Path) -> dict:
 
 
 def _v3_rotations(words: np.ndarray) -> np.ndarray:
-    """(N,) uint32 -> (N, 4) x y z w."""
-    n = len(words)
-    largest = (words >> np.uint32(30)).astype(np.int64)
-    q = np.zeros((n, 4))
-    rest = words.copy()
-    filled = np.zeros((n, 4), dtype=bool)
-    filled[np.arange(n), largest] = True
-    for i in range(3, -1, -1):  # the highest index sits in the lowest bits
-        mag = (rest & np.uint32(511)).astype(np.float64) / 511 * np.sqrt(0.5)
-        neg = ((rest >> np.uint32(9)) & np.uint32(1)).astype(bool)
-        value = np.where(neg, -mag, mag)
-        use = ~filled[:, i]
-        q[use, i] = value[use]
-        rest = np.where(use, rest >> np.uint32(10), rest)
-    q[np.arange(n), largest] = np.sqrt(np.maximum(0.0, 1.0 - (q**2).sum(axis=1)))
-    return q
+    """(N,) uint32 -> (N, 4) x y z w: the three kept components in index order sit in bits
+    20-29, 10-19 and 0-9 (the highest index lowest), each a sign bit over 9 magnitude bits."""
+    kept = np.empty((len(words), 3))
+    for j, shift in enumerate((20, 10, 0)):
+        field = words >> np.uint32(shift)
+        mag = (field & np.uint32(511)).astype(np.float64) / 511 * np.sqrt(0.5)
+        kept[:, j] = np.where((field & np.uint32(512)) != 0, -mag, mag)
+    return restore_largest(kept, (words >> np.uint32(30)).astype(np.intp))
 
 
 def _v3_words(q_xyzw: np.ndarray) -> np.ndarray:
@@ -167,9 +162,11 @@ def _v3_words(q_xyzw: np.ndarray) -> np.ndarray:
     return words | (largest.astype(np.uint32) << np.uint32(30))
 
 
-def decode(raw: bytes, path: str | Path, frame: tuple = RUB) -> tuple[SplatFields, dict]:
+def decode(raw: bytes, path: str | Path, frame: tuple = RUB,
+           into: dict[str, np.ndarray] | None = None) -> tuple[SplatFields, dict]:
     """The splat fields in PLY space of a decompressed SPZ stream stored in ``frame`` (RUB, or
-    LUF for glTF's SPZ extension)."""
+    LUF for glTF's SPZ extension). into: the column views of a :func:`gaussian_table` to
+    decode into (the returned fields are then those views)."""
     flip, sh_flip = frame
     info = parse_header(path, raw)
     n, degree, version = info["count"], info["sh_degree"], info["version"]
@@ -183,28 +180,40 @@ def decode(raw: bytes, path: str | Path, frame: tuple = RUB) -> tuple[SplatField
         at += size
         return part
 
+    out: dict[str, np.ndarray] = {}
+
+    def put(name: str, value: np.ndarray) -> None:
+        """Keep a decoded field: float32 (positions float64), or written into ``into``."""
+        if into is None:
+            out[name] = value if name == "positions" else value.astype(np.float32)
+        else:
+            into[name][:] = value.reshape(n, -1)
+            out[name] = into[name]
+
     p = take(9 * n).reshape(n, 3, 3).astype(np.int32)
     fixed = p[..., 0] | (p[..., 1] << 8) | (p[..., 2] << 16)
+    del p
     fixed = np.where(fixed & 0x800000, fixed - (1 << 24), fixed)
-    positions = fixed.astype(np.float64) / (1 << info["fractional_bits"]) * flip
-    opacity = logit(take(n).astype(np.float64) / 255, ALPHA_EPS)
-    dc = (take(3 * n).reshape(n, 3).astype(np.float64) / 255 - 0.5) / COLOR_SCALE
-    scale_log = take(3 * n).reshape(n, 3).astype(np.float64) / 16 - 10
+    put("positions", fixed.astype(np.float64) / (1 << info["fractional_bits"]) * flip)
+    del fixed
+    put("opacity", logit(take(n).astype(np.float64) / 255, ALPHA_EPS))
+    put("sh_dc", (take(3 * n).reshape(n, 3).astype(np.float64) / 255 - 0.5) / COLOR_SCALE)
+    put("scale_log", take(3 * n).reshape(n, 3).astype(np.float64) / 16 - 10)
     if version == 2:
         xyz = take(3 * n).reshape(n, 3).astype(np.float64) / 127.5 - 1
         w = np.sqrt(np.maximum(0.0, 1 - (xyz**2).sum(axis=1)))
         q = np.concatenate([xyz, w[:, None]], axis=1)
     else:
         q = _v3_rotations(take(4 * n).view("<u4").copy())
-    rotation = np.stack([q[:, 3], *(q[:, :3] * flip).T], axis=1)  # x y z conjugated
+    put("rotation", np.stack([q[:, 3], *(q[:, :3] * flip).T], axis=1))  # x y z conjugated
+    del q
     # SH rest in place in one (N, 3, K) float32 array (the largest decoded field: no temporaries)
-    sh_rest = np.empty((n, 3, k), dtype=np.float32)
+    sh_rest = np.empty((n, 3, k), dtype=np.float32) if into is None else \
+        into["sh_rest"].reshape(n, 3, k)
     np.subtract(take(3 * k * n).reshape(n, k, 3).transpose(0, 2, 1), np.float32(128),
                 out=sh_rest)
     sh_rest *= sh_flip[:k] / np.float32(128)
-    return SplatFields(positions=positions, scale_log=scale_log.astype(np.float32),
-                       rotation=rotation.astype(np.float32), opacity=opacity.astype(np.float32),
-                       sh_dc=dc.astype(np.float32), sh_rest=sh_rest), info
+    return SplatFields(**out, sh_rest=sh_rest), info
 
 
 def _fractional_bits(positions: np.ndarray) -> int:
@@ -256,9 +265,14 @@ def encode(f: SplatFields, version: int = WRITE_VERSION, antialiased: bool = Fal
 
 
 def read_model(path: str | Path, *, drop_nonfinite: bool = False) -> PointModel:
-    fields, info = decode(_gunzip(path, 1 << 34), path)
-    return to_model(fields, path, [f"read from an SPZ v{info['version']} file by splatdeform"],
-                    drop_nonfinite=drop_nonfinite)
+    raw = _gunzip(path, 1 << 34)
+    info = parse_header(path, raw)
+    table, views = gaussian_table(info["count"], 3 * SH_COEFFS[info["sh_degree"]])
+    decode(raw, path, into=views)  # straight into the model's float32 table
+    del raw
+    return source_model(table_source(table, [f"read from an SPZ v{info['version']} file by "
+                                             "splatdeform"]), path,
+                        drop_nonfinite=drop_nonfinite)
 
 
 def write_model(model: PointModel, path: Path, stream) -> None:
