@@ -17,9 +17,9 @@ import numpy as np
 import pytest
 from splat_oracle import compare, fields, write_scene
 
-from data_tools import splat_transform
+from data_tools import gltf_spz, splat_transform
 from splatdeform.errors import FormatError
-from splatdeform.io import load, save, spz
+from splatdeform.io import gltf, load, save, spz
 from splatdeform.io.splats import LossyWriteWarning
 
 # which directions the oracle checks: (it reads our output, we read its output, extra args)
@@ -258,6 +258,96 @@ def test_gltf_with_an_external_buffer_and_bad_glb(tmp_path):
     (tmp_path / "plain.gltf").write_text(json.dumps(doc))
     with pytest.raises(FormatError, match="no glTF primitive with the KHR_gaussian_splatting"):
         load(tmp_path / "plain.gltf")
+
+
+def _covariances(rot_wxyz: np.ndarray, scale_log: np.ndarray) -> np.ndarray:
+    q = rot_wxyz / np.linalg.norm(rot_wxyz, axis=1, keepdims=True)
+    w, x, y, z = q.T
+    r = np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
+                  2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
+                  2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+                 axis=1).reshape(-1, 3, 3)
+    return np.einsum("nij,nj,nkj->nik", r, np.exp(2.0 * scale_log), r)
+
+
+@pytest.mark.parametrize("degree", [0, 1, 3])
+@pytest.mark.parametrize("name", gltf.SPZ_EXTS)
+def test_gltf_spz_extension_is_read_in_the_gltf_frame(tmp_path, degree, name):
+    """An SPZ-compressed glb (written from the extension's specification by data_tools) decodes
+    like the plain glb to SPZ's quantisation step; its stored SPZ values are in glTF's frame:
+    they equal the plain glb's POSITION, SH and covariances (that glb's frame is checked against
+    splat-transform in test_glb_follows_the_specification_and_matches_the_oracle)."""
+    src = write_scene(tmp_path / "scene.ply", 500, degree, seed=degree + 40)
+    model = load(src)
+    packed = gltf_spz.write(model, tmp_path / "spz.glb", name)
+    plain = save(model, tmp_path / "plain.glb")
+    doc = _glb_json(packed)
+    assert name in doc["extensionsRequired"] and "bufferView" not in doc["accessors"][0]
+    compare(fields(load(packed)), fields(load(plain)), **ROUND_TRIP[".spz"])
+    # the stored values, no frame change, against the plain glb's attributes
+    doc, buffers = gltf.read_document(packed)
+    view = doc["bufferViews"][0]
+    raw = spz.gunzip_blob(packed, buffers[0][:view["byteLength"]])
+    stored, _ = spz.decode(raw, packed, (np.ones(3), np.ones(15, np.float32)))
+    pdoc, pbuf = gltf.read_document(plain)
+    attrs = pdoc["meshes"][0]["primitives"][0]["attributes"]
+
+    def get(a):
+        return gltf._accessor(plain, pdoc, pbuf, attrs[a], a).astype(np.float64)
+
+    assert np.abs(stored.positions - get("POSITION")).max() <= ROUND_TRIP[".spz"]["pos"]
+    ext = "KHR_gaussian_splatting"
+    if degree:
+        sh = np.stack([get(a) for a in gltf._sh_names(degree)], axis=2)  # (N, 3, K)
+        assert np.abs(stored.sh_rest - sh).max() <= ROUND_TRIP[".spz"]["rest"]
+    xyzw = get(f"{ext}:ROTATION")
+    theirs = _covariances(xyzw[:, [3, 0, 1, 2]], np.log(get(f"{ext}:SCALE")))
+    ours = _covariances(stored.rotation.astype(np.float64), stored.scale_log)
+    assert (np.abs(ours - theirs).max(axis=(1, 2)) / np.abs(theirs).max(axis=(1, 2))).max() < 0.1
+
+
+def test_gltf_spz_extension_bad_input_is_one_line(tmp_path):
+    import json
+
+    model = load(write_scene(tmp_path / "scene.ply", 30, 1))
+    good = gltf_spz.write(model, tmp_path / "good.glb")
+    raw = good.read_bytes()
+    size = int.from_bytes(raw[12:16], "little")
+    doc = json.loads(raw[20:20 + size])
+
+    def variant(name: str, change) -> Path:
+        d = json.loads(json.dumps(doc))
+        change(d)
+        text = json.dumps(d).encode()
+        text += b" " * ((-len(text)) % 4)
+        rest = raw[20 + size:]
+        out = tmp_path / name
+        out.write_bytes(raw[:8] + (20 + len(text) + len(rest)).to_bytes(4, "little")
+                        + len(text).to_bytes(4, "little") + raw[16:20] + text + rest)
+        return out
+
+    def count(d):
+        d["accessors"][0]["count"] = 31
+
+    def past(d):
+        d["bufferViews"][0]["byteLength"] = 10**6
+
+    def view(d):
+        ext = d["meshes"][0]["primitives"][0]["extensions"]["KHR_gaussian_splatting"]
+        ext["extensions"][gltf.SPZ_EXTS[0]]["bufferView"] = "0"
+
+    for name, change, message in (
+            ("count.glb", count, "POSITION accessor count 31 differs from the 30 splats"),
+            ("past.glb", past, "SPZ bufferView 0 runs past its buffer"),
+            ("view.glb", view, "needs an integer bufferView")):
+        with pytest.raises(FormatError, match=f"{name}: .*{message}"):
+            load(variant(name, change))
+    short = tmp_path / "short.glb"
+    blob = bytearray(raw)
+    blob[-40:] = b"\0" * 40  # the gzip stream's end
+    short.write_bytes(bytes(blob))
+    with pytest.raises(FormatError, match="short.glb: "):
+        load(short)
 
 
 def test_info_reports_sh_degree_and_format_fields(tmp_path):

@@ -20,12 +20,14 @@ from __future__ import annotations
 import base64
 import json
 import struct
+from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
 
 import numpy as np
 
 from ..errors import FormatError
 from ..model import PointModel
+from . import spz
 from .splats import (
     SH_COEFFS,
     SplatFields,
@@ -40,6 +42,9 @@ from .splats import (
 
 EXTENSIONS = (".glb", ".gltf")
 EXT = "KHR_gaussian_splatting"
+#: SPZ compression, nested in the primitive's KHR_gaussian_splatting extension (the draft and
+#: its v2 name); the SPZ blob's versions are the ones :mod:`.spz` reads
+SPZ_EXTS = ("KHR_gaussian_splatting_compression_spz", "KHR_gaussian_splatting_compression_spz_2")
 GLB_MAGIC = 0x46546C67  # 'glTF'
 JSON_CHUNK, BIN_CHUNK = 0x4E4F534A, 0x004E4942
 FLOAT, UBYTE, BYTE, USHORT, SHORT = 5126, 5121, 5120, 5123, 5122
@@ -49,8 +54,7 @@ NORMALISE = {UBYTE: lambda v: v / 255.0, USHORT: lambda v: v / 65535.0,
              SHORT: lambda v: np.maximum(v / 32767.0, -1.0)}
 WIDTH = {"SCALAR": 1, "VEC2": 2, "VEC3": 3, "VEC4": 4}
 # SH rest sign under the 180-degree turn about z (x -> -x, y -> -y), coefficients in PLY order
-SH_FLIP = np.array([-1, 1, -1, 1, -1, 1, -1, 1, -1, 1, -1, 1, -1, 1, -1], dtype=np.float32)
-FLIP = np.array([-1.0, -1.0, 1.0])
+SH_FLIP, FLIP = spz.LUF_SH_FLIP, spz.LUF_FLIP
 OPACITY_EPS = 1e-7
 
 
@@ -157,8 +161,8 @@ def _accessor(path: Path, doc: dict, buffers: list[bytes], index: int, name: str
                           "buffer view")
     view = np.ndarray((count, width), dtype=dtype, buffer=data, offset=start,
                       strides=(stride, dtype.itemsize))
-    if kind == FLOAT:
-        return view.astype(np.float32)  # float32 stays float32 (no float64 copy of 45 SH)
+    if kind == FLOAT:  # float32 stays float32: a read-only view of the buffer, copied once later
+        return view.astype(np.float32, copy=False)
     if not acc.get("normalized"):
         raise FormatError(f"{path}: glTF attribute {name}: integer values must be normalized")
     return NORMALISE[kind](view.astype(np.float64))
@@ -172,15 +176,17 @@ def splat_primitives(path: str | Path, doc: dict) -> list[dict]:
         raise FormatError(f"{path}: no glTF primitive with the {EXT} extension")
     if EXT not in doc.get("extensionsUsed", []):
         raise FormatError(f"{path}: {EXT} is used but not listed in extensionsUsed")
-    unknown = [e for e in doc.get("extensionsRequired", []) if e != EXT]
+    unknown = [e for e in doc.get("extensionsRequired", []) if e != EXT and e not in SPZ_EXTS]
     if unknown:
         raise FormatError(f"{path}: glTF requires extension(s) {', '.join(unknown)}, which "
                           "this reader does not support")
     for p in prims:
         if p.get("mode", 4) != 0:
             raise FormatError(f"{path}: a {EXT} primitive must have mode 0 (POINTS)")
-        missing = [a for a in ("POSITION", f"{EXT}:ROTATION", f"{EXT}:SCALE", f"{EXT}:OPACITY",
-                               f"{EXT}:SH_DEGREE_0_COEF_0") if a not in p.get("attributes", {})]
+        needed = ("POSITION",) if _spz_view(path, p) is not None else (
+            "POSITION", f"{EXT}:ROTATION", f"{EXT}:SCALE", f"{EXT}:OPACITY",
+            f"{EXT}:SH_DEGREE_0_COEF_0")
+        missing = [a for a in needed if a not in p.get("attributes", {})]
         if missing:
             raise FormatError(f"{path}: {EXT} primitive lacks attribute(s) {', '.join(missing)}")
     for node in doc.get("nodes", []):
@@ -190,8 +196,46 @@ def splat_primitives(path: str | Path, doc: dict) -> list[dict]:
     return prims
 
 
+def _spz_view(path: str | Path, prim: dict) -> int | None:
+    """The bufferView of the primitive's SPZ compression extension (None: not compressed)."""
+    nested = prim["extensions"][EXT]
+    nested = nested.get("extensions") if isinstance(nested, dict) else None
+    for name in SPZ_EXTS:
+        if isinstance(nested, dict) and name in nested:
+            view = nested[name].get("bufferView") if isinstance(nested[name], dict) else None
+            if not isinstance(view, int) or isinstance(view, bool):
+                raise FormatError(f"{path}: glTF {name} needs an integer bufferView (got "
+                                  f"{view!r})")
+            return view
+    return None
+
+
+def _spz_fields(path: Path, doc: dict, buffers: list[bytes], prim: dict,
+                index: int) -> SplatFields:
+    """The splats of an SPZ-compressed primitive: the gzip'd SPZ blob in its bufferView,
+    packed in glTF's LUF frame (the extension's specification), decoded to PLY space."""
+    try:
+        view = doc["bufferViews"][index]
+        data = buffers[view["buffer"]]
+        start, size = int(view.get("byteOffset", 0)), int(view["byteLength"])
+        count = doc["accessors"][prim["attributes"]["POSITION"]].get("count")
+    except (KeyError, IndexError, TypeError, ValueError) as exc:
+        raise FormatError(f"{path}: glTF SPZ bufferView {index} is incomplete ({exc})") from exc
+    if start < 0 or size < 0 or start + size > len(data):
+        raise FormatError(f"{path}: glTF SPZ bufferView {index} runs past its buffer")
+    raw = spz.gunzip_blob(path, bytes(data[start:start + size]))
+    fields, info = spz.decode(raw, path, spz.LUF)
+    if count is not None and count != fields.count:
+        raise FormatError(f"{path}: glTF POSITION accessor count {count} differs from the "
+                          f"{fields.count} splats of its SPZ data")
+    return fields
+
+
 def _fields(path: Path, doc: dict, buffers: list[bytes], prim: dict) -> SplatFields:
     attrs = prim["attributes"]
+    view = _spz_view(path, prim)
+    if view is not None:
+        return _spz_fields(path, doc, buffers, prim, view)
 
     def get(name: str) -> np.ndarray:
         return _accessor(path, doc, buffers, attrs[name], name)
@@ -240,9 +284,10 @@ def read_model(path: str | Path, *, drop_nonfinite: bool = False) -> PointModel:
     parts = [_fields(path, doc, buffers, p) for p in splat_primitives(path, doc)]
     if len({f.sh_rest.shape[2] for f in parts}) > 1:
         raise FormatError(f"{path}: {EXT} primitives with different SH degrees")
-    f = SplatFields(*(np.concatenate([getattr(p, a) for p in parts]) for a in (
-        "positions", "scale_log", "rotation", "opacity", "sh_dc", "sh_rest")))
-    del parts  # the concatenation is the copy the model is built from
+    f = parts[0] if len(parts) == 1 else SplatFields(*(
+        np.concatenate([getattr(p, a) for p in parts]) for a in (
+            "positions", "scale_log", "rotation", "opacity", "sh_dc", "sh_rest")))
+    del parts, buffers  # the table to_model fills is the copy the model is built from
     used = ", ".join(doc.get("extensionsUsed", []))
     return to_model(f, path, [f"read from glTF ({used}) by splatdeform"],
                     drop_nonfinite=drop_nonfinite)
@@ -252,65 +297,95 @@ def read_model(path: str | Path, *, drop_nonfinite: bool = False) -> PointModel:
 # writing
 
 
-def _document(f: SplatFields) -> tuple[dict, bytes]:
-    n, k = f.count, f.sh_rest.shape[2]
+def _attributes(f: SplatFields) -> list[tuple[str, int, str, dict, Callable[[], np.ndarray]]]:
+    """(name, width, dtype, accessor extras, make) per attribute: ``make()`` builds that one
+    (N, width) array when its bytes are written (one attribute's temporaries at a time)."""
+    k = f.sh_rest.shape[2]
     degree = {c: d for d, c in SH_COEFFS.items()}[k]
-    wxyz = _turn(normalised_quaternions(f.rotation))
-    color = np.clip(np.round(dc_to_color(f.sh_dc) * 255), 0, 255)
-    alpha = sigmoid(f.opacity)
-    rest = f.sh_rest * SH_FLIP[:k]
-    arrays: list[tuple[str, np.ndarray, dict]] = [
-        ("POSITION", (f.positions * FLIP).astype("<f4"), {}),
-        ("COLOR_0", np.concatenate([color, np.round(alpha * 255)[:, None]], axis=1)
-         .astype("u1"), {"normalized": True}),
-        (f"{EXT}:ROTATION", np.stack([wxyz[:, 1], wxyz[:, 2], wxyz[:, 3], wxyz[:, 0]], axis=1)
-         .astype("<f4"), {}),
-        (f"{EXT}:SCALE", np.exp(f.scale_log.astype(np.float64)).astype("<f4"), {}),
-        (f"{EXT}:OPACITY", alpha.astype("<f4")[:, None], {}),
-        (f"{EXT}:SH_DEGREE_0_COEF_0", f.sh_dc.astype("<f4"), {}),
-        *((name, np.ascontiguousarray(rest[:, :, j]).astype("<f4"), {})
-          for j, name in enumerate(_sh_names(degree))),
+
+    def color() -> np.ndarray:
+        rgb = np.clip(np.round(dc_to_color(f.sh_dc) * 255), 0, 255)
+        return np.concatenate([rgb, np.round(sigmoid(f.opacity) * 255)[:, None]], axis=1) \
+            .astype("u1")
+
+    def rotation() -> np.ndarray:
+        wxyz = _turn(normalised_quaternions(f.rotation))
+        return np.stack([wxyz[:, 1], wxyz[:, 2], wxyz[:, 3], wxyz[:, 0]], axis=1).astype("<f4")
+
+    def sh(j: int) -> Callable[[], np.ndarray]:
+        return lambda: (f.sh_rest[:, :, j] * SH_FLIP[j]).astype("<f4")
+
+    return [
+        ("POSITION", 3, "<f4", {}, lambda: (f.positions * FLIP).astype("<f4")),
+        ("COLOR_0", 4, "u1", {"normalized": True}, color),
+        (f"{EXT}:ROTATION", 4, "<f4", {}, rotation),
+        (f"{EXT}:SCALE", 3, "<f4", {}, lambda: np.exp(f.scale_log.astype(np.float64))
+         .astype("<f4")),
+        (f"{EXT}:OPACITY", 1, "<f4", {}, lambda: sigmoid(f.opacity).astype("<f4")[:, None]),
+        (f"{EXT}:SH_DEGREE_0_COEF_0", 3, "<f4", {}, lambda: f.sh_dc.astype("<f4")),
+        *((name, 3, "<f4", {}, sh(j)) for j, name in enumerate(_sh_names(degree))),
     ]
-    accessors, views, blobs, at = [], [], [], 0
-    for i, (name, values, extra) in enumerate(arrays):
-        blob = values.tobytes()
-        views.append({"buffer": 0, "byteOffset": at, "byteLength": len(blob), "target": 34962})
-        acc = {"bufferView": i, "componentType": FLOAT if values.dtype.kind == "f" else UBYTE,
-               "count": n, "type": {1: "SCALAR", 3: "VEC3", 4: "VEC4"}[values.shape[1]], **extra}
+
+
+def _document(f: SplatFields) -> tuple[dict, Iterator[bytes | memoryview]]:
+    """The glTF JSON document and the binary buffer's pieces (each attribute built and
+    yielded in turn, 4-byte aligned), so a write never holds the whole buffer."""
+    n = f.count
+    attributes = _attributes(f)
+    positions = attributes[0][4]()
+    accessors, views, at = [], [], 0
+    for i, (name, width, dtype, extra, _) in enumerate(attributes):
+        size = n * width * np.dtype(dtype).itemsize
+        views.append({"buffer": 0, "byteOffset": at, "byteLength": size, "target": 34962})
+        acc = {"bufferView": i, "componentType": FLOAT if dtype == "<f4" else UBYTE,
+               "count": n, "type": {1: "SCALAR", 3: "VEC3", 4: "VEC4"}[width], **extra}
         if name == "POSITION":
-            acc["min"] = values.min(axis=0).tolist()
-            acc["max"] = values.max(axis=0).tolist()
+            acc["min"] = positions.min(axis=0).tolist()
+            acc["max"] = positions.max(axis=0).tolist()
         accessors.append(acc)
-        pad = (-len(blob)) % 4
-        blobs.append(blob + b"\0" * pad)
-        at += len(blob) + pad
-    binary = b"".join(blobs)
+        at += size + (-size) % 4
     doc = {"asset": {"version": "2.0", "generator": "splatdeform"},
            "extensionsUsed": [EXT], "scene": 0, "scenes": [{"nodes": [0]}],
            "nodes": [{"mesh": 0}],
            "meshes": [{"primitives": [{
-               "attributes": {name: i for i, (name, _, _) in enumerate(arrays)}, "mode": 0,
+               "attributes": {a[0]: i for i, a in enumerate(attributes)}, "mode": 0,
                "extensions": {EXT: {"kernel": "ellipse", "colorSpace": "srgb_rec709_display",
                                     "sortingMethod": "cameraDistance",
                                     "projection": "perspective"}}}]}],
            "accessors": accessors, "bufferViews": views,
-           "buffers": [{"byteLength": len(binary)}]}
-    return doc, binary
+           "buffers": [{"byteLength": at}]}
+
+    def pieces() -> Iterator[bytes | memoryview]:
+        for i, (_, _, _, _, make) in enumerate(attributes):
+            values = np.ascontiguousarray(positions if i == 0 else make())
+            yield memoryview(values).cast("B")
+            yield b"\0" * ((-values.nbytes) % 4)
+            del values
+
+    return doc, pieces()
 
 
 def write_model(model: PointModel, path: Path, stream) -> None:
     f = fields_of(model, path, Path(path).suffix.lower())
     note_lossy(path, "glTF", None, model)
-    doc, binary = _document(f)
+    doc, pieces = _document(f)
     if Path(path).suffix.lower() == ".gltf":
         doc["buffers"][0]["uri"] = ("data:application/octet-stream;base64,"
-                                    + base64.b64encode(binary).decode("ascii"))
+                                    + base64.b64encode(b"".join(pieces)).decode("ascii"))
         stream.write(json.dumps(doc, separators=(",", ":")).encode("utf-8"))
         return
+    write_glb(stream, doc, pieces)
+
+
+def write_glb(stream, doc: dict, pieces: Iterable[bytes | memoryview]) -> None:
+    """The GLB container: header, JSON chunk (space padded), BIN chunk of ``pieces`` (whose
+    total is the document's ``buffers[0].byteLength``, a multiple of 4)."""
     text = json.dumps(doc, separators=(",", ":")).encode("utf-8")
     text += b" " * ((-len(text)) % 4)
-    total = 12 + 8 + len(text) + 8 + len(binary)
+    size = doc["buffers"][0]["byteLength"]
+    total = 12 + 8 + len(text) + 8 + size
     stream.write(struct.pack("<III", GLB_MAGIC, 2, total))
     stream.write(struct.pack("<II", len(text), JSON_CHUNK) + text)
-    stream.write(struct.pack("<II", len(binary), BIN_CHUNK))
-    stream.write(binary)
+    stream.write(struct.pack("<II", size, BIN_CHUNK))
+    for piece in pieces:
+        stream.write(piece)

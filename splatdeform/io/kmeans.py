@@ -14,7 +14,7 @@ from __future__ import annotations
 import numpy as np
 
 SAMPLE_PER_CENTRE = 16
-BLOCK = 4096
+BLOCK_VALUES = 1 << 22  # distances held at a time by nearest_rows (16 MiB of float32)
 
 
 def kmeans_1d(data: np.ndarray, k: int, *, fixed: np.ndarray | None = None,
@@ -57,26 +57,35 @@ def _pad(centres: np.ndarray, k: int) -> np.ndarray:
     return np.sort(out).astype(np.float32)
 
 
+def _flat(rows: np.ndarray) -> np.ndarray:
+    """(M, ...) -> (M, D) (a copy only when ``rows`` is a strided view)."""
+    return rows.reshape(len(rows), -1)
+
+
 def nearest_rows(rows: np.ndarray, centres: np.ndarray) -> np.ndarray:
-    """(M,) int64 index of the nearest of (C, D) ``centres`` for each of (M, D) ``rows``."""
+    """(M,) int64 index of the nearest of (C, D) ``centres`` for each of (M, D) ``rows`` (or
+    (M, ...) rows of D values: a strided view is flattened one block at a time)."""
     rows = np.asarray(rows, dtype=np.float32)
     c = np.asarray(centres, dtype=np.float32)
     norms = (c * c).sum(axis=1)
     out = np.empty(len(rows), dtype=np.int64)
-    for at in range(0, len(rows), BLOCK):
-        block = rows[at:at + BLOCK]
-        dist = norms - 2 * (block @ c.T)
-        out[at:at + BLOCK] = np.argmin(dist, axis=1)
+    step = max(256, BLOCK_VALUES // max(len(c), 1))  # rows per block: one bounded matrix
+    for at in range(0, len(rows), step):
+        dist = _flat(rows[at:at + step]) @ c.T
+        dist *= np.float32(-2)
+        dist += norms
+        out[at:at + step] = np.argmin(dist, axis=1)
     return out
 
 
 def kmeans_rows(rows: np.ndarray, k: int, *, fixed: np.ndarray | None = None,
                 iterations: int = 10, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
-    """(C, D) float32 centres (``fixed`` first, C <= k) and (M,) labels of (M, D) ``rows``."""
+    """(C, D) float32 centres (``fixed`` first, C <= k) and (M,) labels of (M, D) ``rows`` (or
+    (M, ...) rows of D values, e.g. a transposed view: never copied whole)."""
     from scipy import sparse
 
     rows = np.asarray(rows, dtype=np.float32)
-    d = rows.shape[1]
+    d = int(np.prod(rows.shape[1:]))
     fixed = np.zeros((0, d), np.float32) if fixed is None else np.asarray(fixed, np.float32)
     rng = np.random.default_rng(seed)
     m = len(rows)
@@ -84,8 +93,8 @@ def kmeans_rows(rows: np.ndarray, k: int, *, fixed: np.ndarray | None = None,
     if free == 0:
         centres = fixed if len(fixed) else np.zeros((1, d), np.float32)
         return centres, nearest_rows(rows, centres) if m else np.zeros(0, np.int64)
-    train = rows if m <= SAMPLE_PER_CENTRE * free else \
-        rows[np.sort(rng.choice(m, SAMPLE_PER_CENTRE * free, replace=False))]
+    train = _flat(rows if m <= SAMPLE_PER_CENTRE * free else
+                  rows[np.sort(rng.choice(m, SAMPLE_PER_CENTRE * free, replace=False))])
     distinct = np.unique(train, axis=0)
     if len(distinct) <= free:  # as many centres as distinct rows: every row is exact
         centres = np.concatenate([fixed, distinct]).astype(np.float32)

@@ -42,26 +42,42 @@ def is_compressed(source: PlySource) -> bool:
 
 def _unorm(packed: np.ndarray, shift: int, bits: int) -> np.ndarray:
     mask = (1 << bits) - 1
-    return ((packed >> np.uint32(shift)) & np.uint32(mask)).astype(np.float64) / mask
+    field = packed >> np.uint32(shift)
+    field &= np.uint32(mask)
+    out = field.astype(np.float64)
+    out /= mask
+    return out
 
 
 def _lerp(chunk: np.ndarray, low: str, high: str, t: np.ndarray, owner: np.ndarray) -> np.ndarray:
-    a = chunk[low].astype(np.float64)[owner]
-    b = chunk[high].astype(np.float64)[owner]
-    return a * (1 - t) + b * t
+    """a * (1 - t) + b * t with a, b the splat's chunk bounds (in place: ``t`` is consumed)."""
+    out = np.subtract(1.0, t)
+    out *= chunk[low].astype(np.float64)[owner]
+    t *= chunk[high].astype(np.float64)[owner]
+    out += t
+    return out
 
 
 def _rotations(packed: np.ndarray) -> np.ndarray:
     """(N,) uint32 -> (N, 4) quaternions (rot_0..rot_3), the dropped largest one restored."""
     norm = np.sqrt(2.0)  # the other three lie in [-1/sqrt(2), 1/sqrt(2)]
     others = np.stack([(_unorm(packed, s, 10) - 0.5) * norm for s in (20, 10, 0)], axis=1)
-    largest = np.sqrt(np.maximum(0.0, 1.0 - (others**2).sum(axis=1)))
-    which = (packed >> np.uint32(30)).astype(np.int64)
-    quat = np.empty((len(packed), 4))
-    for k in range(4):
-        rows = which == k
-        quat[rows] = np.insert(others[rows], k, largest[rows], axis=1)
-    return quat
+    from .splats import restore_largest
+
+    return restore_largest(others, (packed >> np.uint32(30)).astype(np.intp))
+
+
+def _sh_codes(sh: PlyElementData, names: list[str]) -> np.ndarray:
+    """(N, len(names)) codes of the sh element's ``names``: a uint8 view of the packed rows
+    when every property is a uchar in that order (the layout writers use), else a copy."""
+    data = sh.data
+    dtype = data.dtype
+    if data.flags.c_contiguous and dtype.itemsize == len(names) and \
+            all(dtype.fields[m][0] == np.uint8 and dtype.fields[m][1] == j
+                for j, m in enumerate(names)):
+        return data.view(np.uint8).reshape(len(data), len(names))
+    return np.stack([data[m] for m in names], axis=1) if names else \
+        np.empty((len(data), 0), np.float32)
 
 
 def decompress(source: PlySource, path: str | Path) -> PlySource:
@@ -87,25 +103,8 @@ def decompress(source: PlySource, path: str | Path) -> PlySource:
     if any(vertex.property(p).is_list or vertex.property(p).dtype[0] == "f" for p in PACKED):
         raise FormatError(f"{path}: PlayCanvas compressed file: packed_* must be integer "
                           "properties")
-    owner = np.arange(n) // SPLATS_PER_CHUNK
-    packed = {p: vertex.data[p].astype(np.uint32) for p in PACKED}
-    positions = np.empty((n, 3))
-    scale_log = np.empty((n, 3))
-    for i, (axis, (shift, bits)) in enumerate(zip("xyz", ((21, 11), (11, 10), (0, 11)),
-                                                  strict=True)):
-        positions[:, i] = _lerp(chunk, f"min_{axis}", f"max_{axis}",
-                                _unorm(packed["packed_position"], shift, bits), owner)
-        scale_log[:, i] = _lerp(chunk, f"min_scale_{axis}", f"max_scale_{axis}",
-                                _unorm(packed["packed_scale"], shift, bits), owner)
-    color = [_unorm(packed["packed_color"], s, 8) for s in (24, 16, 8, 0)]
-    has_range = all(c in chunk_names for c in CHUNK_COLORS)
-    dc = np.empty((n, 3))
-    for i, c in enumerate("rgb"):
-        value = _lerp(chunk, f"min_{c}", f"max_{c}", color[i], owner) if has_range else color[i]
-        dc[:, i] = (value - 0.5) / SH_C0
-    alpha = np.clip(color[3], OPACITY_EPS, 1 - OPACITY_EPS)
-    rest = np.zeros((n, 0))
     sh = source.element("sh")
+    names = []
     if sh is not None:
         if sh.count != n:
             raise FormatError(f"{path}: PlayCanvas compressed file: the sh element has "
@@ -116,20 +115,36 @@ def decompress(source: PlySource, path: str | Path) -> PlySource:
         if len(names) % 3:
             raise FormatError(f"{path}: PlayCanvas compressed file: {len(names)} f_rest "
                               "values per splat (a multiple of 3 expected)")
-        rest = np.empty((n, len(names)), dtype=np.float32)  # decoded in place, column by column
-        for j, name in enumerate(names):
-            rest[:, j] = sh.data[name]
-        rest += np.float32(0.5)  # ((v + 0.5) / 256 - 0.5) * 8, exact in float32
+    from .splats import gaussian_table, table_source
+
+    # decoded straight into the final float32 table (each value rounded once, from float64)
+    table, out = gaussian_table(n, len(names))
+    owner = np.arange(n) // SPLATS_PER_CHUNK
+    packed = {p: vertex.data[p].astype(np.uint32) for p in PACKED}
+    for i, (axis, (shift, bits)) in enumerate(zip("xyz", ((21, 11), (11, 10), (0, 11)),
+                                                  strict=True)):
+        out["positions"][:, i] = _lerp(chunk, f"min_{axis}", f"max_{axis}",
+                                       _unorm(packed["packed_position"], shift, bits), owner)
+        out["scale_log"][:, i] = _lerp(chunk, f"min_scale_{axis}", f"max_scale_{axis}",
+                                       _unorm(packed["packed_scale"], shift, bits), owner)
+    has_range = all(c in chunk_names for c in CHUNK_COLORS)
+    for i, c in enumerate("rgb"):
+        value = _unorm(packed["packed_color"], 24 - 8 * i, 8)
+        if has_range:
+            value = _lerp(chunk, f"min_{c}", f"max_{c}", value, owner)
+        out["sh_dc"][:, i] = (value - 0.5) / SH_C0
+    alpha = np.clip(_unorm(packed["packed_color"], 0, 8), OPACITY_EPS, 1 - OPACITY_EPS)
+    out["opacity"][:, 0] = -np.log(1 / alpha - 1)
+    out["rotation"][:] = _rotations(packed["packed_rotation"])
+    del packed, owner, alpha
+    if names:
+        rest = out["sh_rest"]  # ((v + 0.5) / 256 - 0.5) * 8 in place, exact in float32
+        rest[:] = _sh_codes(sh, names)
+        rest += np.float32(0.5)
         rest *= np.float32(SH_RANGE / 256)
         rest -= np.float32(SH_RANGE / 2)
-    from .splats import SplatFields, gaussian_source
-
-    fields = SplatFields(positions=positions, scale_log=scale_log.astype(np.float32),
-                         rotation=_rotations(packed["packed_rotation"]).astype(np.float32),
-                         opacity=(-np.log(1 / alpha - 1)).astype(np.float32),
-                         sh_dc=dc.astype(np.float32), sh_rest=rest.reshape(n, 3, -1))
     comments = [*source.comments, "decompressed from a PlayCanvas .compressed.ply by splatdeform"]
-    return replace(gaussian_source(fields, comments, release=True), obj_info=list(source.obj_info),
+    return replace(table_source(table, comments), obj_info=list(source.obj_info),
                    quantised=source)
 
 

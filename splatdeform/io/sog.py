@@ -39,6 +39,7 @@ from .splats import (
     logit,
     normalised_quaternions,
     note_lossy,
+    restore_largest,
     to_model,
 )
 
@@ -190,17 +191,8 @@ def unlog(n: np.ndarray) -> np.ndarray:
 
 def quats_from_codes(codes: np.ndarray) -> np.ndarray:
     """(N, 4) uint8 RGBA -> (N, 4) float64 w x y z."""
-    n = len(codes)
     kept = (codes[:, :3].astype(np.float64) / 255 - 0.5) * math.sqrt(2.0)
-    mode = codes[:, 3].astype(np.int64) - 252
-    largest = np.sqrt(np.maximum(0.0, 1.0 - (kept**2).sum(axis=1)))
-    q = np.empty((n, 4))
-    for m in range(4):
-        rows = mode == m
-        others = [i for i in range(4) if i != m]
-        q[np.ix_(rows, others)] = kept[rows]
-        q[rows, m] = largest[rows]
-    return q
+    return restore_largest(kept, codes[:, 3].astype(np.intp) - 252)
 
 
 def decode(path: str | Path) -> tuple[SplatFields, SogCodes]:
@@ -449,7 +441,8 @@ def _encode_sh(f: SplatFields, keep: SogCodes | None, same: np.ndarray | None,
                iterations: int, width: int, height: int, effort: int
                ) -> tuple[dict, dict[str, bytes]]:
     n, k = f.count, f.sh_rest.shape[2]
-    rows = f.sh_rest.transpose(0, 2, 1).reshape(n, 3 * k)  # (N, K*3): coefficient-major, rgb
+    # (N, K, 3) view: coefficient-major, rgb inside (rows of K*3 values, flattened by block)
+    rows = f.sh_rest.transpose(0, 2, 1)
     palette_n = _palette_size(n)
     if keep is not None:
         used = np.unique(keep.labels[same])

@@ -87,6 +87,18 @@ def normalised_quaternions(q: np.ndarray) -> np.ndarray:
     return out
 
 
+def restore_largest(others: np.ndarray, which: np.ndarray) -> np.ndarray:
+    """Smallest-three quaternions: (N, 3) float64 kept components (in order, the largest one
+    left out) and (N,) its index 0..3 -> (N, 4) with the largest restored as
+    sqrt(1 - |others|^2) (components keep the order the format stores them in)."""
+    largest = np.sqrt(np.maximum(0.0, 1.0 - (others**2).sum(axis=1)))
+    column = np.arange(4)[None, :]  # component c is others[c] before the index, others[c - 1] after
+    pick = np.minimum(column - (column > which[:, None]), 2)
+    quat = np.take_along_axis(others, pick, axis=1)
+    quat[np.arange(len(which)), which] = largest
+    return quat
+
+
 def fields_of(model: PointModel, path: str | Path, fmt: str) -> SplatFields:
     """The splat fields a write of ``model`` to ``path`` (format name ``fmt``) encodes; raises
     FormatError naming the file when the model is not a 3D Gaussian splat scene."""
@@ -166,6 +178,35 @@ def note_lossy(path: str | Path, fmt: str, losses: str | None, model: PointModel
 
 
 FIELD_ORDER = ("positions", "sh_dc", "sh_rest", "opacity", "scale_log", "rotation")
+FIELD_WIDTH = {"positions": 3, "sh_dc": 3, "opacity": 1, "scale_log": 3, "rotation": 4}
+
+
+def gaussian_names(n_rest: int) -> list[str]:
+    """The standard 3DGS vertex property names with ``n_rest`` f_rest_* values."""
+    return [*"xyz", *(f"f_dc_{i}" for i in range(3)), *(f"f_rest_{i}" for i in range(n_rest)),
+            "opacity", *(f"scale_{i}" for i in range(3)), *(f"rot_{i}" for i in range(4))]
+
+
+def gaussian_table(n: int, n_rest: int) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+    """An empty (N, 14 + n_rest) float32 table in the standard 3DGS property order and, by
+    field name (:data:`FIELD_ORDER`), its (N, width) column views: a decoder writes each decoded
+    field straight into them (no intermediate float arrays), then calls :func:`table_source`."""
+    table = np.empty((n, 14 + n_rest), dtype="<f4")
+    views, at = {}, 0
+    for name in FIELD_ORDER:
+        width = n_rest if name == "sh_rest" else FIELD_WIDTH[name]
+        views[name] = table[:, at:at + width]
+        at += width
+    return table, views
+
+
+def table_source(table: np.ndarray, comments: list[str]) -> PlySource:
+    """The 3DGS PlySource viewing a :func:`gaussian_table` (no copy)."""
+    names = gaussian_names(table.shape[1] - 14)
+    data = table.view([(name, "<f4") for name in names]).reshape(len(table))
+    props = [PlyProperty(name, "f4", "float") for name in names]
+    return PlySource(elements=[PlyElementData("vertex", props, data)], comments=comments,
+                     text=False, byte_order="<")
 
 
 def gaussian_source(fields: SplatFields, comments: list[str], *,
@@ -177,34 +218,32 @@ def gaussian_source(fields: SplatFields, comments: list[str], *,
     n = fields.count
     k = fields.sh_rest.shape[1] * fields.sh_rest.shape[2] if fields.sh_rest.ndim == 3 else \
         fields.sh_rest.shape[1]
-    names = [*"xyz", *(f"f_dc_{i}" for i in range(3)),
-             *(f"f_rest_{i}" for i in range(k)), "opacity",
-             *(f"scale_{i}" for i in range(3)), *(f"rot_{i}" for i in range(4))]
-    table = np.empty((n, len(names)), dtype="<f4")  # filled by contiguous blocks, then viewed
-    at = 0
+    table, views = gaussian_table(n, k)  # filled by contiguous blocks, then viewed
     for name in FIELD_ORDER:
-        block = getattr(fields, name).reshape(n, -1)
-        table[:, at:at + block.shape[1]] = block
-        at += block.shape[1]
-        del block
+        views[name][:] = getattr(fields, name).reshape(n, -1)
         if release:
             setattr(fields, name, np.empty((0,) * getattr(fields, name).ndim, np.float32))
-    data = table.view([(name, "<f4") for name in names]).reshape(n)
-    props = [PlyProperty(name, "f4", "float") for name in names]
-    return PlySource(elements=[PlyElementData("vertex", props, data)], comments=comments,
-                     text=False, byte_order="<")
+    return table_source(table, comments)
 
 
 def to_model(fields: SplatFields, path: str | Path, comments: list[str], *,
              drop_nonfinite: bool = False) -> PointModel:
     """A PointModel (kind gaussians) whose PLY source is the standard 3DGS vertex element.
     ``fields`` is emptied on the way (its arrays are released once copied)."""
-    from .ply import model_from_source  # ply imports playcanvas, which imports this module
-
     if fields.count == 0:
         raise FormatError(f"{path}: the file holds no splats")
-    return model_from_source(gaussian_source(fields, comments, release=True), path,
-                             drop_nonfinite=drop_nonfinite)
+    return source_model(gaussian_source(fields, comments, release=True), path,
+                        drop_nonfinite=drop_nonfinite)
+
+
+def source_model(source: PlySource, path: str | Path, *,
+                 drop_nonfinite: bool = False) -> PointModel:
+    """The PointModel of a 3DGS source (:func:`gaussian_source` or :func:`table_source`)."""
+    from .ply import model_from_source  # ply imports playcanvas, which imports this module
+
+    if source.element("vertex").count == 0:
+        raise FormatError(f"{path}: the file holds no splats")
+    return model_from_source(source, path, drop_nonfinite=drop_nonfinite)
 
 
 def read_bytes(path: str | Path, limit: int = 1 << 34) -> bytes:

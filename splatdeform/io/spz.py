@@ -10,12 +10,15 @@ the highest index in the lowest bits), SH rest (uint8 128 + 128 * c, coefficient
 inside; degree-1 values on a grid of 8 codes, higher ones 16).
 
 Axes: SPZ stores RUB (x right, y up, z back); PLY space is RDF, so y and z flip both ways
-(positions, the quaternion's y and z, and the SH coefficients odd in y + z).
+(positions, the quaternion's y and z, and the SH coefficients odd in y + z). An SPZ blob inside
+glTF (``KHR_gaussian_splatting_compression_spz``) is packed in glTF's LUF frame instead (that
+specification says so): x and y flip (:data:`LUF`).
 """
 
 from __future__ import annotations
 
 import gzip
+import io
 import struct
 import zlib
 from pathlib import Path
@@ -28,11 +31,14 @@ from .splats import (
     SH_COEFFS,
     SplatFields,
     fields_of,
+    gaussian_table,
     logit,
     normalised_quaternions,
     note_lossy,
+    restore_largest,
     sigmoid,
-    to_model,
+    source_model,
+    table_source,
 )
 
 EXTENSIONS = (".spz",)
@@ -45,6 +51,11 @@ ALPHA_EPS = 0.5 / 255
 # sign of each SH rest coefficient under the RDF <-> RUB flip (y -> -y, z -> -z)
 SH_FLIP = np.array([-1, -1, 1, -1, 1, 1, -1, 1, -1, 1, -1, -1, 1, -1, 1], dtype=np.float32)
 FLIP = np.array([1.0, -1.0, -1.0])
+# the same for glTF's LUF frame (x -> -x, y -> -y: 180 degrees about z)
+LUF_SH_FLIP = np.array([-1, 1, -1, 1, -1, 1, -1, 1, -1, 1, -1, 1, -1, 1, -1], dtype=np.float32)
+LUF_FLIP = np.array([-1.0, -1.0, 1.0])
+RUB = (FLIP, SH_FLIP)
+LUF = (LUF_FLIP, LUF_SH_FLIP)
 SH_BLOCK = 1 << 16  # splats whose SH codes are computed at a time on write
 GZIP_LEVEL = 1  # level 6 is 7x slower for ~3% smaller files
 
@@ -76,22 +87,27 @@ def parse_header(path: str | Path, head: bytes) -> dict:
             "antialiased": bool(flags & 1)}
 
 
-def _refuse_plain(path: str | Path) -> None:
-    """A file that starts with the SPZ magic itself (not gzip) is a newer layout (version 4
+def _refuse_plain(path: str | Path, head: bytes) -> None:
+    """Data that starts with the SPZ magic itself (not gzip) is a newer layout (version 4
     keeps its header uncompressed): refuse it with one line naming the version."""
-    with open(path, "rb") as f:
-        head = f.read(HEADER.size)
-    if len(head) == HEADER.size and HEADER.unpack_from(head)[0] == MAGIC:
+    if len(head) >= HEADER.size and HEADER.unpack_from(head)[0] == MAGIC:
         parse_header(path, head)  # raises for any version but 2 and 3
         raise FormatError(f"{path}: SPZ version 2/3 header outside a gzip stream; expected the "
                           "whole file gzip-compressed")
 
 
-def _gunzip(path: str | Path, limit: int) -> bytes:
-    """The decompressed stream, reading at most ``limit + 1`` bytes (a bound from the header)."""
-    _refuse_plain(path)
+def _file_head(path: str | Path) -> bytes:
+    with open(path, "rb") as f:
+        return f.read(HEADER.size)
+
+
+def _gunzip(path: str | Path, limit: int, data: bytes | None = None) -> bytes:
+    """The decompressed stream of the file (or of ``data``, an SPZ blob named by ``path``),
+    reading at most ``limit + 1`` bytes (a bound from the header)."""
+    _refuse_plain(path, _file_head(path) if data is None else data[:HEADER.size])
     try:
-        with gzip.open(path, "rb") as f:
+        with (gzip.open(path, "rb") if data is None else
+              gzip.GzipFile(fileobj=io.BytesIO(data), mode="rb")) as f:
             head = f.read(HEADER.size)
             info = parse_header(path, head)
             want = body_size(info["count"], info["sh_degree"], info["version"])
@@ -107,8 +123,14 @@ def _gunzip(path: str | Path, limit: int) -> bytes:
     return head + body
 
 
+def gunzip_blob(path: str | Path, data: bytes, limit: int = 1 << 34) -> bytes:
+    """The decompressed SPZ stream of an in-memory blob (glTF's SPZ extension) named by
+    ``path`` in errors."""
+    return _gunzip(path, limit, data)
+
+
 def read_info(path: str | Path) -> dict:
-    _refuse_plain(path)
+    _refuse_plain(path, _file_head(path))
     try:
         with gzip.open(path, "rb") as f:
             return parse_header(path, f.read(HEADER.size))
@@ -117,22 +139,14 @@ def read_info(path: str | Path) -> dict:
 
 
 def _v3_rotations(words: np.ndarray) -> np.ndarray:
-    """(N,) uint32 -> (N, 4) x y z w."""
-    n = len(words)
-    largest = (words >> np.uint32(30)).astype(np.int64)
-    q = np.zeros((n, 4))
-    rest = words.copy()
-    filled = np.zeros((n, 4), dtype=bool)
-    filled[np.arange(n), largest] = True
-    for i in range(3, -1, -1):  # the highest index sits in the lowest bits
-        mag = (rest & np.uint32(511)).astype(np.float64) / 511 * np.sqrt(0.5)
-        neg = ((rest >> np.uint32(9)) & np.uint32(1)).astype(bool)
-        value = np.where(neg, -mag, mag)
-        use = ~filled[:, i]
-        q[use, i] = value[use]
-        rest = np.where(use, rest >> np.uint32(10), rest)
-    q[np.arange(n), largest] = np.sqrt(np.maximum(0.0, 1.0 - (q**2).sum(axis=1)))
-    return q
+    """(N,) uint32 -> (N, 4) x y z w: the three kept components in index order sit in bits
+    20-29, 10-19 and 0-9 (the highest index lowest), each a sign bit over 9 magnitude bits."""
+    kept = np.empty((len(words), 3))
+    for j, shift in enumerate((20, 10, 0)):
+        field = words >> np.uint32(shift)
+        mag = (field & np.uint32(511)).astype(np.float64) / 511 * np.sqrt(0.5)
+        kept[:, j] = np.where((field & np.uint32(512)) != 0, -mag, mag)
+    return restore_largest(kept, (words >> np.uint32(30)).astype(np.intp))
 
 
 def _v3_words(q_xyzw: np.ndarray) -> np.ndarray:
@@ -148,7 +162,12 @@ def _v3_words(q_xyzw: np.ndarray) -> np.ndarray:
     return words | (largest.astype(np.uint32) << np.uint32(30))
 
 
-def decode(raw: bytes, path: str | Path) -> tuple[SplatFields, dict]:
+def decode(raw: bytes, path: str | Path, frame: tuple = RUB,
+           into: dict[str, np.ndarray] | None = None) -> tuple[SplatFields, dict]:
+    """The splat fields in PLY space of a decompressed SPZ stream stored in ``frame`` (RUB, or
+    LUF for glTF's SPZ extension). into: the column views of a :func:`gaussian_table` to
+    decode into (the returned fields are then those views)."""
+    flip, sh_flip = frame
     info = parse_header(path, raw)
     n, degree, version = info["count"], info["sh_degree"], info["version"]
     k = SH_COEFFS[degree]
@@ -161,28 +180,40 @@ def decode(raw: bytes, path: str | Path) -> tuple[SplatFields, dict]:
         at += size
         return part
 
+    out: dict[str, np.ndarray] = {}
+
+    def put(name: str, value: np.ndarray) -> None:
+        """Keep a decoded field: float32 (positions float64), or written into ``into``."""
+        if into is None:
+            out[name] = value if name == "positions" else value.astype(np.float32)
+        else:
+            into[name][:] = value.reshape(n, -1)
+            out[name] = into[name]
+
     p = take(9 * n).reshape(n, 3, 3).astype(np.int32)
     fixed = p[..., 0] | (p[..., 1] << 8) | (p[..., 2] << 16)
+    del p
     fixed = np.where(fixed & 0x800000, fixed - (1 << 24), fixed)
-    positions = fixed.astype(np.float64) / (1 << info["fractional_bits"]) * FLIP
-    opacity = logit(take(n).astype(np.float64) / 255, ALPHA_EPS)
-    dc = (take(3 * n).reshape(n, 3).astype(np.float64) / 255 - 0.5) / COLOR_SCALE
-    scale_log = take(3 * n).reshape(n, 3).astype(np.float64) / 16 - 10
+    put("positions", fixed.astype(np.float64) / (1 << info["fractional_bits"]) * flip)
+    del fixed
+    put("opacity", logit(take(n).astype(np.float64) / 255, ALPHA_EPS))
+    put("sh_dc", (take(3 * n).reshape(n, 3).astype(np.float64) / 255 - 0.5) / COLOR_SCALE)
+    put("scale_log", take(3 * n).reshape(n, 3).astype(np.float64) / 16 - 10)
     if version == 2:
         xyz = take(3 * n).reshape(n, 3).astype(np.float64) / 127.5 - 1
         w = np.sqrt(np.maximum(0.0, 1 - (xyz**2).sum(axis=1)))
         q = np.concatenate([xyz, w[:, None]], axis=1)
     else:
         q = _v3_rotations(take(4 * n).view("<u4").copy())
-    rotation = np.stack([q[:, 3], q[:, 0], -q[:, 1], -q[:, 2]], axis=1)
+    put("rotation", np.stack([q[:, 3], *(q[:, :3] * flip).T], axis=1))  # x y z conjugated
+    del q
     # SH rest in place in one (N, 3, K) float32 array (the largest decoded field: no temporaries)
-    sh_rest = np.empty((n, 3, k), dtype=np.float32)
+    sh_rest = np.empty((n, 3, k), dtype=np.float32) if into is None else \
+        into["sh_rest"].reshape(n, 3, k)
     np.subtract(take(3 * k * n).reshape(n, k, 3).transpose(0, 2, 1), np.float32(128),
                 out=sh_rest)
-    sh_rest *= SH_FLIP[:k] / np.float32(128)
-    return SplatFields(positions=positions, scale_log=scale_log.astype(np.float32),
-                       rotation=rotation.astype(np.float32), opacity=opacity.astype(np.float32),
-                       sh_dc=dc.astype(np.float32), sh_rest=sh_rest), info
+    sh_rest *= sh_flip[:k] / np.float32(128)
+    return SplatFields(**out, sh_rest=sh_rest), info
 
 
 def _fractional_bits(positions: np.ndarray) -> int:
@@ -202,17 +233,20 @@ def _sh_codes(values: np.ndarray, step: int) -> np.ndarray:
     return np.clip(q, 0, 255).astype(np.uint8)
 
 
-def encode(f: SplatFields, version: int = WRITE_VERSION, antialiased: bool = False) -> bytes:
+def encode(f: SplatFields, version: int = WRITE_VERSION, antialiased: bool = False,
+           frame: tuple = RUB) -> bytes:
+    """The uncompressed SPZ stream of ``f`` (PLY space) stored in ``frame``."""
+    flip, sh_flip = frame
     n = f.count
     k = f.sh_rest.shape[2]
     frac = _fractional_bits(f.positions)
-    fixed = np.round(f.positions * FLIP * (1 << frac)).astype(np.int64) & 0xFFFFFF
+    fixed = np.round(f.positions * flip * (1 << frac)).astype(np.int64) & 0xFFFFFF
     pos = np.stack([fixed & 0xFF, (fixed >> 8) & 0xFF, (fixed >> 16) & 0xFF], axis=-1)
     alpha = np.clip(np.round(sigmoid(f.opacity) * 255), 0, 255)
     color = np.clip(np.round(f.sh_dc.astype(np.float64) * (COLOR_SCALE * 255) + 127.5), 0, 255)
     scale = np.clip(np.round((f.scale_log.astype(np.float64) + 10) * 16), 0, 255)
     wxyz = normalised_quaternions(f.rotation)
-    xyzw = np.stack([wxyz[:, 1], -wxyz[:, 2], -wxyz[:, 3], wxyz[:, 0]], axis=1)
+    xyzw = np.concatenate([wxyz[:, 1:] * flip, wxyz[:, :1]], axis=1)
     if version == 2:
         xyzw = xyzw * np.where(xyzw[:, 3] < 0, -1.0, 1.0)[:, None]
         rot = np.clip(np.round((xyzw[:, :3] + 1) * 127.5), 0, 255).astype(np.uint8).tobytes()
@@ -220,7 +254,7 @@ def encode(f: SplatFields, version: int = WRITE_VERSION, antialiased: bool = Fal
         rot = _v3_words(xyzw).astype("<u4").tobytes()
     codes = np.empty((n, k, 3), dtype=np.uint8)
     for at in range(0, n if k else 0, SH_BLOCK):  # bounded float temporaries
-        sh = (f.sh_rest[at:at + SH_BLOCK] * SH_FLIP[:k]).transpose(0, 2, 1)  # (B, K, 3)
+        sh = (f.sh_rest[at:at + SH_BLOCK] * sh_flip[:k]).transpose(0, 2, 1)  # (B, K, 3)
         codes[at:at + SH_BLOCK, :3] = _sh_codes(sh[:, :3], 8)
         codes[at:at + SH_BLOCK, 3:] = _sh_codes(sh[:, 3:], 16)
     degree = {c: d for d, c in SH_COEFFS.items()}[k]
@@ -231,9 +265,14 @@ def encode(f: SplatFields, version: int = WRITE_VERSION, antialiased: bool = Fal
 
 
 def read_model(path: str | Path, *, drop_nonfinite: bool = False) -> PointModel:
-    fields, info = decode(_gunzip(path, 1 << 34), path)
-    return to_model(fields, path, [f"read from an SPZ v{info['version']} file by splatdeform"],
-                    drop_nonfinite=drop_nonfinite)
+    raw = _gunzip(path, 1 << 34)
+    info = parse_header(path, raw)
+    table, views = gaussian_table(info["count"], 3 * SH_COEFFS[info["sh_degree"]])
+    decode(raw, path, into=views)  # straight into the model's float32 table
+    del raw
+    return source_model(table_source(table, [f"read from an SPZ v{info['version']} file by "
+                                             "splatdeform"]), path,
+                        drop_nonfinite=drop_nonfinite)
 
 
 def write_model(model: PointModel, path: Path, stream) -> None:
@@ -241,5 +280,6 @@ def write_model(model: PointModel, path: Path, stream) -> None:
     note_lossy(path, ".spz", "positions 24-bit fixed point, opacity, colour, log scale 8 bits, "
                "rotation 10 bits per component, SH rest 5 bits (degree 1) and 4 bits (2-3)",
                model)
-    with gzip.GzipFile(fileobj=stream, mode="wb", compresslevel=GZIP_LEVEL, mtime=0) as gz:
+    with gzip.GzipFile(filename="", fileobj=stream, mode="wb", compresslevel=GZIP_LEVEL,
+                       mtime=0) as gz:  # no file name in the header: the same bytes each time
         gz.write(encode(fields))
