@@ -27,6 +27,13 @@ DEFORM_BYTES_PER_POINT = 300
 KNN_BYTES_PER_NEIGHBOR = 16
 FIT_BYTES_PER_CENTER = 128 * 2**10   # the fit's working set per allowed center (fit.max_centers)
 
+# Streaming (deform's out-of-core path): per point of a chunk beyond ~4 copies of its record
+# (float64 geometry, basis values and Jacobians); per border point (positions, kNN, labels); per
+# handle point kept whole for the frame (24 bytes, ~4 copies in the frame's SVD).
+STREAM_BYTES_PER_POINT = 900
+BORDER_BYTES_PER_POINT = 500
+HANDLE_BYTES_PER_POINT = 100
+
 # Per point of an in-memory render beyond its decoded record: float64 positions and their
 # float32 copy, normals, splat axes, colours, the kNN spacing query (k + 1 distances and
 # indices) and the GL buffers' client copies. Measured (tests/test_render_budget.py checks
@@ -155,6 +162,29 @@ def deform_bytes(cost: FileCost, neighbors: int = 10,
     per_point = DEFORM_BYTES_PER_POINT + KNN_BYTES_PER_NEIGHBOR * 3 * (neighbors + 1)
     return cost.load_bytes + cost.points * (per_point + cost.record_bytes) + \
         FIT_BYTES_PER_CENTER * max_centers
+
+
+def deform_peak(cost: FileCost, neighbors: int = 10,
+                max_centers: int = DEFAULT_MAX_CENTERS) -> int:
+    """Peak bytes of the whole process for an in-memory ``deform``: :data:`BASE_BYTES` plus
+    :func:`deform_bytes` (what the stream-or-not choice and the batch guard compare)."""
+    return BASE_BYTES + deform_bytes(cost, neighbors, max_centers)
+
+
+def stream_chunk(budget: int, record_bytes: int, fixed_bytes: int) -> int:
+    """Points per streamed chunk so that a chunk's working set (~4 copies of a record plus
+    :data:`STREAM_BYTES_PER_POINT`) takes a quarter of what ``fixed_bytes`` leaves of
+    ``budget``; between 5,000 and 4,000,000."""
+    left = max(budget - fixed_bytes, budget // 4)
+    per_point = 4 * record_bytes + STREAM_BYTES_PER_POINT
+    return int(min(max(left // 4 // per_point, 5_000), 4_000_000))
+
+
+def stream_caps(budget: int, fixed_bytes: int) -> tuple[int, int]:
+    """(border points, handle points kept whole) a streamed edit may hold in ``budget`` bytes
+    beside ``fixed_bytes``: the border set takes what is left, the whole handle a quarter."""
+    left = max(budget - fixed_bytes, budget // 2)
+    return int(left // BORDER_BYTES_PER_POINT), int(left // 4 // HANDLE_BYTES_PER_POINT)
 
 
 def render_bytes(points: int, record_bytes: int = 64) -> int:

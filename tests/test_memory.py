@@ -102,3 +102,19 @@ def test_deform_bytes_bounds_the_measured_deform_peak(tmp_path: Path) -> None:
     measured, estimate = map(int, r.stdout.split()[-2:])
     assert estimate >= measured, (measured / 2**20, estimate / 2**20)
     assert estimate <= 4 * measured + 64 * 2**20, (measured / 2**20, estimate / 2**20)
+
+
+def test_stream_sizes_fit_their_budget() -> None:
+    """A streamed chunk's working set takes at most a quarter of what the fixed part leaves (the
+    5,000-point floor aside); the border and whole-handle caps grow with the budget."""
+    from splatdeform.memory import STREAM_BYTES_PER_POINT, stream_caps, stream_chunk
+
+    fixed = 150 * 2**20
+    for budget in (256 * 2**20, 2**30, 8 * 2**30):
+        for record in (15, 62, 248):
+            chunk = stream_chunk(budget, record, fixed)
+            assert 5_000 <= chunk <= 4_000_000
+            if chunk > 5_000:
+                assert chunk * (4 * record + STREAM_BYTES_PER_POINT) <= (budget - fixed) / 4
+    small, big = stream_caps(256 * 2**20, fixed), stream_caps(2**30, fixed)
+    assert 0 < small[0] < big[0] and 0 < small[1] < big[1]

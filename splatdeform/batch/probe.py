@@ -17,7 +17,7 @@ import numpy as np
 from ..errors import InputError
 from ..io import LAS_EXTENSIONS, PLY_EXTENSIONS, extension_of
 from ..io.ply_format import parse_header
-from ..memory import BASE_BYTES, HEAD_BYTES, FileCost, deform_bytes, head_cost
+from ..memory import HEAD_BYTES, FileCost, deform_peak, head_cost
 from ..rbf.defaults import DEFAULT_MAX_CENTERS
 
 __all__ = ["HEAD_BYTES", "Probe", "check", "estimate_memory", "probe"]
@@ -82,7 +82,7 @@ def probe(name: str, head: bytes, size: int, *, suffix: str | None = None) -> Pr
 def estimate_memory(p: Probe, max_centers: int = DEFAULT_MAX_CENTERS) -> int:
     """Peak bytes to deform the scan, the interpreter included (``max_centers``: the edit's
     ``fit.max_centers``)."""
-    return BASE_BYTES + deform_bytes(p.cost, max_centers=max_centers)
+    return deform_peak(p.cost, max_centers=max_centers)
 
 
 def check(name: str, p: Probe, budget: float | None, available: float | None = None,

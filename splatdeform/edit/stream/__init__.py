@@ -87,14 +87,6 @@ def default_budget() -> int:
     return machine_memory() // 2
 
 
-def chunk_for_budget(budget: int, record_bytes: int, fixed_bytes: int) -> int:
-    """Points per chunk so that a chunk's working set (~4 copies of a record + ~900 bytes of
-    float64 geometry, basis and Jacobians per point) takes a quarter of what is left."""
-    left = max(budget - fixed_bytes, budget // 4)
-    per_point = 4 * record_bytes + 900
-    return int(np.clip(left // 4 // per_point, 5_000, 4_000_000))
-
-
 def should_stream(cfg, in_path: Path, budget: int | None) -> bool:
     """True when the input is streamable and its in-memory peak (the one estimator,
     :mod:`splatdeform.memory`) exceeds the budget."""
@@ -107,8 +99,7 @@ def should_stream(cfg, in_path: Path, budget: int | None) -> bool:
         cost = memory.file_cost(in_path)
     except SplatdeformError:   # an unreadable header: the in-memory loader says why
         return False
-    peak = memory.BASE_BYTES + memory.deform_bytes(cost, cfg.boundary.neighbors)
-    return peak > (budget or default_budget())
+    return memory.deform_peak(cost, cfg.boundary.neighbors) > (budget or default_budget())
 
 
 def run_stream(cfg, base_dir: str | Path = ".", *, output: str | Path | None = None,
@@ -127,7 +118,7 @@ def run_stream(cfg, base_dir: str | Path = ".", *, output: str | Path | None = N
 
     from splatdeform.edit.stream.run import check_streamable, dask_client, stream_deform
     from splatdeform.io import check_output_path
-    from splatdeform.memory import BASE_BYTES
+    from splatdeform.memory import BASE_BYTES, stream_caps, stream_chunk
 
     base_dir = Path(base_dir)
     in_path = base_dir / cfg.input
@@ -138,11 +129,10 @@ def run_stream(cfg, base_dir: str | Path = ".", *, output: str | Path | None = N
     src = check_streamable(cfg, in_path, out_path)
     n = src.n_points
     base = BASE_BYTES + 2 * n  # interpreter and libraries, labels
-    chunk = chunk or chunk_for_budget(budget, src.record_bytes, fixed_bytes=base)
-    max_border = int(max(budget - base, budget // 2) // 500)
-    # handle points kept whole (24 bytes each, ~4 copies in the frame's SVD) up to a quarter
+    chunk = chunk or stream_chunk(budget, src.record_bytes, fixed_bytes=base)
+    max_border, whole_handle = stream_caps(budget, base)
     if max_handle is None:
-        max_handle = int(max(budget - base, budget // 2) // 4 // 100)
+        max_handle = whole_handle
     if log and not quiet:
         log(f"streaming {n:,} points in chunks of {chunk:,} (memory budget "
             f"{budget / 2**20:,.0f} MB)")

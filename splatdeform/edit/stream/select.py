@@ -10,11 +10,10 @@ import numpy as np
 
 from splatdeform.edit.config import EditConfig
 from splatdeform.edit.selection import RegionCounts, Selection, moving_label
-from splatdeform.edit.stream import chunk_for_budget
 from splatdeform.edit.stream.plan import FIXED, HANDLE, bbox_pass, labels_pass
 from splatdeform.edit.stream.run import check_streamable
 from splatdeform.edit.stream.sample import RenderInput, load_for_render
-from splatdeform.memory import BASE_BYTES
+from splatdeform.memory import BASE_BYTES, stream_chunk
 
 
 def stream_select(cfg: EditConfig, base_dir: Path, budget: int, *, preview: bool = False
@@ -24,7 +23,7 @@ def stream_select(cfg: EditConfig, base_dir: Path, budget: int, *, preview: bool
     in_path = Path(base_dir) / cfg.input
     src = check_streamable(cfg, in_path, in_path)
     n = src.n_points
-    chunk = chunk_for_budget(budget, src.record_bytes, fixed_bytes=BASE_BYTES + n)
+    chunk = stream_chunk(budget, src.record_bytes, fixed_bytes=BASE_BYTES + n)
     lo, hi, _, _ = bbox_pass(src, chunk, quiet=True)
     labels, _, _, _ = labels_pass(src, cfg, Path(base_dir), lo, hi, chunk, quiet=True,
                                   max_handle=0)
