@@ -12,7 +12,6 @@ from __future__ import annotations
 import json
 import mimetypes
 import secrets
-import signal
 import sys
 import threading
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
@@ -25,6 +24,7 @@ import numpy as np
 from ..resources import resource_path
 from . import payload
 from .controller import EditorController
+from .foreground import serve_until, stop_on_signals
 from .security import default_save_folder, exposure_warning, new_token
 from .session import Session, error_line
 
@@ -171,22 +171,15 @@ def run(path: str, *, host: str = "127.0.0.1", port: int = 8080,
     warning = exposure_warning(host, server.server_address[1])
     if warning:
         print(warning, file=sys.stderr, flush=True)
-    stop = threading.Event()
-    previous = {sig: signal.signal(sig, lambda *_: stop.set())
-                for sig in (signal.SIGINT, signal.SIGTERM)}
-    thread = threading.Thread(target=server.serve_forever, name="editor-http", daemon=True)
-    thread.start()
-    try:
-        print(f"splatdeform editor: {server.url()}  ({server.session.ed.model.n_points:,} "
-              "points; Ctrl-C to stop)", flush=True)
-        if ready is not None:
-            ready.set()
-        while not stop.wait(0.25):
-            pass
-    finally:
-        server.shutdown()
-        server.server_close()
-        for sig, handler in previous.items():
-            signal.signal(sig, handler)
+    with stop_on_signals() as stop:
+        thread = threading.Thread(target=server.serve_forever, name="editor-http", daemon=True)
+        thread.start()
+        try:
+            print(f"splatdeform editor: {server.url()}  ({server.session.ed.model.n_points:,} "
+                  "points; Ctrl-C to stop)", flush=True)
+            serve_until(stop, ready)
+        finally:
+            server.shutdown()
+            server.server_close()
     print("splatdeform editor: stopped", flush=True)
     return 0

@@ -9,7 +9,6 @@ fast drag never queues stale frames.
 
 from __future__ import annotations
 
-import signal
 import sys
 import threading
 import time
@@ -23,6 +22,7 @@ from splatdeform.geometry import quaternion_to_matrix
 from ..errors import ConfigError, SplatdeformError
 from . import view
 from .controller import EditorController, Frame
+from .foreground import serve_until, stop_on_signals
 from .security import (
     SaveFolder,
     default_save_folder,
@@ -525,34 +525,26 @@ def run(path: str, *, host: str = "127.0.0.1", port: int = 8080,
                           "edits in the page (--viewer page, the default)")
     folder = default_save_folder(controller, save_dir)
     token = token or new_token()
-    stop = threading.Event()
-    previous = {}
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        previous[sig] = signal.signal(sig, lambda *_: stop.set())
-    with guarded_viser(token):
-        server = viser.ViserServer(host=host, port=port, verbose=False)
-    app = None
-    try:
-        app = EditorApp(controller, server, folder)
-        app.start()
-        shown = "127.0.0.1" if host in ("0.0.0.0", "", "::") else host
-        shown = f"[{shown}]" if ":" in shown else shown
-        print(f"splatdeform editor: http://{shown}:{server.get_port()}/?token={token}  "
-              f"({controller.model.n_points:,} points; saves into {folder.root}; "
-              "Ctrl-C to stop)", flush=True)
-        warning = exposure_warning(host, server.get_port())
-        if warning:
-            print(warning, file=sys.stderr, flush=True)
-        if ready is not None:
-            ready.set()
-        while not stop.wait(0.25):
-            pass
-    finally:
-        if app is not None:
-            app.close()
-        server.stop()
-        for sig, handler in previous.items():
-            signal.signal(sig, handler)
+    with stop_on_signals() as stop:
+        with guarded_viser(token):
+            server = viser.ViserServer(host=host, port=port, verbose=False)
+        app = None
+        try:
+            app = EditorApp(controller, server, folder)
+            app.start()
+            shown = "127.0.0.1" if host in ("0.0.0.0", "", "::") else host
+            shown = f"[{shown}]" if ":" in shown else shown
+            print(f"splatdeform editor: http://{shown}:{server.get_port()}/?token={token}  "
+                  f"({controller.model.n_points:,} points; saves into {folder.root}; "
+                  "Ctrl-C to stop)", flush=True)
+            warning = exposure_warning(host, server.get_port())
+            if warning:
+                print(warning, file=sys.stderr, flush=True)
+            serve_until(stop, ready)
+        finally:
+            if app is not None:
+                app.close()
+            server.stop()
     print("splatdeform editor: stopped", flush=True)
     return 0
 
