@@ -30,7 +30,7 @@ from pathlib import Path
 from typing import Any
 
 from .config import Job
-from .worker import _row, cap_memory, process_scan, warm_up, worker_init
+from .worker import OUT_OF_MEMORY, _row, cap_memory, process_scan, warm_up, worker_init
 
 Row = dict[str, Any]
 THREAD_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
@@ -38,10 +38,6 @@ GRACE_S = 3.0            # after SIGTERM, before SIGKILL
 START_TIMEOUT_S = 300.0  # a worker process that cannot import in this time is broken
 DIED = ("the worker process died while processing this scan (killed, out of memory or "
         "crashed)")
-
-
-OUT_OF_MEMORY = ("out of memory: the scan outgrew its {mib:.0f} MiB per-worker budget (plus "
-                 "300 MiB) and was stopped; raise memory_per_worker_mb or use fewer workers")
 
 
 def timed_out(limit: float) -> str:

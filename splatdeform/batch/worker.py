@@ -107,8 +107,6 @@ def process_scan(job: Job) -> dict[str, Any]:
             msg = msg.replace(str(local), job.scan.name)
         return _row(job, "failed", seconds=time.perf_counter() - t0, error=msg)
     except MemoryError:
-        from .runner import OUT_OF_MEMORY
-
         return _row(job, "failed", seconds=time.perf_counter() - t0,
                     error=OUT_OF_MEMORY.format(mib=(job.memory_budget or 0) / 2**20))
     except Exception as exc:  # an unexpected bug: keep the batch going, say where
@@ -130,6 +128,8 @@ def process_scan(job: Job) -> dict[str, Any]:
     return row
 
 
+OUT_OF_MEMORY = ("out of memory: the scan outgrew its {mib:.0f} MiB per-worker budget (plus "
+                 "300 MiB) and was stopped; raise memory_per_worker_mb or use fewer workers")
 CAP_SLACK_BYTES = 300 * 2**20   # above the budget, for what the estimate cannot see
 
 

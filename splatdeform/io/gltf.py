@@ -28,6 +28,7 @@ import numpy as np
 from ..errors import FormatError
 from ..model import PointModel
 from . import spz
+from .splat_model import to_model
 from .splats import (
     SH_COEFFS,
     SplatFields,
@@ -37,7 +38,6 @@ from .splats import (
     note_lossy,
     read_bytes,
     sigmoid,
-    to_model,
 )
 
 EXTENSIONS = (".glb", ".gltf")

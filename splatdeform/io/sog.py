@@ -32,6 +32,7 @@ import numpy as np
 from ..errors import FormatError
 from ..model import PointModel
 from .kmeans import kmeans_1d, kmeans_rows
+from .splat_model import to_model
 from .splats import (
     SH_COEFFS,
     SplatFields,
@@ -40,7 +41,6 @@ from .splats import (
     normalised_quaternions,
     note_lossy,
     restore_largest,
-    to_model,
 )
 
 EXTENSIONS = (".sog",)

@@ -14,6 +14,7 @@ import numpy as np
 
 from ..errors import FormatError
 from ..model import PointModel
+from .splat_model import to_model
 from .splats import (
     SplatFields,
     color_to_dc,
@@ -24,7 +25,6 @@ from .splats import (
     note_lossy,
     read_bytes,
     sigmoid,
-    to_model,
 )
 
 EXTENSIONS = (".splat",)

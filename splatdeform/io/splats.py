@@ -226,26 +226,6 @@ def gaussian_source(fields: SplatFields, comments: list[str], *,
     return table_source(table, comments)
 
 
-def to_model(fields: SplatFields, path: str | Path, comments: list[str], *,
-             drop_nonfinite: bool = False) -> PointModel:
-    """A PointModel (kind gaussians) whose PLY source is the standard 3DGS vertex element.
-    ``fields`` is emptied on the way (its arrays are released once copied)."""
-    if fields.count == 0:
-        raise FormatError(f"{path}: the file holds no splats")
-    return source_model(gaussian_source(fields, comments, release=True), path,
-                        drop_nonfinite=drop_nonfinite)
-
-
-def source_model(source: PlySource, path: str | Path, *,
-                 drop_nonfinite: bool = False) -> PointModel:
-    """The PointModel of a 3DGS source (:func:`gaussian_source` or :func:`table_source`)."""
-    from .ply import model_from_source  # ply imports playcanvas, which imports this module
-
-    if source.element("vertex").count == 0:
-        raise FormatError(f"{path}: the file holds no splats")
-    return model_from_source(source, path, drop_nonfinite=drop_nonfinite)
-
-
 def read_bytes(path: str | Path, limit: int = 1 << 34) -> bytes:
     """The whole file (refusing one larger than ``limit`` bytes)."""
     size = Path(path).stat().st_size

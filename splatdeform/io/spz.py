@@ -27,6 +27,7 @@ import numpy as np
 
 from ..errors import FormatError
 from ..model import PointModel
+from .splat_model import source_model
 from .splats import (
     SH_COEFFS,
     SplatFields,
@@ -37,7 +38,6 @@ from .splats import (
     note_lossy,
     restore_largest,
     sigmoid,
-    source_model,
     table_source,
 )
 
