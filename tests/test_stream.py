@@ -158,6 +158,18 @@ def test_animation_refused_when_streaming(tmp_path: Path, capsys) -> None:
     assert not (tmp_path / "o.ply").exists() and not (tmp_path / "x.gif").exists()
 
 
+def test_streamed_output_format_is_the_inputs(tmp_path: Path, capsys) -> None:
+    """Streaming writes the input's format: a plain PLY streamed to ``x.compressed.ply`` (the
+    double extension, not its ``.ply`` suffix, names the format) is one line, nothing written."""
+    big = tmp_path / "big.ply"
+    save(bumpy_bar(150_000, seed=6), big)
+    cfg = write_edit(tmp_path, big, "o.compressed.ply")
+    assert main(["deform", str(cfg), "--memory-budget", "64MB", "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert "o.compressed.ply" in err and "(.ply)" in err and err.count("\n") == 1
+    assert not (tmp_path / "o.compressed.ply").exists()
+
+
 def test_stream_las_equals_in_memory(tmp_path: Path) -> None:
     src = shared_file("lidar/simple.laz")
     edit = dict(EDIT, handle={"transform": {"translate": [0, 0, 0.3]}})

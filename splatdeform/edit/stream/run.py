@@ -29,7 +29,7 @@ from splatdeform.edit.stream.plan import FIXED, FREE, HANDLE, Plan, build_plan, 
 from splatdeform.edit.stream.progress import Progress
 from splatdeform.errors import InputError, ProcessingError
 from splatdeform.interrupts import deferred_signals
-from splatdeform.io import FORMATS, ChunkFile, open_chunks
+from splatdeform.io import FORMATS, ChunkFile, extension_of, open_chunks
 from splatdeform.io.atomic import atomic_path
 
 
@@ -283,8 +283,8 @@ def check_streamable(cfg, in_path: Path, out_path: Path) -> ChunkFile:
     if cfg.normals == "estimate":
         raise InputError("normals: estimate needs the whole model; raise --memory-budget")
     src = open_chunks(in_path)
-    out_format = FORMATS.get(out_path.suffix.lower())
+    out_format = FORMATS.get(extension_of(out_path))  # x.compressed.ply is not a plain PLY
     if out_format is None or out_format.chunks is None or not isinstance(src, out_format.chunks):
         raise InputError(f"{out_path}: streaming writes the input's format "
-                         f"({in_path.suffix}); choose a matching output extension")
+                         f"({extension_of(in_path)}); choose a matching output extension")
     return src
