@@ -51,8 +51,6 @@ def cmd_deform(args: argparse.Namespace) -> int:
     from splatdeform.edit.config import load_edit
     from splatdeform.edit.result import format_report
     from splatdeform.edit.run import run_edit
-    from splatdeform.edit.stream import StreamOptions
-
     _check_workers(args)
     _check_budget_alone(args, "--reuse/--reuse-file" if args.reuse or args.reuse_file else None)
     cfg = load_edit(args.config)
@@ -74,12 +72,11 @@ def cmd_deform(args: argparse.Namespace) -> int:
             args.camera = str(base / cfg.render.camera)   # relative to the config file
     view = _edit_view(cfg, args) if render_out else None
     _check_deform_paths(args, cfg, base, output, reuse, render_out)
-    _check_streamed_frames(args, cfg, base, render_out)
+    _check_streamed_frames(args, cfg, base, render_out, reuse)
     try:
         result = run_edit(cfg, base, output=output, drop_nonfinite=args.drop_nonfinite,
                           reuse=reuse, log=None if args.quiet else print, warn=_warn,
-                          stream=StreamOptions(args.memory_budget, args.scheduler,
-                                               args.workers, args.quiet))
+                          stream=_stream_options(args))
     except InputError as exc:
         # an error about a config key is said of the config file it came from
         if exc.key is not None:
@@ -118,16 +115,24 @@ def _check_budget_alone(args: argparse.Namespace, whole: str | None) -> None:
                          "memory, which the budget may not hold); give one of them")
 
 
-def _check_streamed_frames(args: argparse.Namespace, cfg, base, render_out) -> None:
-    """Frames need the model in memory: refused before any work when the edit will stream."""
+def _check_streamed_frames(args: argparse.Namespace, cfg, base, render_out, reuse) -> None:
+    """Frames need the model in memory: refused before any work when the edit will stream
+    (the same decision ``run_edit`` takes)."""
     from splatdeform.edit.images import refuse_streamed_frames, render_frames_count
-    from splatdeform.edit.stream import should_stream
+    from splatdeform.edit.run import streams
 
     if not render_out or render_frames_count(cfg, args.frames) < 2:
         return
-    budget = _budget(args.memory_budget, cfg.memory_budget)
-    if args.scheduler or args.workers or should_stream(cfg, base / cfg.input, budget):
+    options = _stream_options(args)
+    if streams(cfg, base / cfg.input, options, options.budget_bytes(cfg), reuse=reuse,
+               drop_nonfinite=args.drop_nonfinite):
         refuse_streamed_frames()
+
+
+def _stream_options(args: argparse.Namespace):
+    from splatdeform.edit.stream import StreamOptions
+
+    return StreamOptions(args.memory_budget, args.scheduler, args.workers, args.quiet)
 
 
 def _check_deform_paths(args: argparse.Namespace, cfg, base, output, reuse, render_out) -> None:
@@ -330,13 +335,9 @@ def cmd_render(args: argparse.Namespace) -> int:
 
 def _budget(text: str | None, config_value=None) -> int:
     """--memory-budget (else the config's memory_budget, else half the RAM) in bytes."""
-    from splatdeform.edit.stream import default_budget, parse_size
+    from splatdeform.edit.stream import budget_bytes, default_budget
 
-    if text is not None:
-        return parse_size(text)
-    if config_value is not None:
-        return parse_size(config_value, "memory_budget")
-    return default_budget()
+    return budget_bytes(text, config_value) or default_budget()
 
 
 def _render_inputs(paths, budget: int, drop_nonfinite: bool = False) -> list:

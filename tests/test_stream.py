@@ -170,6 +170,18 @@ def test_streamed_output_format_is_the_inputs(tmp_path: Path, capsys) -> None:
     assert not (tmp_path / "o.compressed.ply").exists()
 
 
+def test_config_budget_with_reuse_runs_in_memory_and_says_so(tmp_path: Path, capsys) -> None:
+    """A config ``memory_budget`` the scan exceeds, with ``--reuse`` (which needs the whole
+    model): the edit runs in memory, one warning line says so, and the output is written."""
+    big = tmp_path / "big.ply"
+    save(bumpy_bar(150_000, seed=6), big)
+    cfg = write_edit(tmp_path, big, "o.ply", memory_budget="64MB")
+    assert main(["deform", str(cfg), "--reuse", "--quiet"]) == 0
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "--reuse needs the whole model" in err
+    assert (tmp_path / "o.ply").exists()
+
+
 def test_stream_las_equals_in_memory(tmp_path: Path) -> None:
     src = shared_file("lidar/simple.laz")
     edit = dict(EDIT, handle={"transform": {"translate": [0, 0, 0.3]}})

@@ -83,17 +83,22 @@ def check_converged(fit: RbfFit, cfg: EditConfig,
 
 
 def streams(cfg: EditConfig, in_path: Path, options: StreamOptions, budget: int | None, *,
-            reuse: str | Path | None = None, drop_nonfinite: bool = False) -> bool:
+            reuse: str | Path | None = None, drop_nonfinite: bool = False,
+            warn: Callable[[str], None] | None = None) -> bool:
     """True when this edit runs out of core: Dask asked for (``options.scheduler``/``workers``),
     or the input's in-memory estimate exceeds ``budget`` (None: half the RAM). ``--reuse`` and
     ``--drop-nonfinite`` need the model in memory: with them an edit over the budget runs in
-    memory, and asking for Dask is a ConfigError."""
+    memory (``warn`` is told so), and asking for Dask is a ConfigError."""
     if not options.distributed and not should_stream(cfg, in_path, budget):
         return False
     if reuse is not None or drop_nonfinite:
         if options.distributed:
             raise ConfigError("--scheduler/--workers: cannot be combined with --reuse or "
                               "--drop-nonfinite")
+        if warn is not None:
+            flag = "--reuse" if reuse is not None else "--drop-nonfinite"
+            warn(f"{in_path}: over the memory budget, but {flag} needs the whole model in "
+                 "memory: running in memory")
         return False
     return True
 
@@ -122,7 +127,8 @@ def run_edit(cfg: EditConfig, base_dir: str | Path = ".", *, output: str | Path 
                        [("output", out_path), ("reuse cache", reuse)])
         options = stream or StreamOptions()
         budget = options.budget_bytes(cfg)
-        if streams(cfg, in_path, options, budget, reuse=reuse, drop_nonfinite=drop_nonfinite):
+        if streams(cfg, in_path, options, budget, reuse=reuse, drop_nonfinite=drop_nonfinite,
+                   warn=warn):
             return run_stream(cfg, base_dir, output=out_path, budget=budget,
                               scheduler=options.scheduler, workers=options.workers,
                               quiet=options.quiet, log=log,

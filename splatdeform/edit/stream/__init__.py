@@ -68,10 +68,16 @@ class StreamOptions:
     def budget_bytes(self, cfg) -> int | None:
         """``budget`` in bytes, else ``cfg.memory_budget``'s (ConfigError naming the flag or
         key when malformed), else None (half the RAM)."""
-        if self.budget is None:
-            return None if cfg.memory_budget is None else parse_size(cfg.memory_budget,
-                                                                     "memory_budget")
-        return parse_size(self.budget) if isinstance(self.budget, str) else self.budget
+        return budget_bytes(self.budget, cfg.memory_budget)
+
+
+def budget_bytes(flag: int | str | None, config_value: int | str | None = None) -> int | None:
+    """The memory budget in bytes: ``--memory-budget`` (``flag``), else the config's
+    ``memory_budget``, else None (the caller's default: half the RAM). A malformed value is a
+    ConfigError naming the flag or the key."""
+    if flag is not None:
+        return parse_size(flag) if isinstance(flag, str) else int(flag)
+    return None if config_value is None else parse_size(config_value, "memory_budget")
 
 
 def machine_memory() -> int:
