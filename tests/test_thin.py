@@ -19,7 +19,7 @@ from splatdeform.basis import compute_basis
 from splatdeform.basis.reference import evaluate_field
 from splatdeform.deform.handle import compose_transform
 from splatdeform.deform.rings import boundary_rings, region_adjacency
-from splatdeform.deform.thin import ring_width, thin_ring
+from splatdeform.deform.thin import COARSE_CELL, ring_width, thin_ring, thin_rings
 from splatdeform.edit.config import load_edit
 from splatdeform.edit.run import format_report, run_edit
 from splatdeform.io import save
@@ -91,6 +91,23 @@ def test_line_ring_keeps_every_point_and_thick_shell_loses_most():
     assert kept.size < 0.5 * slab.shape[0]
     assert np.array_equal(kept, np.unique(kept))
     assert thin_ring(slab, 10, 0.0).size == slab.shape[0]  # 0 keeps every point
+
+
+def test_ring_with_cells_coarse_for_the_ring_set_is_kept_whole():
+    # a sparse 20^3 cube ring next to a dense slab 5x as long: its cells are wider than
+    # COARSE_CELL of the extent of both rings, so it is kept whole; the slab is still thinned
+    rng = np.random.default_rng(1)
+    chunky = rng.uniform([0, 0, 0], [20, 20, 20], size=(200, 3))
+    long = rng.uniform([0, 30, 0], [100, 34, 4], size=(4000, 3))
+    positions = np.vstack([chunky, long])
+    rings = [np.arange(200), np.arange(200, 4200)]
+    width, _ = ring_width(chunky, 10)
+    extent = float(np.linalg.norm(positions.max(0) - positions.min(0)))
+    assert width > COARSE_CELL * extent > ring_width(long, 10)[0]
+    kept = thin_rings(positions, rings, 10, 1.0)
+    assert kept[:200].all()
+    assert kept[200:].sum() < 0.5 * 4000
+    assert thin_ring(chunky, 10, 1.0).size < 200  # alone, its own extent is not coarse
 
 
 def test_kept_points_are_a_well_spread_subset_of_every_ring(shell, shell_def):
