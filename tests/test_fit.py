@@ -9,7 +9,8 @@ from scipy.interpolate import RBFInterpolator
 from splatdeform.basis.reference import evaluate_field
 from splatdeform.errors import InputError
 from splatdeform.rbf import Normalization, farthest_point_order, fit_incremental, kernel_matrix
-from splatdeform.rbf.exact import fit_exact
+from splatdeform.rbf import kernel as rbf_kernel
+from splatdeform.rbf.exact import distinct_rows, fit_exact, unique_constraints
 
 
 def bumpy_cylinder(n: int, rng: np.random.Generator, z_lo: float = 0.0, z_hi: float = 1.0):
@@ -264,3 +265,44 @@ def test_bad_tolerance_and_max_centers():
         fit_incremental(pts, np.zeros((10, 1)), tolerance=-1.0)
     with pytest.raises(InputError, match="max_centers"):
         fit_incremental(pts, np.zeros((10, 1)), tolerance=1e-6, max_centers=-3)
+
+
+@pytest.mark.parametrize("block_bytes", [64, 1 << 19])
+def test_blocked_kernel_values_match_cdist(monkeypatch, block_bytes):
+    from scipy.spatial.distance import cdist
+
+    monkeypatch.setattr(rbf_kernel, "BLOCK_BYTES", block_bytes)  # many blocks, or one
+    rng = np.random.default_rng(5)
+    x = rng.normal(size=(70, 3)) * 1e3 + 5e3  # far from the origin: no cancellation
+    s = rng.normal(size=(33, 3)) * 1e3 + 5e3
+    ref = cdist(x, s) ** 3
+    got = rbf_kernel.cubed_distances(x, s)
+    assert np.allclose(got, ref, rtol=1e-9, atol=1e-9 * ref.max())
+    rows = np.zeros(x.shape[0])
+    for a, e, blk in rbf_kernel.cubed_distance_rows(x, s):  # the reused buffer
+        rows[a:e] = blk.sum(axis=1)
+    assert np.allclose(rows, ref.sum(axis=1), rtol=1e-9)
+    sym = np.full((70, 70), np.nan)
+    for _ in rbf_kernel.cubed_distance_rows(x, x, sym, upper=True):
+        pass
+    full = cdist(x, x) ** 3
+    upper = np.triu_indices(70)
+    assert np.allclose(sym[upper], full[upper], rtol=1e-9, atol=1e-9 * full.max())
+    assert np.all(np.diag(sym) == 0.0)
+
+
+def test_distinct_rows_and_merged_duplicates():
+    rng = np.random.default_rng(6)
+    pts = rng.integers(0, 3, size=(40, 3)).astype(float)
+    first, inverse = distinct_rows(pts)
+    assert np.array_equal(pts[first][inverse], pts)
+    _, ref_first = np.unique(pts, axis=0, return_index=True)
+    assert np.array_equal(first, np.sort(ref_first))  # first occurrences, in order
+    b = pts @ np.array([[1.0], [2.0], [3.0]])  # equal values on copies: merged
+    pts_u, b_u = unique_constraints(pts, b)
+    assert np.array_equal(pts_u, pts[first]) and np.array_equal(b_u, b[first])
+    copies = inverse == np.bincount(inverse).argmax()  # a row with copies (40 rows, 27 kinds)
+    assert copies.sum() > 1
+    b[copies] += np.arange(copies.sum())[:, None]  # copies with different values: refused
+    with pytest.raises(InputError, match="duplicate"):
+        unique_constraints(pts, b)

@@ -19,7 +19,7 @@ from splatdeform.basis import compute_basis
 from splatdeform.basis.reference import evaluate_field
 from splatdeform.deform.handle import compose_transform
 from splatdeform.deform.rings import boundary_rings, region_adjacency
-from splatdeform.deform.thin import ring_width, thin_ring
+from splatdeform.deform.thin import COARSE_CELL, MIN_CELL, ring_width, thin_ring, thin_rings
 from splatdeform.edit.config import load_edit
 from splatdeform.edit.run import format_report, run_edit
 from splatdeform.io import save
@@ -77,13 +77,16 @@ def shell_def(shell):
 
 # ------------------------------------------------------------------------------- thinning
 
-def test_line_ring_keeps_every_point_and_thick_shell_loses_most():
+def test_line_ring_keeps_a_point_per_min_cell_and_thick_shell_loses_most():
     # a mesh ring one vertex wide: points along a curve, spacing 1
     t = np.linspace(0, 2 * np.pi, 400, endpoint=False)
     curve = np.stack([60 / np.pi * np.cos(t), 60 / np.pi * np.sin(t), np.zeros_like(t)], 1)
     width, spacing = ring_width(curve, 10)
     assert width == pytest.approx(spacing, rel=0.1)
-    assert thin_ring(curve, 10, 0.75).size == curve.shape[0]
+    # its cells are MIN_CELL spacings (x factor): it keeps about one point per cell along it
+    along = thin_ring(curve, 10, 1.0).size
+    assert along == pytest.approx(curve.shape[0] / MIN_CELL, rel=0.15)
+    assert thin_ring(curve, 10, 0.5 / MIN_CELL).size == curve.shape[0]
     # a thick noisy slab: 4000 points in a 40 x 4 x 4 box
     rng = np.random.default_rng(0)
     slab = rng.uniform([0, 0, 0], [40, 4, 4], size=(4000, 3))
@@ -91,6 +94,23 @@ def test_line_ring_keeps_every_point_and_thick_shell_loses_most():
     assert kept.size < 0.5 * slab.shape[0]
     assert np.array_equal(kept, np.unique(kept))
     assert thin_ring(slab, 10, 0.0).size == slab.shape[0]  # 0 keeps every point
+
+
+def test_ring_with_cells_coarse_for_the_ring_set_is_kept_whole():
+    # a sparse 20^3 cube ring next to a dense slab 5x as long: its cells are wider than
+    # COARSE_CELL of the extent of both rings, so it is kept whole; the slab is still thinned
+    rng = np.random.default_rng(1)
+    chunky = rng.uniform([0, 0, 0], [20, 20, 20], size=(200, 3))
+    long = rng.uniform([0, 30, 0], [100, 34, 4], size=(4000, 3))
+    positions = np.vstack([chunky, long])
+    rings = [np.arange(200), np.arange(200, 4200)]
+    width, _ = ring_width(chunky, 10)
+    extent = float(np.linalg.norm(positions.max(0) - positions.min(0)))
+    assert width > COARSE_CELL * extent > ring_width(long, 10)[0]
+    kept = thin_rings(positions, rings, 10, 1.0)
+    assert kept[:200].all()
+    assert kept[200:].sum() < 0.5 * 4000
+    assert thin_ring(chunky, 10, 1.0).size < 200  # alone, its own extent is not coarse
 
 
 def test_kept_points_are_a_well_spread_subset_of_every_ring(shell, shell_def):

@@ -12,10 +12,14 @@ rings, keep the same subset):
 - ring width W: the median spread across the ring of each point's 2k nearest ring points
   (k = ``boundary.neighbors``; second principal axis, :func:`ring_width`), never below s.
 
-The ring is then voxel-thinned at cell size ``factor * W``: in each occupied cell the point
-nearest the cell's centre is kept (ties: the lowest index). A mesh ring one vertex wide has W
-about its edge length, so cells smaller than that keep (nearly) every point; a thick shell keeps
-about one point per W-sized cell. The grid starts at the ring's lowest corner; everything is
+The ring is then voxel-thinned at cell size ``factor * max(W, MIN_CELL * s)``: in each
+occupied cell the point nearest the cell's centre is kept (ties: the lowest index). A mesh ring
+one vertex wide has W about its edge length s, so its cells of 1.5 s keep about two of three
+points along it (the fit through them still meets the dropped ones: ``auto`` checks); a thick
+shell keeps about one point per W-sized cell. A ring whose cells would be wider than
+:data:`COARSE_CELL` of the extent of all the ring points keeps every point: the field changes
+within one cell there, and the solve through the thinned rings misses most dropped points (so
+``auto`` would solve twice). The grid starts at the ring's lowest corner; everything is
 deterministic and independent of the order of the ring's points except for exact ties.
 """
 
@@ -26,6 +30,19 @@ from scipy.spatial import cKDTree
 
 #: Rings with fewer points are kept whole (nothing to gain, and too few for the statistics).
 MIN_RING = 32
+#: Largest cell, as a fraction of the bounding-box diagonal of all the ring points, at which a
+#: ring is thinned; above it the ring is kept whole. Measured (``benchmarks/fit_table.py``):
+#: the 3DGS tile's cells are 0.055-0.084 of it and the dense solve through its thinned rings
+#: missed 61% of the dropped points by more than 10 tolerances; every other thinned scene's
+#: are at most 0.03 of it, with at most 6% missed (most none).
+COARSE_CELL = 0.04
+#: Smallest cell, in ring spacings s (before ``factor``): a mesh ring (W about s) keeps about
+#: two of three points along it instead of all. Measured (``benchmarks/fit_table.py``): the
+#: scanned mesh igea (C2 rings 3 vertices wide, W = 1.0-1.3 s) kept 2,156 of 2,705 ring points
+#: at 1.0 and 1,746 at 1.5, its dense solve through them 0.12 s -> 0.07 s, its largest
+#: ring-point error 1.0e-4 -> 2.4e-4 (auto accepts 1.5e-3); the other scenes' cells were
+#: already wider.
+MIN_CELL = 1.5
 
 
 def ring_width(points: np.ndarray, neighbors: int) -> tuple[float, float]:
@@ -40,24 +57,59 @@ def ring_width(points: np.ndarray, neighbors: int) -> tuple[float, float]:
     k = int(min(max(2 * neighbors, 4), points.shape[0] - 1))
     dist, nbr = cKDTree(points).query(points, k=k + 1)
     spacing = float(np.median(dist[:, 1]))
-    local = points[nbr]                                  # (M, k + 1, 3)
-    local = local - local.mean(axis=1, keepdims=True)
-    cov = np.einsum("mki,mkj->mij", local, local) / (k + 1)
-    lam = np.linalg.eigvalsh(cov)                        # ascending
-    width = float(np.median(np.sqrt(12.0 * np.maximum(lam[:, 1], 0.0))))
+    lam = middle_eigenvalues(_neighbourhood_covariances(points, nbr))
+    width = float(np.median(np.sqrt(12.0 * np.maximum(lam, 0.0))))
     return max(width, spacing), spacing
 
 
-def thin_ring(points: np.ndarray, neighbors: int, factor: float) -> np.ndarray:
+def _neighbourhood_covariances(points: np.ndarray, nbr: np.ndarray) -> tuple[np.ndarray, ...]:
+    """The six distinct entries (xx, yy, zz, xy, xz, yz), each (M,), of the covariance of each
+    point's neighbours ``points[nbr]`` (nbr (M, K) indices): from one gather per coordinate
+    (relative to the point itself, so no large coordinates cancel), three sums and six row
+    dot products (a batched einsum over (M, K, 3) and its centring took 3x as long)."""
+    count = nbr.shape[1]
+    rel = []
+    for c in range(3):
+        coord = np.ascontiguousarray(points[:, c])
+        rel.append(coord[nbr] - coord[:, None])          # (M, K)
+    mean = [r.sum(axis=1) / count for r in rel]
+
+    def entry(a: int, b: int) -> np.ndarray:
+        return np.einsum("mk,mk->m", rel[a], rel[b]) / count - mean[a] * mean[b]
+
+    return entry(0, 0), entry(1, 1), entry(2, 2), entry(0, 1), entry(0, 2), entry(1, 2)
+
+
+def middle_eigenvalues(cov: tuple[np.ndarray, ...]) -> np.ndarray:
+    """The middle eigenvalue (M,) of each symmetric 3x3 matrix given by its six entries
+    (xx, yy, zz, xy, xz, yz), each (M,), in closed form (the trigonometric solution of the
+    characteristic cubic: eigenvalues q + 2 p cos(phi + 2 pi j / 3)); the middle one is the
+    trace less the largest and the smallest."""
+    xx, yy, zz, xy, xz, yz = cov
+    q = (xx + yy + zz) / 3.0
+    off = xy * xy + xz * xz + yz * yz
+    a, b, c = xx - q, yy - q, zz - q
+    p = np.sqrt((a * a + b * b + c * c + 2.0 * off) / 6.0)
+    det = a * (b * c - yz * yz) - xy * (xy * c - yz * xz) + xz * (xy * yz - b * xz)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        r = np.where(p > 0, det / (2.0 * p * p * p), 0.0)
+    phi = np.arccos(np.clip(r, -1.0, 1.0)) / 3.0
+    largest = q + 2.0 * p * np.cos(phi)
+    smallest = q + 2.0 * p * np.cos(phi + 2.0 * np.pi / 3.0)
+    return 3.0 * q - largest - smallest
+
+
+def thin_ring(points: np.ndarray, neighbors: int, factor: float,
+              largest_cell: float = np.inf) -> np.ndarray:
     """Indices (K,) int64, ascending, of the kept points of one ring (M, 3) (all when
-    ``factor`` <= 0 or the ring is small)."""
+    ``factor`` <= 0, the ring is small or its cell would be wider than ``largest_cell``)."""
     pts = np.asarray(points, dtype=np.float64)
     m = pts.shape[0]
     if factor <= 0 or m < MIN_RING:
         return np.arange(m, dtype=np.int64)
-    width, _ = ring_width(pts, neighbors)
-    cell = factor * width
-    if not cell > 0:
+    width, spacing = ring_width(pts, neighbors)
+    cell = factor * max(width, MIN_CELL * spacing)
+    if not 0 < cell <= largest_cell:
         return np.arange(m, dtype=np.int64)
     rel = (pts - pts.min(axis=0)) / cell
     ijk = np.floor(rel).astype(np.int64)
@@ -78,17 +130,20 @@ def thin_rings(positions: np.ndarray, rings: list[np.ndarray], neighbors: int,
     positions: (N, 3) of the model; rings: index arrays into it, in constraint order.
     Rings totalling so few points that ``fit.method: auto`` solves through every one of them
     (:data:`splatdeform.rbf.auto.TINY_DENSE`) are kept whole: thinning them would cost as much
-    as that solve.
+    as that solve; so is a ring whose cell would pass :data:`COARSE_CELL` of the extent of all
+    the ring points.
     """
     from splatdeform.rbf.auto import TINY_DENSE, dense_seconds
 
     total = sum(int(ring.size) for ring in rings)
     if dense_seconds(total, 1) <= TINY_DENSE:
         return np.ones(total, dtype=bool)
+    every = positions[np.concatenate(rings)]
+    largest = COARSE_CELL * float(np.linalg.norm(every.max(axis=0) - every.min(axis=0)))
     parts = []
     for ring in rings:
         keep = np.zeros(ring.size, dtype=bool)
         if ring.size:
-            keep[thin_ring(positions[ring], neighbors, factor)] = True
+            keep[thin_ring(positions[ring], neighbors, factor, largest)] = True
         parts.append(keep)
     return np.concatenate(parts) if parts else np.zeros(0, dtype=bool)

@@ -26,8 +26,8 @@ from splatdeform.io.atomic import atomic_path
 from splatdeform.model import PointModel
 from splatdeform.rbf.result import Normalization, RbfFit
 
-FORMAT_VERSION = 6  # 3: metaphor groups; 4: registry key; 5: frames only in groups;
-#                      6: the thinned (kept) constraints
+FORMAT_VERSION = 7  # 3: metaphor groups; 4: registry key; 5: frames only in groups;
+#                      6: the thinned (kept) constraints; 7: thinner mesh rings, coarse rings whole
 
 
 def _file_digest(path: Path) -> str:

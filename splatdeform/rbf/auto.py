@@ -49,27 +49,36 @@ import numpy as np
 
 from splatdeform.errors import InputError
 from splatdeform.rbf.defaults import DEFAULT_MAX_CENTERS, DEFAULT_TOLERANCE
-from splatdeform.rbf.exact import EXACT_MAX_CONSTRAINTS, dense_threads, fit_exact
+from splatdeform.rbf.exact import (
+    EXACT_MAX_CONSTRAINTS,
+    dense_threads,
+    distinct_rows,
+    fit_exact,
+)
 from splatdeform.rbf.fit import blas_threads, fit_incremental
+from splatdeform.rbf.kernel import cubed_distance_rows
 from splatdeform.rbf.result import Normalization, RbfFit
 
 #: Flop rate of one thread in the dense Cholesky (BLAS-3, large blocks; ~40-50 measured).
 DENSE_FLOPS = 40e9
 #: Parallel efficiency exponent: t threads run ``t ** DENSE_SCALING`` times faster.
 DENSE_SCALING = 0.8
-#: Seconds per kernel-matrix entry (cdist, cube, the rank-8 update).
+#: Seconds per kernel-matrix entry (the blocked build of one triangle, Phi V, the rank-8
+#: update, the solve).
 DENSE_ENTRY = 5e-9
 #: Seconds per (dropped ring point x center) of the boundary check of a thinned fit (the kept
 #: points are met by the fit itself: a dense solve interpolates them, the incremental fit
 #: meets the tolerance there).
-CHECK_ENTRY = 7e-9
-#: Effective flop rate of the incremental fit's blocked QR on its one thread (~10-12 measured
-#: with one compact-WY T per block).
-INCREMENTAL_FLOPS = 10e9
+CHECK_ENTRY = 3e-9  # 2.6e-9 measured with the blocked kernel values (7e-9 with cdist)
+#: Effective flop rate of the incremental fit's blocked QR on its one thread. The three
+#: incremental constants are a least-squares fit (relative error) to the incremental fits of
+#: ten scenes of ``benchmarks/fit_table.py`` (218-1,277 centers, 279-4,136 constraints): within
+#: -28% .. +20% of each measured time (the last constants over-predicted by 1.1-1.9x).
+INCREMENTAL_FLOPS = 15e9
 #: Seconds per (kept constraint x center) for the picks, kernel columns and residual checks.
-INCREMENTAL_ENTRY = 1e-8
+INCREMENTAL_ENTRY = 1.1e-8
 #: Seconds of fixed cost per center block (Python, LAPACK calls, the residual recovery).
-INCREMENTAL_BLOCK = 1.5e-3
+INCREMENTAL_BLOCK = 0.8e-3
 #: Predicted seconds below which a dense solve runs at once (m up to about 1,500 on one
 #: thread): the cheaper of the solve through every point and through the kept points.
 SMALL_DENSE = 0.04
@@ -78,7 +87,9 @@ SMALL_DENSE = 0.04
 TINY_DENSE = 0.006
 #: Centers of the first blocks (16 + 32 + 64): the least work an incremental fit does.
 FIRST_CENTERS = 112
-#: Centers before the extrapolated heading is trusted.
+#: Centers before the extrapolated heading is trusted (first checked at 176 centers; at 112 it
+#: was -49% .. +178% off the final count on the scenes of ``benchmarks/fit_table.py`` and
+#: the tests' grid sheet).
 HEADING_AFTER = 160
 #: The centers still to add, as the log-linear extrapolation predicts them, times this: the
 #: largest |r| falls more slowly as the fit goes on (3-7x more slowly from 176 centers to the
@@ -200,7 +211,7 @@ def fit_auto(points: np.ndarray, rhs: np.ndarray, *, kept: np.ndarray | None = N
     if kept is not None and bool(np.all(kept)):
         kept = None
     sub_p, sub_b = (pts, b) if kept is None else (pts[kept], b[kept])
-    m_all = int(np.unique(np.asarray(pts, dtype=np.float64), axis=0).shape[0]) \
+    m_all = int(distinct_rows(np.asarray(pts, dtype=np.float64))[0].size) \
         if pts.ndim == 2 and pts.shape[0] else 0
     m_kept = m_all if kept is None else int(sub_p.shape[0])
     n_threads = dense_threads(threads)
@@ -287,32 +298,21 @@ def _dense(pts: np.ndarray, b: np.ndarray, kept: np.ndarray | None, tol: float,
     return fit_exact(pts, b, normalization=normalization, threads=threads)
 
 
-def all_errors(fit: RbfFit, points: np.ndarray, rhs: np.ndarray, chunk: int = 4096) -> float:
+def all_errors(fit: RbfFit, points: np.ndarray, rhs: np.ndarray) -> float:
     """Largest |rhs - b(points)| of ``fit`` over ``points`` (m, 3) model units, rhs (m, k)."""
-    err = point_errors(fit, points, rhs, chunk)
+    err = point_errors(fit, points, rhs)
     return float(err.max()) if err.size else 0.0
 
 
-def point_errors(fit: RbfFit, points: np.ndarray, rhs: np.ndarray,
-                 chunk: int = 4096) -> np.ndarray:
+def point_errors(fit: RbfFit, points: np.ndarray, rhs: np.ndarray) -> np.ndarray:
     """(m,) largest |rhs - b(p)| over the k columns at each of ``points`` (m, 3) model units,
-    rhs (m, k)."""
-    from scipy.spatial.distance import cdist
-
+    rhs (m, k): the kernel values block by block (:func:`cubed_distance_rows`), each times
+    the weights while in cache."""
     x = fit.normalization.apply(points)
-    out = np.zeros(x.shape[0])
-    with blas_threads(1):  # k right-hand sides: a thread pool only spins (10x slower when busy)
-        _point_errors(fit, x, rhs, chunk, cdist, out)
-    return out
-
-
-def _point_errors(fit: RbfFit, x: np.ndarray, rhs: np.ndarray, chunk: int, cdist,
-                  out: np.ndarray) -> None:
-    for a in range(0, x.shape[0], chunk):
-        xa = x[a:a + chunk]
-        val = fit.weights[0] + xa @ fit.weights[1:4]
-        if fit.n_centers:
-            dist = cdist(xa, fit.centers)
-            val = val + (dist * dist * dist) @ fit.weights[4:]
-        out[a:a + chunk] = np.abs(np.asarray(rhs[a:a + chunk], dtype=np.float64) - val).max(
-            axis=1)
+    val = fit.weights[0] + x @ fit.weights[1:4]
+    if fit.n_centers and x.shape[0]:
+        w = fit.weights[4:]
+        with blas_threads(1):  # k right-hand sides: a thread pool only spins (10x slower busy)
+            for a, e, blk in cubed_distance_rows(x, fit.centers):
+                val[a:e] += blk @ w
+    return np.abs(np.asarray(rhs, dtype=np.float64) - val).max(axis=1)

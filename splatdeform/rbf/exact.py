@@ -18,9 +18,9 @@ import warnings
 
 import numpy as np
 from scipy.linalg import LinAlgError, LinAlgWarning, solve
-from scipy.spatial.distance import cdist
 
 from splatdeform.errors import InputError, ProcessingError
+from splatdeform.rbf.kernel import cubed_distance_rows, cubed_distances
 from splatdeform.rbf.result import Normalization, RbfFit
 
 #: Measured on the 2-core development machine: 8,000 constraints take ~7 s and 0.5 GB; the
@@ -51,18 +51,40 @@ def dense_threads(threads: int | None = None) -> int:
         return max(1, os.cpu_count() or 1)
 
 
+def distinct_rows(pts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(first, inverse) of the rows of ``pts`` (m, 3): first (u,) int64 ascending, the index
+    of each distinct row's first occurrence; inverse (m,) the position in ``first`` of each
+    row's copy. One lexsort and a comparison of neighbours (``np.unique(axis=0)`` sorts
+    structured rows, several times slower: as much as a small dense solve)."""
+    m = pts.shape[0]
+    if m == 0:
+        return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64)
+    order = np.lexsort(pts.T[::-1])                 # stable: copies by ascending index
+    srt = pts[order]
+    new = np.ones(m, dtype=bool)
+    new[1:] = np.any(srt[1:] != srt[:-1], axis=1)
+    if new.all():
+        return np.arange(m, dtype=np.int64), np.arange(m, dtype=np.int64)
+    group = np.cumsum(new) - 1                      # sorted position -> group
+    firsts = order[new]                             # group -> first occurrence
+    rank = np.empty(firsts.size, dtype=np.int64)
+    by_first = np.argsort(firsts, kind="stable")
+    rank[by_first] = np.arange(firsts.size)
+    inverse = np.empty(m, dtype=np.int64)
+    inverse[order] = rank[group]
+    return firsts[by_first].astype(np.int64), inverse
+
+
 def unique_constraints(pts: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The distinct constraint points (u, 3) in first-seen order and their values (u, k).
 
     Raises InputError when duplicates carry different values."""
-    uniq, first, inverse = np.unique(pts, axis=0, return_index=True, return_inverse=True)
-    inverse = inverse.reshape(-1)
-    order = np.argsort(first)  # keep the constraints' order
-    rank = np.empty_like(order)
-    rank[order] = np.arange(order.size)
-    pts_u = uniq[order]
-    b_u = b[first[order]]
-    if not np.allclose(b_u[rank[inverse]], b, rtol=0, atol=1e-12 * max(1.0, np.abs(b).max())):
+    first, inverse = distinct_rows(pts)
+    if first.size == pts.shape[0]:
+        return pts, b
+    pts_u = pts[first]
+    b_u = b[first]
+    if not np.allclose(b_u[inverse], b, rtol=0, atol=1e-12 * max(1.0, np.abs(b).max())):
         raise InputError("points: duplicate constraint points with different prescribed values")
     return pts_u, b_u
 
@@ -101,19 +123,16 @@ def fit_exact(
                   rms_error=0.0, method="exact")
 
 
-def _kernel_block(x: np.ndarray, out: np.ndarray) -> None:
-    """out (m, m) <- |x_i - x_j|^3 for x (m, 3), without a second m x m temporary."""
-    dist = cdist(x, x)
-    np.multiply(dist, dist, out=out)
-    out *= dist
-
-
-def _kernel_matrix(x: np.ndarray) -> np.ndarray:
-    """|x_i - x_j|^3 (m, m), Fortran-ordered for LAPACK (symmetric: the transpose of the
-    C-ordered product, so every elementwise pass runs over contiguous memory)."""
-    dist = cdist(x, x)
-    phi = dist * dist
-    phi *= dist
+def _kernel_times(x: np.ndarray, v: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """The kernel matrix Phi = |x_i - x_j|^3 (m, m) of x (m, 3), Fortran-ordered for LAPACK
+    with only its lower triangle filled (symmetric: the upper triangle of the C-ordered array
+    built block by block, :func:`cubed_distance_rows`), and y (m, 4) += Phi v for v (m, 4),
+    accumulated from each block while it is in cache (no pass over the whole matrix)."""
+    n = x.shape[0]
+    phi = np.empty((n, n))
+    for a, e, blk in cubed_distance_rows(x, x, phi, upper=True):  # blk: columns a..
+        y[a:e] += blk @ v[a:]
+        y[e:] += blk[:, e - a:].T @ v[a:e]
     return phi.T
 
 
@@ -125,11 +144,11 @@ def _solve(x: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     w = Q [0; z] satisfies the side conditions, and the system splits into
     A22 z = (Q^T rhs)_2 with A22 = (Q^T Phi Q)_22 symmetric positive definite (one Cholesky,
     m^3 / 3 flops, LAPACK's best-threaded factorisation) and R a = (Q^T rhs)_1 - A12 z.
-    Q^T Phi Q = Phi - Z V^T - V Z^T, so A22 is the kernel matrix of the points 5.. (built
-    directly, contiguous, factored in place) plus one rank-8 symmetric update (BLAS syr2k);
-    only the first 4 rows of Phi are needed besides. Should rounding make A22 not positive
-    definite (near-duplicate points), the full saddle system is solved by the
-    symmetric-indefinite factorisation instead.
+    Q^T Phi Q = Phi - Z V^T - V Z^T, so A22 is the kernel matrix of the points 5.. (its
+    lower triangle built by blocks, Phi V summed from them, factored in place) plus one
+    rank-8 symmetric update (BLAS syr2k); only the first 4 rows of Phi are needed besides.
+    Should rounding make A22 not positive definite (near-duplicate points), the full saddle
+    system is solved by the symmetric-indefinite factorisation instead.
     """
     from scipy.linalg import blas, cho_factor, cho_solve, lapack, solve_triangular
 
@@ -146,12 +165,11 @@ def _solve(x: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     v[np.arange(4), np.arange(4)] = 1.0
     r = np.triu(qr[:4, :4])
     t = _larft(v, tau)
-    top = cdist(x[:4], x)
-    top = top * top * top                               # Phi[:4, :] (4, m)
-    a22 = _kernel_matrix(x[4:])                         # Phi[4:, 4:]
+    top = cubed_distances(x[:4], x)                     # Phi[:4, :] (4, m)
     y = np.empty((m, 4))                                # Phi V
     y[:4] = top @ v
-    y[4:] = a22 @ v[4:] + top[:, 4:].T @ v[:4]
+    y[4:] = top[:, 4:].T @ v[:4]
+    a22 = _kernel_times(x[4:], v[4:], y[4:])            # Phi[4:, 4:], lower triangle
     z = y @ t - 0.5 * v @ (t.T @ (v.T @ y) @ t)         # Q^T Phi Q = Phi - Z V^T - V Z^T
     c = b - v @ (t.T @ (v.T @ b))                       # Q^T rhs
     try:
@@ -174,7 +192,7 @@ def _solve_indefinite(x: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndar
     """The saddle system [[Phi, P], [P^T, 0]] by the symmetric-indefinite solver (?sysv)."""
     m, k = b.shape
     lhs = np.zeros((m + 4, m + 4))
-    _kernel_block(x, lhs[:m, :m])
+    cubed_distances(x, x, out=lhs[:m, :m])
     lhs[:m, m] = lhs[m, :m] = 1.0
     lhs[:m, m + 1:] = x
     lhs[m + 1:, :m] = x.T
