@@ -12,14 +12,13 @@ rings, keep the same subset):
 - ring width W: the median spread across the ring of each point's 2k nearest ring points
   (k = ``boundary.neighbors``; second principal axis, :func:`ring_width`), never below s.
 
-The ring is then voxel-thinned at cell size ``factor * max(W, MIN_CELL * s)``: in each
-occupied cell the point nearest the cell's centre is kept (ties: the lowest index). A mesh ring
-one vertex wide has W about its edge length s, so its cells of 1.5 s keep about two of three
-points along it (the fit through them still meets the dropped ones: ``auto`` checks); a thick
-shell keeps about one point per W-sized cell. A ring whose cells would be wider than
-:data:`COARSE_CELL` of the extent of all the ring points keeps every point: the field changes
-within one cell there, and the solve through the thinned rings misses most dropped points (so
-``auto`` would solve twice). The grid starts at the ring's lowest corner; everything is
+The ring is then voxel-thinned at cell size ``factor * W``: in each occupied cell the point
+nearest the cell's centre is kept (ties: the lowest index). A mesh ring one vertex wide has W
+about its edge length, so cells smaller than that keep (nearly) every point; a thick shell keeps
+about one point per W-sized cell. A ring whose cells would be wider than :data:`COARSE_CELL`
+of the extent of all the ring points keeps every point: the field changes within one cell there,
+and the solve through the thinned rings misses most dropped points (so ``auto`` would solve
+twice). The grid starts at the ring's lowest corner; everything is
 deterministic and independent of the order of the ring's points except for exact ties.
 """
 
@@ -36,13 +35,6 @@ MIN_RING = 32
 #: missed 61% of the dropped points by more than 10 tolerances; every other thinned scene's
 #: are at most 0.03 of it, with at most 6% missed (most none).
 COARSE_CELL = 0.04
-#: Smallest cell, in ring spacings s (before ``factor``): a mesh ring (W about s) keeps about
-#: two of three points along it instead of all. Measured (``benchmarks/fit_table.py``): the
-#: scanned mesh igea (C2 rings 3 vertices wide, W = 1.0-1.3 s) kept 2,156 of 2,705 ring points
-#: at 1.0 and 1,746 at 1.5, its dense solve through them 0.12 s -> 0.07 s, its largest
-#: ring-point error 1.0e-4 -> 2.4e-4 (auto accepts 1.5e-3); the other scenes' cells were
-#: already wider.
-MIN_CELL = 1.5
 
 
 def ring_width(points: np.ndarray, neighbors: int) -> tuple[float, float]:
@@ -107,8 +99,8 @@ def thin_ring(points: np.ndarray, neighbors: int, factor: float,
     m = pts.shape[0]
     if factor <= 0 or m < MIN_RING:
         return np.arange(m, dtype=np.int64)
-    width, spacing = ring_width(pts, neighbors)
-    cell = factor * max(width, MIN_CELL * spacing)
+    width, _ = ring_width(pts, neighbors)
+    cell = factor * width
     if not 0 < cell <= largest_cell:
         return np.arange(m, dtype=np.int64)
     rel = (pts - pts.min(axis=0)) / cell

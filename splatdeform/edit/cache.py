@@ -27,7 +27,7 @@ from splatdeform.model import PointModel
 from splatdeform.rbf.result import Normalization, RbfFit
 
 FORMAT_VERSION = 7  # 3: metaphor groups; 4: registry key; 5: frames only in groups;
-#                      6: the thinned (kept) constraints; 7: thinner mesh rings, coarse rings whole
+#                      6: the thinned (kept) constraints; 7: coarse rings kept whole
 
 
 def _file_digest(path: Path) -> str:
