@@ -30,7 +30,6 @@ SPLATS_PER_CHUNK = 256
 # an 8-bit opacity of exactly 0 or 1 has no finite logit: clamp to half a quantisation step
 OPACITY_EPS = 0.5 / 255
 SH_RANGE = 8.0  # SH rest codes cover [-4, 4) in 256 bins
-EXTENSIONS = (".compressed.ply",)
 SCALE_CLAMP = 20.0  # log scales are clamped to +-20 before the chunk ranges are taken
 
 
@@ -222,7 +221,8 @@ def compress(fields, comments: list[str]) -> PlySource:
     rest = fields.sh_rest.reshape(n, -1)
     if rest.shape[1]:
         names = [f"f_rest_{i}" for i in range(rest.shape[1])]
-        codes = rest.astype(np.float32) * np.float32(256 / SH_RANGE) + np.float32(128)
+        codes = np.multiply(rest, np.float32(256 / SH_RANGE), dtype=np.float32)  # one temporary
+        codes += np.float32(128)
         np.floor(codes, out=codes)
         np.clip(codes, 0, 255, out=codes)
         sh = codes.astype(np.uint8).view([(name, "u1") for name in names]).reshape(n)
