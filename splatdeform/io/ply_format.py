@@ -553,7 +553,8 @@ def _write_binary_element(out: io.BufferedIOBase, el: PlyElementData, bo: str) -
     props = el.properties
     if not any(p.is_list for p in props):
         dtype = np.dtype([(p.name, bo + p.dtype) for p in props])
-        out.write(el.data.astype(dtype, copy=False).tobytes())
+        # the rows' own buffer when already in that layout (no whole-element byte copy)
+        out.write(np.ascontiguousarray(el.data.astype(dtype, copy=False)).view(np.uint8))
         return
     if el.count == 0:
         return

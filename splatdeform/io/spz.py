@@ -39,6 +39,7 @@ from .splats import (
     restore_largest,
     sigmoid,
     table_source,
+    write_blocks,
 )
 
 MAGIC = 0x5053474E
@@ -55,7 +56,6 @@ LUF_SH_FLIP = np.array([-1, 1, -1, 1, -1, 1, -1, 1, -1, 1, -1, 1, -1, 1, -1], dt
 LUF_FLIP = np.array([-1.0, -1.0, 1.0])
 RUB = (FLIP, SH_FLIP)
 LUF = (LUF_FLIP, LUF_SH_FLIP)
-SH_BLOCK = 1 << 16  # splats whose SH codes are computed at a time on write
 GZIP_LEVEL = 1  # level 6 is 7x slower for ~3% smaller files
 
 
@@ -256,20 +256,19 @@ def encode(f: SplatFields, version: int = WRITE_VERSION, antialiased: bool = Fal
     color[:] = np.clip(np.round(f.sh_dc.astype(np.float64) * (COLOR_SCALE * 255) + 127.5), 0,
                        255)
     scale[:] = np.clip(np.round((f.scale_log.astype(np.float64) + 10) * 16), 0, 255)
-    wxyz = normalised_quaternions(f.rotation)
-    xyzw = np.concatenate([wxyz[:, 1:] * flip, wxyz[:, :1]], axis=1)
-    del wxyz
-    if version == 2:
-        xyzw = xyzw * np.where(xyzw[:, 3] < 0, -1.0, 1.0)[:, None]
-        rot[:] = np.clip(np.round((xyzw[:, :3] + 1) * 127.5), 0, 255)
-    else:
-        rot[:] = _v3_words(xyzw).astype("<u4").view(np.uint8).reshape(n, 4)
-    del xyzw
     codes = codes.reshape(n, k, 3)
-    for at in range(0, n if k else 0, SH_BLOCK):  # bounded float temporaries
-        sh = (f.sh_rest[at:at + SH_BLOCK] * sh_flip[:k]).transpose(0, 2, 1)  # (B, K, 3)
-        codes[at:at + SH_BLOCK, :3] = _sh_codes(sh[:, :3], 8)
-        codes[at:at + SH_BLOCK, 3:] = _sh_codes(sh[:, 3:], 16)
+    for rows in write_blocks(n):  # bounded float temporaries
+        wxyz = normalised_quaternions(f.rotation[rows])
+        xyzw = np.concatenate([wxyz[:, 1:] * flip, wxyz[:, :1]], axis=1)
+        if version == 2:
+            xyzw = xyzw * np.where(xyzw[:, 3] < 0, -1.0, 1.0)[:, None]
+            rot[rows] = np.clip(np.round((xyzw[:, :3] + 1) * 127.5), 0, 255)
+        else:
+            rot[rows] = _v3_words(xyzw).astype("<u4").view(np.uint8).reshape(-1, 4)
+        if k:
+            sh = (f.sh_rest[rows] * sh_flip[:k]).transpose(0, 2, 1)  # (B, K, 3)
+            codes[rows, :3] = _sh_codes(sh[:, :3], 8)
+            codes[rows, 3:] = _sh_codes(sh[:, 3:], 16)
     return out
 
 
