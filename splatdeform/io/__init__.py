@@ -8,6 +8,7 @@ model was loaded from.
 from __future__ import annotations
 
 import importlib
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 from pathlib import Path
 from types import ModuleType
@@ -28,13 +29,15 @@ class Format:
     stream)`` into an atomic stream; ``path``: ``write_model(model, tmp_path)``; ``ply``:
     ``write_model(model, stream, text=)``; ``folder``: ``write_folder(model, path)``);
     ``chunk_class``: the module's ChunkFile class for the streaming and Dask paths (None: not
-    streamable); ``lossy``: a write quantises (and says once what it loses)."""
+    streamable); ``lossy``: a write quantises (and says once what it loses); ``fields``: the
+    format's own fields for ``info`` (None: its header shows them)."""
 
     module: str
     write_by: str = "stream"
     writer: str | None = None
     chunk_class: str | None = None
     lossy: bool = False
+    fields: Callable[[Path], dict] | None = None
 
     @staticmethod
     def _load(name: str) -> ModuleType:
@@ -70,62 +73,6 @@ class Format:
                     module.write_model(model, stream, text=text)
                 else:
                     module.write_model(model, path, stream)
-
-
-#: a SOG folder's file (the table's whole-name key)
-SOG_META = "meta.json"
-_SPLATS = {"lossy": True}
-
-#: Readers and writers in one table by extension, the one place formats are declared: a new
-#: format is one module plus one line. A double extension (``.compressed.ply``) is matched
-#: before the plain one; a key without a leading dot (``meta.json``: a SOG folder) is a whole
-#: file name.
-FORMATS: dict[str, Format] = {
-    ".ply": Format("ply", "ply", chunk_class="PlyChunks"),
-    ".compressed.ply": Format("ply", writer="playcanvas", **_SPLATS),
-    ".splat": Format("splat", **_SPLATS),
-    ".spz": Format("spz", **_SPLATS),
-    ".sog": Format("sog", **_SPLATS),
-    SOG_META: Format("sog", "folder", **_SPLATS),
-    ".glb": Format("gltf"),
-    ".gltf": Format("gltf"),
-    ".pcd": Format("pcd"),
-    ".xyz": Format("open3d_io", "path"),
-    ".xyzn": Format("open3d_io", "path"),
-    ".pts": Format("open3d_io", "path"),
-    ".las": Format("las", "path", chunk_class="LasChunks"),
-    ".laz": Format("las", "path", chunk_class="LasChunks"),
-}
-SUPPORTED = tuple(FORMATS)
-#: extensions the streaming / Dask paths read in chunks
-STREAMABLE = tuple(ext for ext, fmt in FORMATS.items() if fmt.stream)
-#: extensions whose files start with a PLY header (the batch probe reads their counts there)
-PLY_EXTENSIONS = tuple(ext for ext in FORMATS if ext.endswith(".ply"))
-LAS_EXTENSIONS = tuple(ext for ext, fmt in FORMATS.items() if fmt.module == "las")
-
-
-def extension_of(path: str | Path) -> str:
-    """The table key of ``path``: its double extension when the table has it, else its
-    suffix (lower case; '' when none)."""
-    name = Path(path).name.lower()
-    if name in FORMATS:
-        return name
-    for ext in FORMATS:
-        if ext.count(".") > 1 and name.endswith(ext) and len(name) > len(ext):
-            return ext
-    return Path(name).suffix
-
-
-def open_chunks(path: str | Path) -> ChunkFile:
-    """The chunk reader of ``path`` by its extension (InputError when not streamable)."""
-    path = Path(path)
-    ext = extension_of(path)
-    fmt = FORMATS.get(ext)
-    if fmt is None or fmt.chunks is None:
-        raise InputError(f"{path}: streaming reads {', '.join(STREAMABLE)} (PLY binary); this "
-                         f"{ext or 'extensionless'} file must fit the memory budget (raise "
-                         "--memory-budget)")
-    return fmt.chunks(path)
 
 
 def _compressed_ply_fields(path: Path) -> dict:
@@ -178,10 +125,62 @@ def _sog_fields(path: Path) -> dict:
                               "antialias": h["antialias"], "generator": h["generator"]}}
 
 
-_FIELDS = {".sog": _sog_fields, SOG_META: _sog_fields,
-           ".compressed.ply": _compressed_ply_fields, ".spz": _spz_fields, ".glb": _gltf_fields,
-           ".gltf": _gltf_fields, ".pcd": _pcd_fields,
-           ".splat": lambda path: {"format": ".splat (32-byte records)"}}
+#: a SOG folder's file (the table's whole-name key)
+SOG_META = "meta.json"
+_SPLATS = {"lossy": True}
+
+#: Readers and writers in one table by extension, the one place formats are declared: a new
+#: format is one module plus one line. A double extension (``.compressed.ply``) is matched
+#: before the plain one; a key without a leading dot (``meta.json``: a SOG folder) is a whole
+#: file name.
+FORMATS: dict[str, Format] = {
+    ".ply": Format("ply", "ply", chunk_class="PlyChunks"),
+    ".compressed.ply": Format("ply", writer="playcanvas", fields=_compressed_ply_fields,
+                              **_SPLATS),
+    ".splat": Format("splat", fields=lambda path: {"format": ".splat (32-byte records)"},
+                     **_SPLATS),
+    ".spz": Format("spz", fields=_spz_fields, **_SPLATS),
+    ".sog": Format("sog", fields=_sog_fields, **_SPLATS),
+    SOG_META: Format("sog", "folder", fields=_sog_fields, **_SPLATS),
+    ".glb": Format("gltf", fields=_gltf_fields),
+    ".gltf": Format("gltf", fields=_gltf_fields),
+    ".pcd": Format("pcd", fields=_pcd_fields),
+    ".xyz": Format("open3d_io", "path"),
+    ".xyzn": Format("open3d_io", "path"),
+    ".pts": Format("open3d_io", "path"),
+    ".las": Format("las", "path", chunk_class="LasChunks"),
+    ".laz": Format("las", "path", chunk_class="LasChunks"),
+}
+SUPPORTED = tuple(FORMATS)
+#: extensions the streaming / Dask paths read in chunks
+STREAMABLE = tuple(ext for ext, fmt in FORMATS.items() if fmt.stream)
+#: extensions whose files start with a PLY header (the batch probe reads their counts there)
+PLY_EXTENSIONS = tuple(ext for ext in FORMATS if ext.endswith(".ply"))
+LAS_EXTENSIONS = tuple(ext for ext, fmt in FORMATS.items() if fmt.module == "las")
+
+
+def extension_of(path: str | Path) -> str:
+    """The table key of ``path``: its double extension when the table has it, else its
+    suffix (lower case; '' when none)."""
+    name = Path(path).name.lower()
+    if name in FORMATS:
+        return name
+    for ext in FORMATS:
+        if ext.count(".") > 1 and name.endswith(ext) and len(name) > len(ext):
+            return ext
+    return Path(name).suffix
+
+
+def open_chunks(path: str | Path) -> ChunkFile:
+    """The chunk reader of ``path`` by its extension (InputError when not streamable)."""
+    path = Path(path)
+    ext = extension_of(path)
+    fmt = FORMATS.get(ext)
+    if fmt is None or fmt.chunks is None:
+        raise InputError(f"{path}: streaming reads {', '.join(STREAMABLE)} (PLY binary); this "
+                         f"{ext or 'extensionless'} file must fit the memory budget (raise "
+                         "--memory-budget)")
+    return fmt.chunks(path)
 
 
 def format_fields(path: str | Path) -> dict:
@@ -191,8 +190,8 @@ def format_fields(path: str | Path) -> dict:
     path = Path(path)
     if path.is_dir() and (path / SOG_META).is_file():
         path = path / SOG_META
-    reader = _FIELDS.get(extension_of(path))
-    return {} if reader is None else reader(path)
+    fmt = FORMATS.get(extension_of(path))
+    return {} if fmt is None or fmt.fields is None else fmt.fields(path)
 
 
 def _extension(path: Path, what: str) -> str:
