@@ -46,6 +46,9 @@ class Gaussians:
     opacity:   (N,) float32 logit, or None.
     sh_dc:     (N, 3) float32 degree-0 SH coefficients, or None.
     sh_rest:   (N, M) float32 higher SH coefficients (f_rest_*, channel-major), or None.
+
+    As loaded, the fields are read-only views of the model's source rows (no second copy);
+    edit ``PointModel.copy()`` (as ``deform.apply`` does).
     """
 
     scale_log: np.ndarray

@@ -509,6 +509,30 @@ def test_sog_folder_reads_and_writes_like_the_bundle(tmp_path, oracle):
     compare(by_meta, theirs, **SAME)
 
 
+@pytest.mark.parametrize("ext", [".ply", ".spz", ".compressed.ply"])
+def test_loaded_gaussians_share_the_table_read_only(tmp_path, ext):
+    """A load shares the decoded table (no second copy of the Gaussian columns): the fields are
+    read-only views of the model's source rows, an in-place write is refused, and a copy is
+    writable and leaves the source as read."""
+    src = write_scene(tmp_path / "scene.ply", 600, 3, seed=4)
+    path = src if ext == ".ply" else tmp_path / f"x{ext}"
+    if path != src:
+        _save_quiet(load(src), path)
+    model = load(path)
+    g, rows = model.gaussians, model.source.element("vertex").data
+    before = rows.copy()
+    for name in ("scale_log", "rotation", "opacity", "sh_dc", "sh_rest"):
+        column = getattr(g, name)
+        assert np.shares_memory(column, rows) and not column.flags.writeable, name
+    with pytest.raises(ValueError, match="read-only"):
+        g.scale_log[0] += 1
+    edited = model.copy()
+    edited.gaussians.scale_log[:10] += 1.0
+    edited.gaussians.sh_rest[:10] *= 0.5
+    assert rows.tobytes() == before.tobytes()
+    assert (edited.gaussians.scale_log[:10] > g.scale_log[:10]).all()
+
+
 def test_sog_untouched_splats_keep_their_codes(tmp_path):
     """Re-saving an edited SOG: splats that kept their decoded values keep every code (pixel),
     and the codebook and palette entries they use keep their index and value; the edited
@@ -516,7 +540,7 @@ def test_sog_untouched_splats_keep_their_codes(tmp_path):
     src = _sog_scene(tmp_path, 1500, 30, seed=3)
     first = tmp_path / "first.sog"
     _save_quiet(load(src), first)
-    model = load(first)
+    model = load(first).copy()  # a loaded model's Gaussian fields are read-only views
     moved = np.zeros(1500, dtype=bool)
     moved[100:160] = True
     model.positions[moved] *= 0.8  # inside the input's range: its mins/maxs are kept

@@ -40,7 +40,6 @@ from .splats import (
     sigmoid,
 )
 
-EXTENSIONS = (".glb", ".gltf")
 EXT = "KHR_gaussian_splatting"
 #: SPZ compression, nested in the primitive's KHR_gaussian_splatting extension (the draft and
 #: its v2 name); the SPZ blob's versions are the ones :mod:`.spz` reads

@@ -32,7 +32,6 @@ from .chunks import ChunkFile
 from .las_header import check_header
 from .ply_format import TYPE_NAMES
 
-EXTENSIONS = (".las", ".laz")
 DECODE_CHUNK = 50_000  # points per read (LAZ's default chunk): a corrupt body names this chunk
 INT32_MIN, INT32_MAX = -(2**31), 2**31 - 1
 NORMAL_NAMES = ("nx", "ny", "nz")

@@ -10,8 +10,6 @@ from ..errors import FormatError
 from ..model import PointModel, classify
 from .checks import nonfinite_points
 
-EXTENSIONS = (".xyz", ".xyzn", ".pts")
-
 
 def _o3d():
     import open3d  # imported lazily: it takes a second

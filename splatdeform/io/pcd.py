@@ -27,7 +27,6 @@ from ..model import PlyElementData, PlyProperty, PlySource, PointModel, classify
 from .checks import nonfinite_points
 from .ply_format import shortest_text
 
-EXTENSIONS = (".pcd",)
 ENCODINGS = ("ascii", "binary", "binary_compressed")
 TYPE_SIZES = {"I": (1, 2, 4, 8), "U": (1, 2, 4, 8), "F": (4, 8)}
 MAX_HEADER_LINES = 64

@@ -30,7 +30,6 @@ SPLATS_PER_CHUNK = 256
 # an 8-bit opacity of exactly 0 or 1 has no finite logit: clamp to half a quantisation step
 OPACITY_EPS = 0.5 / 255
 SH_RANGE = 8.0  # SH rest codes cover [-4, 4) in 256 bins
-EXTENSIONS = (".compressed.ply",)
 SCALE_CLAMP = 20.0  # log scales are clamped to +-20 before the chunk ranges are taken
 
 
@@ -195,7 +194,7 @@ def _rotation_words(quat: np.ndarray) -> np.ndarray:
 def compress(fields, comments: list[str]) -> PlySource:
     """The PlayCanvas compressed PlySource of ``fields`` (a :class:`~.splats.SplatFields`),
     splats in their given order, chunks of 256 consecutive splats."""
-    from .splats import dc_to_color, normalised_quaternions, sigmoid
+    from .splats import dc_to_color, normalised_quaternions, sigmoid, write_blocks
 
     n = fields.count
     chunks = -(-n // SPLATS_PER_CHUNK)
@@ -212,7 +211,9 @@ def compress(fields, comments: list[str]) -> PlySource:
         chunk_cols[f"min_{c}"], chunk_cols[f"max_{c}"] = low, high
         word |= _quantise(_normalised(color[:, i], low, high, owner), 8) << np.uint32(24 - 8 * i)
     vertex["packed_color"] = word
-    vertex["packed_rotation"] = _rotation_words(normalised_quaternions(fields.rotation))
+    for rows in write_blocks(n):
+        vertex["packed_rotation"][rows] = _rotation_words(
+            normalised_quaternions(fields.rotation[rows]))
     order = [*CHUNK_BOUNDS[:6], *CHUNK_BOUNDS[6:], *CHUNK_COLORS]
     chunk = np.empty(chunks, dtype=[(c, "<f4") for c in order])
     for c in order:
@@ -222,10 +223,14 @@ def compress(fields, comments: list[str]) -> PlySource:
     rest = fields.sh_rest.reshape(n, -1)
     if rest.shape[1]:
         names = [f"f_rest_{i}" for i in range(rest.shape[1])]
-        codes = rest.astype(np.float32) * np.float32(256 / SH_RANGE) + np.float32(128)
-        np.floor(codes, out=codes)
-        np.clip(codes, 0, 255, out=codes)
-        sh = codes.astype(np.uint8).view([(name, "u1") for name in names]).reshape(n)
+        codes = np.empty(rest.shape, dtype=np.uint8)
+        for rows in write_blocks(n):  # float32 temporaries of one block at a time
+            block = np.multiply(rest[rows], np.float32(256 / SH_RANGE), dtype=np.float32)
+            block += np.float32(128)
+            np.floor(block, out=block)
+            np.clip(block, 0, 255, out=block)
+            codes[rows] = block
+        sh = codes.view([(name, "u1") for name in names]).reshape(n)
         elements.append(PlyElementData("sh", [PlyProperty(m, "u1", "uchar") for m in names], sh))
     return PlySource(elements=elements, comments=comments, text=False, byte_order="<")
 

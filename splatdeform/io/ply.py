@@ -35,14 +35,26 @@ RADIUS_NAMES = ("radius", "surfel_radius")
 
 
 def _columns(data: np.ndarray, names: list[str] | tuple[str, ...],
-             dtype: type = np.float64) -> np.ndarray | None:
+             dtype: type = np.float64, *, copy: bool = True) -> np.ndarray | None:
     """(N, len(names)) ``dtype`` copy of those fields (None when one is missing); fields of one
-    type are taken as a strided view first (no per-column float64 round trip)."""
+    type are taken as a strided view first (no per-column float64 round trip), and returned as
+    that view with ``copy=False`` when they already are ``dtype``."""
     if not all(n in (data.dtype.names or ()) for n in names):
         return None
     if len({data.dtype[n] for n in names}) == 1:
-        return structured_to_unstructured(data[list(names)]).astype(dtype)
+        return structured_to_unstructured(data[list(names)]).astype(dtype, copy=copy)
     return np.stack([data[n].astype(dtype) for n in names], axis=1)
+
+
+def _shared(data: np.ndarray, names: list[str]) -> np.ndarray | None:
+    """(N, len(names)) float32, read-only: a view of the source rows when they hold those fields
+    as float32 at even spacing (a 3DGS PLY, every decoded splat table), else a copy (None when
+    one is missing). The source stays as read: an edit works on ``model.copy()`` (as
+    ``deform.apply`` does), never in place, so a writer can still tell the untouched splats."""
+    columns = _columns(data, names, np.float32, copy=False)
+    if columns is not None:
+        columns.flags.writeable = False
+    return columns
 
 
 def _triangles_from_faces(column: np.ndarray) -> np.ndarray:
@@ -227,11 +239,11 @@ def model_from_source(source: PlySource, path: str | Path, *,
         rest = sorted((n for n in names if n.startswith("f_rest_")),
                       key=lambda n: int(n[7:]) if n[7:].isdigit() else 0)
         gaussians = Gaussians(
-            scale_log=_columns(data, [f"scale_{i}" for i in range(3)], np.float32),
-            rotation=_columns(data, [f"rot_{i}" for i in range(4)], np.float32),
-            opacity=data["opacity"].astype(np.float32) if "opacity" in names else None,
-            sh_dc=_columns(data, ["f_dc_0", "f_dc_1", "f_dc_2"], np.float32),
-            sh_rest=_columns(data, rest, np.float32) if rest else None,
+            scale_log=_shared(data, [f"scale_{i}" for i in range(3)]),
+            rotation=_shared(data, [f"rot_{i}" for i in range(4)]),
+            opacity=_shared(data, ["opacity"])[:, 0] if "opacity" in names else None,
+            sh_dc=_shared(data, ["f_dc_0", "f_dc_1", "f_dc_2"]),
+            sh_rest=_shared(data, rest) if rest else None,
         )
         if colors is None and gaussians.sh_dc is not None:
             from splatdeform.model import dc_to_colors

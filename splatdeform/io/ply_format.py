@@ -248,7 +248,7 @@ def _read_binary_element(path: Path, buf: memoryview, offset: int, name: str, co
         dtype = np.dtype([(p.name, bo + p.dtype) for p in props])
         if offset + dtype.itemsize * count > total:
             raise truncated(dtype.itemsize * count)
-        data = np.frombuffer(buf, dtype=dtype, count=count, offset=offset).copy()
+        data = np.frombuffer(buf, dtype=dtype, count=count, offset=offset)
         return data, offset + dtype.itemsize * count
     if count == 0:
         return _empty(props, 0, bo), offset
@@ -449,13 +449,18 @@ def shortest_text(values: np.ndarray, dtype: str) -> list[str]:
     return out
 
 
-def _read_file(path: Path) -> bytes:
-    """The whole file; refuses anything but a regular file before reading (a FIFO or a device
-    would block or never end)."""
+def _read_file(path: Path) -> bytearray:
+    """The whole file, in a writable buffer (a binary body's elements are views of it, not
+    copies); refuses anything but a regular file before reading (a FIFO or a device would
+    block or never end)."""
     fd = os.open(path, os.O_RDONLY | getattr(os, "O_NONBLOCK", 0))
     with os.fdopen(fd, "rb") as stream:
-        check_regular(path, os.fstat(stream.fileno()).st_mode)
-        return stream.read()
+        status = os.fstat(stream.fileno())
+        check_regular(path, status.st_mode)
+        raw = bytearray(status.st_size)
+        del raw[stream.readinto(raw) or 0:]
+        raw += stream.read()  # grown since the stat: to its end, as a plain read would
+        return raw
 
 
 def read_ply(path: str | Path) -> PlySource:
@@ -472,6 +477,7 @@ def read_ply(path: str | Path) -> PlySource:
     _check_declared_size(path, header, len(raw) - header.size)
     elements: list[PlyElementData] = []
     if header.text:
+        raw = bytes(raw)  # lines as bytes (the buffer is released here)
         underscore = raw.find(b"_", header.size)
         if underscore >= 0:  # Python would read 1_000 as 1000; PLY has no digit separators
             line = header.lines + 1 + raw.count(b"\n", header.size, underscore)
@@ -547,7 +553,8 @@ def _write_binary_element(out: io.BufferedIOBase, el: PlyElementData, bo: str) -
     props = el.properties
     if not any(p.is_list for p in props):
         dtype = np.dtype([(p.name, bo + p.dtype) for p in props])
-        out.write(el.data.astype(dtype, copy=False).tobytes())
+        # the rows' own buffer when already in that layout (no whole-element byte copy)
+        out.write(np.ascontiguousarray(el.data.astype(dtype, copy=False)).view(np.uint8))
         return
     if el.count == 0:
         return

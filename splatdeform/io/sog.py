@@ -43,8 +43,6 @@ from .splats import (
     restore_largest,
 )
 
-EXTENSIONS = (".sog",)
-META_NAME = "meta.json"  # a SOG folder's file (the table's whole-name key)
 VERSION = 2
 CODEBOOK = 256
 PALETTE_ROW = 64
@@ -89,7 +87,7 @@ class _Files:
     def __init__(self, path: Path):
         self.path = path
         self.zip: zipfile.ZipFile | None = None
-        if path.suffix.lower() in EXTENSIONS:
+        if path.suffix.lower() == ".sog":
             try:
                 self.zip = zipfile.ZipFile(path)
             except (zipfile.BadZipFile, OSError, EOFError, ValueError) as exc:

@@ -27,7 +27,6 @@ from .splats import (
     sigmoid,
 )
 
-EXTENSIONS = (".splat",)
 RECORD = np.dtype([("position", "<f4", 3), ("scale", "<f4", 3), ("rgba", "u1", 4),
                    ("rot", "u1", 4)])
 ALPHA_EPS = 0.5 / 255

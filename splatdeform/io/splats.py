@@ -20,6 +20,14 @@ from ..model import SH_C0, PlyElementData, PlyProperty, PlySource, PointModel
 
 #: SH rest coefficients per colour channel for each degree
 SH_COEFFS = {0: 0, 1: 3, 2: 8, 3: 15}
+#: splats encoded at a time by the quantising writers (bounded float64 temporaries)
+WRITE_BLOCK = 1 << 16
+
+
+def write_blocks(n: int) -> list[slice]:
+    """Consecutive slices of at most :data:`WRITE_BLOCK` splats covering ``range(n)``: a
+    writer's per-splat float math, block by block (the codes are the same as in one go)."""
+    return [slice(at, at + WRITE_BLOCK) for at in range(0, n, WRITE_BLOCK)]
 
 
 class LossyWriteWarning(UserWarning):

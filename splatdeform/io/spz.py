@@ -39,9 +39,9 @@ from .splats import (
     restore_largest,
     sigmoid,
     table_source,
+    write_blocks,
 )
 
-EXTENSIONS = (".spz",)
 MAGIC = 0x5053474E
 VERSIONS = (2, 3)
 WRITE_VERSION = 3
@@ -56,7 +56,6 @@ LUF_SH_FLIP = np.array([-1, 1, -1, 1, -1, 1, -1, 1, -1, 1, -1, 1, -1, 1, -1], dt
 LUF_FLIP = np.array([-1.0, -1.0, 1.0])
 RUB = (FLIP, SH_FLIP)
 LUF = (LUF_FLIP, LUF_SH_FLIP)
-SH_BLOCK = 1 << 16  # splats whose SH codes are computed at a time on write
 GZIP_LEVEL = 1  # level 6 is 7x slower for ~3% smaller files
 
 
@@ -234,34 +233,43 @@ def _sh_codes(values: np.ndarray, step: int) -> np.ndarray:
 
 
 def encode(f: SplatFields, version: int = WRITE_VERSION, antialiased: bool = False,
-           frame: tuple = RUB) -> bytes:
-    """The uncompressed SPZ stream of ``f`` (PLY space) stored in ``frame``."""
+           frame: tuple = RUB) -> bytearray:
+    """The uncompressed SPZ stream of ``f`` (PLY space) stored in ``frame``; each field's codes
+    are written straight into the one output buffer (no per-field byte copies to join)."""
     flip, sh_flip = frame
     n = f.count
     k = f.sh_rest.shape[2]
     frac = _fractional_bits(f.positions)
-    fixed = np.round(f.positions * flip * (1 << frac)).astype(np.int64) & 0xFFFFFF
-    pos = np.stack([fixed & 0xFF, (fixed >> 8) & 0xFF, (fixed >> 16) & 0xFF], axis=-1)
-    alpha = np.clip(np.round(sigmoid(f.opacity) * 255), 0, 255)
-    color = np.clip(np.round(f.sh_dc.astype(np.float64) * (COLOR_SCALE * 255) + 127.5), 0, 255)
-    scale = np.clip(np.round((f.scale_log.astype(np.float64) + 10) * 16), 0, 255)
-    wxyz = normalised_quaternions(f.rotation)
-    xyzw = np.concatenate([wxyz[:, 1:] * flip, wxyz[:, :1]], axis=1)
-    if version == 2:
-        xyzw = xyzw * np.where(xyzw[:, 3] < 0, -1.0, 1.0)[:, None]
-        rot = np.clip(np.round((xyzw[:, :3] + 1) * 127.5), 0, 255).astype(np.uint8).tobytes()
-    else:
-        rot = _v3_words(xyzw).astype("<u4").tobytes()
-    codes = np.empty((n, k, 3), dtype=np.uint8)
-    for at in range(0, n if k else 0, SH_BLOCK):  # bounded float temporaries
-        sh = (f.sh_rest[at:at + SH_BLOCK] * sh_flip[:k]).transpose(0, 2, 1)  # (B, K, 3)
-        codes[at:at + SH_BLOCK, :3] = _sh_codes(sh[:, :3], 8)
-        codes[at:at + SH_BLOCK, 3:] = _sh_codes(sh[:, 3:], 16)
     degree = {c: d for d, c in SH_COEFFS.items()}[k]
-    head = HEADER.pack(MAGIC, version, n, degree, frac, int(antialiased), 0)
-    return b"".join([head, pos.astype(np.uint8).tobytes(), alpha.astype(np.uint8).tobytes(),
-                     color.astype(np.uint8).tobytes(), scale.astype(np.uint8).tobytes(), rot,
-                     codes.tobytes()])
+    sizes = (9, 1, 3, 3, 3 if version == 2 else 4, 3 * k)  # bytes per splat of each field
+    out = bytearray(HEADER.size + n * sum(sizes))
+    out[:HEADER.size] = HEADER.pack(MAGIC, version, n, degree, frac, int(antialiased), 0)
+    ends = np.cumsum((0, *sizes)) * n
+    pos, alpha, color, scale, rot, codes = (
+        np.frombuffer(out, np.uint8, count=n * size, offset=HEADER.size + at).reshape(n, size)
+        for at, size in zip(ends[:-1], sizes, strict=True))
+    fixed = np.round(f.positions * flip * (1 << frac)).astype(np.int64) & 0xFFFFFF
+    for byte in range(3):  # little-endian 24-bit per axis
+        pos[:, byte::3] = (fixed >> (8 * byte)) & 0xFF
+    del fixed
+    alpha[:, 0] = np.clip(np.round(sigmoid(f.opacity) * 255), 0, 255)
+    color[:] = np.clip(np.round(f.sh_dc.astype(np.float64) * (COLOR_SCALE * 255) + 127.5), 0,
+                       255)
+    scale[:] = np.clip(np.round((f.scale_log.astype(np.float64) + 10) * 16), 0, 255)
+    codes = codes.reshape(n, k, 3)
+    for rows in write_blocks(n):  # bounded float temporaries
+        wxyz = normalised_quaternions(f.rotation[rows])
+        xyzw = np.concatenate([wxyz[:, 1:] * flip, wxyz[:, :1]], axis=1)
+        if version == 2:
+            xyzw = xyzw * np.where(xyzw[:, 3] < 0, -1.0, 1.0)[:, None]
+            rot[rows] = np.clip(np.round((xyzw[:, :3] + 1) * 127.5), 0, 255)
+        else:
+            rot[rows] = _v3_words(xyzw).astype("<u4").view(np.uint8).reshape(-1, 4)
+        if k:
+            sh = (f.sh_rest[rows] * sh_flip[:k]).transpose(0, 2, 1)  # (B, K, 3)
+            codes[rows, :3] = _sh_codes(sh[:, :3], 8)
+            codes[rows, 3:] = _sh_codes(sh[:, 3:], 16)
+    return out
 
 
 def read_model(path: str | Path, *, drop_nonfinite: bool = False) -> PointModel:
