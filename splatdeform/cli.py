@@ -449,6 +449,13 @@ class Terminated(BaseException):
     """SIGTERM arrived: unwind like Ctrl-C (temporary files are removed on the way out)."""
 
 
+class Interrupted(KeyboardInterrupt):
+    """Ctrl-C (SIGINT) arrived. A subclass, not KeyboardInterrupt itself: CPython marks a
+    KeyboardInterrupt (that exact type) leaving code run from a string (``namedtuple``'s
+    ``eval`` during an import) as unhandled, and then ends the process by SIGINT after main
+    returned 130, although main caught it."""
+
+
 #: The signal that is ending this run (SIGINT / SIGTERM), once one arrived; see _run's fail
 _signalled: list[int] = []
 
@@ -460,7 +467,7 @@ def _on_sigterm(signum, frame) -> None:
 
 def _on_sigint(signum, frame) -> None:
     _signalled.append(signal.SIGINT)
-    raise KeyboardInterrupt()
+    raise Interrupted()
 
 
 def _signal_exit() -> int:

@@ -179,3 +179,21 @@ def test_sigterm_during_a_threaded_knn_query_does_not_crash() -> None:
         run = subprocess.run([sys.executable, "-c", KNN_SCRIPT], capture_output=True,
                              text=True, timeout=TIMEOUT)
         assert run.returncode == 143, (run.returncode, run.stderr[-2000:])
+
+
+def test_ctrl_c_inside_code_run_from_a_string_still_exits_130(tmp_path: Path) -> None:
+    """A Ctrl-C that lands while an import runs ``namedtuple``'s ``eval`` (a real race at
+    start-up: about 1 run in 20) is caught by main, yet CPython ended a ``python -m`` process by
+    SIGINT (-2) when the handler raised KeyboardInterrupt itself; the CLI's Interrupted subclass
+    lets it exit 130."""
+    (tmp_path / "ctrl_c_in_eval.py").write_text(
+        "import signal, sys\n"
+        "from splatdeform.cli import _on_sigint\n"
+        "signal.signal(signal.SIGINT, _on_sigint)\n"
+        "try:\n"
+        "    eval(\"__import__('signal').raise_signal(__import__('signal').SIGINT)\")\n"
+        "except KeyboardInterrupt:\n"
+        "    sys.exit(130)\n")
+    proc = subprocess.run([sys.executable, "-m", "ctrl_c_in_eval"], cwd=tmp_path,
+                          capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 130, (proc.returncode, proc.stderr)
