@@ -201,3 +201,26 @@ def test_point_size_adapts_to_the_sampled_density() -> None:
     assert 1.8 < quarter[0] / full[0] < 2.2
     exact = float(np.median(knn_spacing(pts[::8])))   # the per-point estimate agrees
     assert 0.85 < sampled_spacing(pts[::8], sample=20_000)[0] / exact < 1.15
+
+
+def test_sampled_render_drops_nonfinite_points(tmp_path: Path, capsys) -> None:
+    """A scan over the render budget with NaN coordinates: the sample refuses them with one line
+    as a whole load does, and ``--drop-nonfinite`` renders the sample without them."""
+    from plyfile import PlyData
+
+    path = tmp_path / "nan.ply"
+    save(bumpy_bar(400_000, seed=5), tmp_path / "clean.ply")
+    ply = PlyData.read(str(tmp_path / "clean.ply"), mmap=False)
+    ply["vertex"].data["x"][::97] = np.nan   # every sample meets some
+    ply.write(str(path))
+    cost = memory.file_cost(path)
+    assert memory.render_points(64 * 2**20, cost) < cost.points
+    out = tmp_path / "n.png"
+    assert main(["render", str(path), "-o", str(out), "--memory-budget", "64MB"]) == 2
+    err = capsys.readouterr().err
+    assert "NaN" in err and err.count("\n") == 1 and not out.exists()
+    assert main(["render", str(path), "-o", str(out), "--memory-budget", "64MB",
+                 "--drop-nonfinite"]) == 0
+    line = next(x for x in capsys.readouterr().out.splitlines() if "rendered" in x)
+    assert "of 400,000 points" in line
+    assert covered(image(out)).mean() > 0.02

@@ -36,6 +36,11 @@ class ChunkFile:
         """Points [start, stop) as a model (every property)."""
         return self.model_of(self.rows(start, stop))
 
+    def nonfinite(self, rows: np.ndarray) -> np.ndarray:
+        """(len(rows),) bool: the records a ``drop_nonfinite`` load would drop (none where the
+        format cannot hold a non-finite value, e.g. LAS's integer coordinates)."""
+        return np.zeros(len(rows), dtype=bool)
+
     def model_of(self, rows: np.ndarray) -> PointModel:
         """A model of raw records (any subset of the file's, e.g. a sample)."""
         raise NotImplementedError

@@ -169,6 +169,23 @@ def _require_list(path: str | Path, element: str, prop) -> None:
                           "expected a list (property list uchar int vertex_indices)")
 
 
+def nonfinite_rows(data: np.ndarray, positions: np.ndarray | None = None
+                   ) -> tuple[np.ndarray, str]:
+    """((N,) bool: vertex records a ``drop_nonfinite`` load drops, what is wrong in them) of
+    vertex records ``data`` with x, y, z (``positions``: their (N, 3) columns, when at hand):
+    a NaN/Inf coordinate or Gaussian attribute."""
+    if positions is None:
+        positions = _columns(data, ("x", "y", "z"))
+    bad = ~np.isfinite(positions).all(axis=1)
+    what = "coordinates"
+    splat = _nonfinite_splat_rows(data)
+    if splat is not None and splat.any() and not bad.any():
+        what = "Gaussian attributes (scale_*, rot_*, opacity, f_dc_*, f_rest_*)"
+    if splat is not None:
+        bad |= splat
+    return bad, what
+
+
 def model_from_source(source: PlySource, path: str | Path, *,
                       drop_nonfinite: bool = False) -> PointModel:
     """Build a PointModel from a verbatim PLY source (validates coordinates and indices)."""
@@ -186,13 +203,7 @@ def model_from_source(source: PlySource, path: str | Path, *,
                           "(x, y and z are required)")
     if vertex.count == 0:
         raise FormatError(f"{path}: the vertex element is empty")
-    bad = ~np.isfinite(positions).all(axis=1)
-    what = "coordinates"
-    splat = _nonfinite_splat_rows(data)
-    if splat is not None and splat.any() and not bad.any():
-        what = "Gaussian attributes (scale_*, rot_*, opacity, f_dc_*, f_rest_*)"
-    if splat is not None:
-        bad |= splat
+    bad, what = nonfinite_rows(data, positions)
     if bad.any():
         if not drop_nonfinite:
             raise FormatError(
@@ -524,6 +535,9 @@ class PlyChunks(ChunkFile):
                               f"+-{MAX_COORDINATE:g}; the fit would overflow; fix or crop the "
                               "file")
         return out
+
+    def nonfinite(self, rows: np.ndarray) -> np.ndarray:
+        return nonfinite_rows(rows)[0]
 
     def model_of(self, rows: np.ndarray) -> PointModel:
         source = PlySource([PlyElementData("vertex", self.props, rows)],

@@ -57,14 +57,16 @@ def load_for_render(path: str | Path, budget: int, *, drop_nonfinite: bool = Fal
     if keep >= cost.points:
         model = load(path, drop_nonfinite=drop_nonfinite)
         return RenderInput(model, model.n_points)
-    return sample_file(path, max(keep, MIN_SAMPLE), chunk_bytes=chunk_bytes)
+    return sample_file(path, max(keep, MIN_SAMPLE), chunk_bytes=chunk_bytes,
+                       drop_nonfinite=drop_nonfinite)
 
 
 def sample_file(path: str | Path, keep: int, seed: int = SEED,
-                chunk_bytes: int = CHUNK_BYTES) -> RenderInput:
+                chunk_bytes: int = CHUNK_BYTES, *, drop_nonfinite: bool = False) -> RenderInput:
     """About ``keep`` points of ``path``, each kept with probability keep / N (seeded: the
     same sample every time, whatever the camera), read chunk by chunk; the model keeps every
-    property of the kept points."""
+    property of the kept points. ``drop_nonfinite``: sampled records with a NaN/Inf coordinate
+    or Gaussian attribute are left out (else the model refuses them, as a whole load does)."""
     src = open_chunks(path)
     n = src.n_points
     rng = np.random.default_rng(seed)
@@ -75,6 +77,8 @@ def sample_file(path: str | Path, keep: int, seed: int = SEED,
         b = min(a + chunk, n)
         rows = src.rows(a, b)
         kept = np.flatnonzero(rng.random(b - a) < p)
+        if drop_nonfinite:
+            kept = kept[~src.nonfinite(rows[kept])]
         parts.append(rows[kept].copy())   # not a view: frees the chunk
         index.append(kept + a)
         del rows
