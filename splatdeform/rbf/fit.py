@@ -99,6 +99,10 @@ def _larft(v: np.ndarray, tau: np.ndarray) -> np.ndarray:
     """
     nb = tau.shape[0]
     gram = v.T @ v
+    if np.all(tau != 0.0):  # T^-1 = diag(1 / tau) + strictly upper(V^T V): one solve
+        inv = np.triu(gram, 1)
+        inv[np.arange(nb), np.arange(nb)] = 1.0 / tau
+        return solve_triangular(inv, np.eye(nb), lower=False, check_finite=False)
     t = np.zeros((nb, nb))
     for i in range(nb):
         t[i, i] = tau[i]
@@ -152,21 +156,23 @@ class _BlockedQR:
             rows -= vb @ (t @ (vb.T @ rows))
 
     def add_block(self, cblk: np.ndarray, qtb: np.ndarray) -> None:
-        """Append the columns cblk (m, b): apply Q^T (BLAS-3 products per stored block), QR the
-        part below the current rows, store V_b, T_b, extend R, and apply the new reflections
-        to qtb (m, k) in place."""
+        """Append the columns cblk (m, b) float64, Fortran-ordered (overwritten: Q^T cblk):
+        apply Q^T (BLAS-3 products per stored block), QR the part below the current rows,
+        store V_b, T_b, extend R, and apply the new reflections to qtb (m, k) in place."""
         p, nb, m = self.cols, cblk.shape[1], self.m
         if p + nb > m:
             raise ProcessingError(f"fit: cannot add {nb} columns to {p} with only {m} constraints")
         self._grow(p + nb)
-        c = np.array(cblk, dtype=np.float64, order="F")
+        c = np.asarray(cblk, dtype=np.float64, order="F")  # the caller's fresh columns
         self.apply_qt(c)
         self.r[:p, p : p + nb] = c[:p]
         lower, tau = _geqrf(c[p:])
-        vb = np.tril(lower[:, :nb], -1)
-        vb[np.arange(nb), np.arange(nb)] = 1.0
         self.r[p : p + nb, p : p + nb] = np.triu(lower[:nb])
-        self.v[p:, p : p + nb] = vb
+        vb = self.v[p:, p : p + nb]
+        vb[...] = lower[:, :nb]
+        upper = np.triu_indices(nb)  # V: unit lower trapezoidal (np.tril of (m, b): 3x slower)
+        vb[upper] = 0.0
+        vb[np.arange(nb), np.arange(nb)] = 1.0
         tb = _larft(vb, tau)
         self.blocks.append((p, tb))
         self.cols = p + nb
