@@ -5,10 +5,11 @@
 
 This is the minimiser of the third-order energy through all constraints (``fit.method: exact``),
 the same interpolant as scipy's ``RBFInterpolator(kernel="cubic", degree=1)``, and the in-house
-oracle of the incremental fitter. The matrix is symmetric (indefinite), so it is factored by
-LAPACK's symmetric-indefinite solver (``?sysv``, Bunch-Kaufman: m^3 / 3 flops, about half an LU)
-on :func:`dense_threads` BLAS threads. It costs O(m^3) time and 8 (m + 4)^2 bytes, so it is
-refused above :data:`EXACT_MAX_CONSTRAINTS`.
+oracle of the incremental fitter. The matrix is symmetric indefinite; projected onto the side
+conditions it is positive definite and is factored by one Cholesky (m^3 / 3 flops, half an LU;
+:func:`_solve`) on :func:`dense_threads` BLAS threads (blocked so that a busy machine does not
+stall it, :mod:`splatdeform.rbf.cholesky`). It costs O(m^3) time and 8 m^2 bytes (12 m^2 on
+more than one thread), so it is refused above :data:`EXACT_MAX_CONSTRAINTS`.
 """
 
 from __future__ import annotations
@@ -19,6 +20,7 @@ import warnings
 import numpy as np
 from scipy.linalg import LinAlgError, LinAlgWarning, solve
 
+from splatdeform.blas import blas_threads
 from splatdeform.errors import InputError, ProcessingError
 from splatdeform.rbf.kernel import cubed_distance_rows, cubed_distances
 from splatdeform.rbf.result import Normalization, RbfFit
@@ -103,7 +105,7 @@ def fit_exact(
     points (normalised) and whose weights are (4 + n, k), rows [1, x, y, z, phi_1 .. phi_n].
     threads: BLAS threads for the solve (None: :func:`dense_threads`).
     """
-    from splatdeform.rbf.fit import _check_inputs, blas_threads
+    from splatdeform.rbf.fit import _check_inputs
 
     pts, b = _check_inputs(points, rhs, 0.0, 0, 1, normalization)
     pts_u, b_u = unique_constraints(pts, b)
@@ -114,8 +116,8 @@ def fit_exact(
             "(O(m^3) time, 8 m^2 bytes); use fit.method: incremental")
     norm = normalization if normalization is not None else Normalization.of(pts_u)
     x = norm.apply(pts_u)
-    with blas_threads(dense_threads(threads)):
-        poly, w = _solve(x, b_u)
+    with blas_threads(1):  # the factorisation alone uses more (:mod:`splatdeform.rbf.cholesky`)
+        poly, w = _solve(x, b_u, dense_threads(threads))
     weights = np.vstack([poly, w])  # rows [1, x, y, z, phi_j]
     k = b.shape[1]
     return RbfFit(centers=x, weights=np.ascontiguousarray(weights), normalization=norm,
@@ -136,22 +138,25 @@ def _kernel_times(x: np.ndarray, v: np.ndarray, y: np.ndarray) -> np.ndarray:
     return phi.T
 
 
-def _solve(x: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(polynomial part (4, k), center weights (m, k)) of the interpolation system.
+def _solve(x: np.ndarray, b: np.ndarray, threads: int = 1) -> tuple[np.ndarray, np.ndarray]:
+    """(polynomial part (4, k), center weights (m, k)) of the interpolation system; the
+    Cholesky factorisation on ``threads`` BLAS threads, everything else on the caller's.
 
     r^3 is conditionally positive definite of order 2: on the vectors w with P^T w = 0 the
     quadratic form w^T Phi w is positive. With P = Q [R; 0] (Householder, Q = I - V T V^T),
     w = Q [0; z] satisfies the side conditions, and the system splits into
     A22 z = (Q^T rhs)_2 with A22 = (Q^T Phi Q)_22 symmetric positive definite (one Cholesky,
-    m^3 / 3 flops, LAPACK's best-threaded factorisation) and R a = (Q^T rhs)_1 - A12 z.
+    m^3 / 3 flops, :func:`splatdeform.rbf.cholesky.factor_lower`) and
+    R a = (Q^T rhs)_1 - A12 z.
     Q^T Phi Q = Phi - Z V^T - V Z^T, so A22 is the kernel matrix of the points 5.. (its
     lower triangle built by blocks, Phi V summed from them, factored in place) plus one
     rank-8 symmetric update (BLAS syr2k); only the first 4 rows of Phi are needed besides.
     Should rounding make A22 not positive definite (near-duplicate points), the full saddle
     system is solved by the symmetric-indefinite factorisation instead.
     """
-    from scipy.linalg import blas, cho_factor, cho_solve, lapack, solve_triangular
+    from scipy.linalg import blas, lapack, solve_triangular
 
+    from splatdeform.rbf.cholesky import factor_lower, solve_lower
     from splatdeform.rbf.fit import _larft
 
     m = x.shape[0]
@@ -174,15 +179,15 @@ def _solve(x: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     c = b - v @ (t.T @ (v.T @ b))                       # Q^T rhs
     try:
         a22 = blas.dsyr2k(-1.0, z[4:], v[4:], beta=1.0, c=a22, lower=1, overwrite_c=1)
-        chol = cho_factor(a22, lower=True, overwrite_a=True, check_finite=False)
-        zz = cho_solve(chol, c[4:], check_finite=False)
+        zz = solve_lower(factor_lower(a22, threads), c[4:])
         a12 = top[:, 4:] - z[:4] @ v[4:].T - v[:4] @ z[4:].T
         a = solve_triangular(r, c[:4] - a12 @ zz, lower=False, check_finite=False)
         full = np.zeros_like(c)
         full[4:] = zz
         w = full - v @ (t @ (v.T @ full))               # Q [0; z]
     except LinAlgError:
-        a, w = _solve_indefinite(x, b)
+        with blas_threads(threads):
+            a, w = _solve_indefinite(x, b)
     if not (np.all(np.isfinite(a)) and np.all(np.isfinite(w))):
         raise ProcessingError("fit: the exact interpolation system is singular")
     return a, w
