@@ -289,6 +289,32 @@ def test_blocked_kernel_values_match_cdist(monkeypatch, block_bytes):
     upper = np.triu_indices(70)
     assert np.allclose(sym[upper], full[upper], rtol=1e-9, atol=1e-9 * full.max())
     assert np.all(np.diag(sym) == 0.0)
+    part = np.full((70, 70), np.nan)  # one thread's share of the rows: those rows only
+    for a, e, _ in rbf_kernel.cubed_distance_rows(x, x, part, upper=True, rows=(20, 45)):
+        assert 20 <= a < e <= 45
+    for i in range(20, 45):
+        assert np.allclose(part[i, i:], full[i, i:], rtol=1e-9, atol=1e-9 * full.max())
+    assert np.isnan(part[:20]).all() and np.isnan(part[45:]).all()
+    assert np.isnan(part[20:45, :20]).all()  # left of its first row: the lower triangle
+
+
+@pytest.mark.parametrize("threads", [1, 2, 3])
+def test_kernel_matrix_and_its_product_on_threads(monkeypatch, threads):
+    from scipy.spatial.distance import cdist
+
+    from splatdeform.rbf import exact
+
+    monkeypatch.setattr(exact, "KERNEL_ROWS_PER_THREAD", 16)  # several threads on 90 rows
+    rng = np.random.default_rng(8)
+    x = rng.normal(size=(90, 3))
+    v = rng.normal(size=(90, 4))
+    y = np.ones((90, 4))
+    phi = exact._kernel_times(x, v, y, threads)
+    full = cdist(x, x) ** 3
+    low = np.tril_indices(90)
+    assert phi.flags.f_contiguous
+    np.testing.assert_allclose(phi[low], full[low], rtol=1e-9, atol=1e-9 * full.max())
+    np.testing.assert_allclose(y, 1.0 + full @ v, rtol=1e-9, atol=1e-9 * np.abs(full @ v).max())
 
 
 def test_distinct_rows_and_merged_duplicates():

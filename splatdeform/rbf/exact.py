@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import os
 import warnings
+from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 from scipy.linalg import LinAlgError, LinAlgWarning, solve
@@ -28,6 +29,10 @@ from splatdeform.rbf.result import Normalization, RbfFit
 #: Measured on the 2-core development machine: 8,000 constraints take ~7 s and 0.5 GB; the
 #: cost grows with m^3, so 12,000 is ~25 s and 1.2 GB. Beyond that use the incremental fit.
 EXACT_MAX_CONSTRAINTS = 12_000
+
+#: Fewest kernel-matrix rows per thread of its build (below, one thread: the pool's start and
+#: the per-thread sums cost more than they save).
+KERNEL_ROWS_PER_THREAD = 512
 
 #: Environment variables that set the dense solve's BLAS threads, first found wins (after an
 #: explicit ``threads``): our own, then the usual BLAS / OpenMP ones.
@@ -125,16 +130,33 @@ def fit_exact(
                   rms_error=0.0, method="exact")
 
 
-def _kernel_times(x: np.ndarray, v: np.ndarray, y: np.ndarray) -> np.ndarray:
+def _kernel_times(x: np.ndarray, v: np.ndarray, y: np.ndarray, threads: int = 1) -> np.ndarray:
     """The kernel matrix Phi = |x_i - x_j|^3 (m, m) of x (m, 3), Fortran-ordered for LAPACK
     with only its lower triangle filled (symmetric: the upper triangle of the C-ordered array
     built block by block, :func:`cubed_distance_rows`), and y (m, 4) += Phi v for v (m, 4),
-    accumulated from each block while it is in cache (no pass over the whole matrix)."""
+    accumulated from each block while it is in cache (no pass over the whole matrix).
+
+    threads: row ranges of equal area of the triangle built on that many Python threads (numpy
+    releases the interpreter lock in its loops and products), each with its own sum of Phi v.
+    """
     n = x.shape[0]
     phi = np.empty((n, n))
-    for a, e, blk in cubed_distance_rows(x, x, phi, upper=True):  # blk: columns a..
-        y[a:e] += blk @ v[a:]
-        y[e:] += blk[:, e - a:].T @ v[a:e]
+
+    def rows(first: int, end: int) -> np.ndarray:
+        acc = np.zeros_like(y)
+        for a, e, blk in cubed_distance_rows(x, x, phi, upper=True, rows=(first, end)):
+            acc[a:e] += blk @ v[a:]                 # blk: columns a..
+            acc[e:] += blk[:, e - a:].T @ v[a:e]
+        return acc
+
+    parts = max(1, min(int(threads), n // KERNEL_ROWS_PER_THREAD))
+    if parts == 1:
+        y += rows(0, n)
+        return phi.T
+    cuts = [int(round(n * (1.0 - np.sqrt(1.0 - k / parts)))) for k in range(parts + 1)]
+    with ThreadPoolExecutor(parts) as pool:
+        for acc in pool.map(lambda k: rows(cuts[k], cuts[k + 1]), range(parts)):
+            y += acc
     return phi.T
 
 
@@ -174,7 +196,7 @@ def _solve(x: np.ndarray, b: np.ndarray, threads: int = 1) -> tuple[np.ndarray, 
     y = np.empty((m, 4))                                # Phi V
     y[:4] = top @ v
     y[4:] = top[:, 4:].T @ v[:4]
-    a22 = _kernel_times(x[4:], v[4:], y[4:])            # Phi[4:, 4:], lower triangle
+    a22 = _kernel_times(x[4:], v[4:], y[4:], threads)   # Phi[4:, 4:], lower triangle
     z = y @ t - 0.5 * v @ (t.T @ (v.T @ y) @ t)         # Q^T Phi Q = Phi - Z V^T - V Z^T
     c = b - v @ (t.T @ (v.T @ b))                       # Q^T rhs
     try:

@@ -64,13 +64,15 @@ BLOCK_BYTES = 1 << 19
 
 
 def cubed_distance_rows(x: np.ndarray, s: np.ndarray, out: np.ndarray | None = None, *,
-                        upper: bool = False) -> Iterator[tuple[int, int, np.ndarray]]:
+                        upper: bool = False, rows: tuple[int, int] | None = None,
+                        ) -> Iterator[tuple[int, int, np.ndarray]]:
     """|x_i - s_j|^3 for x (M, 3), s (n, 3) float64, one block of rows at a time: yields
     (first row, end row, block) once each block is filled (a caller uses the block while it
     is still in cache). The blocks are rows of ``out`` (M, n) (rows with C-contiguous
     columns), or of one reused buffer when ``out`` is None (each block is overwritten by the
     next). ``upper`` (s is x, ``out`` given): fill only the upper triangle, the block's columns
     from its first row on (the lower triangle of the Fortran-ordered ``out.T``), diagonal 0.
+    ``rows``: (first, end), only these rows of x (one thread's share of ``out``).
 
     Squared distances come from one small GEMM per block, |x|^2 + |s|^2 - 2 x.s (both sides
     shifted to the mean of s, so no large coordinates cancel), clamped at 0; then sqrt and the
@@ -89,11 +91,12 @@ def cubed_distance_rows(x: np.ndarray, s: np.ndarray, out: np.ndarray | None = N
     sb[4] = np.einsum("ij,ij->j", sb[:3], sb[:3])
     sb[:3] *= -2.0
     sb[3] = 1.0
-    rows = max(1, BLOCK_BYTES // (8 * max(s.shape[0], 1)))
-    tmp = np.empty((min(rows, x.shape[0]), s.shape[0]))
+    first, end = (0, x.shape[0]) if rows is None else rows
+    step = max(1, BLOCK_BYTES // (8 * max(s.shape[0], 1)))
+    tmp = np.empty((max(min(step, end - first), 0), s.shape[0]))
     buf = np.empty_like(tmp) if out is None else None
-    for a in range(0, x.shape[0], rows):
-        e = min(a + rows, x.shape[0])
+    for a in range(first, end, step):
+        e = min(a + step, end)
         c = a if upper else 0
         blk = buf[: e - a] if buf is not None else out[a:e, c:]
         t = tmp[: e - a, c:]
