@@ -131,8 +131,8 @@ class FitSettings:
     ``incremental`` (least squares on the kept constraints) or ``exact`` (dense, through every
     constraint). thinning: ring thinning cell in ring widths (:mod:`splatdeform.deform.thin`;
     0 keeps every ring point), read by :func:`prepare_metaphors`. threads: the dense solve's
-    BLAS threads (None: :func:`splatdeform.rbf.exact.dense_threads`); the incremental fit
-    always uses one. normalization: model -> normalised coordinates (the model's bbox).
+    threads (None: :func:`splatdeform.rbf.exact.dense_threads`); the incremental fit always
+    uses one. normalization: model -> normalised coordinates (the model's bbox).
     """
 
     normalization: object

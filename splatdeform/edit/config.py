@@ -137,7 +137,7 @@ class FitCfg(_Strict):
     by at most k * tolerance * the largest control-point move); method ``auto`` takes the
     cheapest of ``incremental``, the dense solve through the kept constraints (checked at every
     ring point) and ``exact`` by predicted cost; thinning: ring thinning cell in
-    ring widths (0 keeps every ring point); threads: the exact solve's BLAS threads (default:
+    ring widths (0 keeps every ring point); threads: the exact solve's threads (default:
     the CPUs this process may use). Defaults from the measured table in the README."""
 
     tolerance: float = Field(default=DEFAULT_TOLERANCE, gt=0, lt=1)

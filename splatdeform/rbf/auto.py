@@ -2,8 +2,8 @@
 dense exact solve through the kept constraints, and the dense exact solve through every
 constraint, by predicted cost, checked over every ring point.
 
-The dense solve's cost is known before it starts: one Cholesky of about m^3 / 3 flops on the
-BLAS threads (:func:`splatdeform.rbf.exact.dense_threads`), plus building the m x m kernel
+The dense solve's cost is known before it starts: one Cholesky of about m^3 / 3 flops on its
+threads (:func:`splatdeform.rbf.exact.dense_threads`), plus building the m x m kernel
 matrix. Through the m_kept thinned constraints it costs m_kept^3 / 3 plus one evaluation at
 every ring point (the boundary check). The incremental fit's cost grows with the centers it
 needs, which are only known as it goes: about 2 m_kept n^2 flops of blocked Householder QR on

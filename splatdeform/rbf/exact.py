@@ -7,9 +7,10 @@ This is the minimiser of the third-order energy through all constraints (``fit.m
 the same interpolant as scipy's ``RBFInterpolator(kernel="cubic", degree=1)``, and the in-house
 oracle of the incremental fitter. The matrix is symmetric indefinite; projected onto the side
 conditions it is positive definite and is factored by one Cholesky (m^3 / 3 flops, half an LU;
-:func:`_solve`) on :func:`dense_threads` BLAS threads (blocked so that a busy machine does not
-stall it, :mod:`splatdeform.rbf.cholesky`). It costs O(m^3) time and 8 m^2 bytes (12 m^2 on
-more than one thread), so it is refused above :data:`EXACT_MAX_CONSTRAINTS`.
+:func:`_solve`) on :func:`dense_threads` threads (the kernel matrix and a blocked Cholesky on
+Python threads over one-threaded BLAS, so that a busy machine does not stall it:
+:mod:`splatdeform.rbf.cholesky`). It costs O(m^3) time and 8 m^2 bytes, so it is refused above
+:data:`EXACT_MAX_CONSTRAINTS`.
 """
 
 from __future__ import annotations
@@ -34,14 +35,14 @@ EXACT_MAX_CONSTRAINTS = 12_000
 #: the per-thread sums cost more than they save).
 KERNEL_ROWS_PER_THREAD = 512
 
-#: Environment variables that set the dense solve's BLAS threads, first found wins (after an
+#: Environment variables that set the dense solve's threads, first found wins (after an
 #: explicit ``threads``): our own, then the usual BLAS / OpenMP ones.
 THREAD_VARIABLES = ("SPLATDEFORM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS",
                     "OMP_NUM_THREADS")
 
 
 def dense_threads(threads: int | None = None) -> int:
-    """BLAS threads for the dense solve: ``threads`` when given (``fit.threads``), else the
+    """Threads of the dense solve: ``threads`` when given (``fit.threads``), else the
     first of :data:`THREAD_VARIABLES` set to a positive integer, else the CPUs this process may
     run on (``len(os.sched_getaffinity(0))``)."""
     if threads is not None:
@@ -108,7 +109,7 @@ def fit_exact(
     Duplicate points must carry equal right-hand sides (they are merged; conflicting values
     raise InputError). Returns an :class:`RbfFit` whose centers are all distinct constraint
     points (normalised) and whose weights are (4 + n, k), rows [1, x, y, z, phi_1 .. phi_n].
-    threads: BLAS threads for the solve (None: :func:`dense_threads`).
+    threads: threads of the solve (None: :func:`dense_threads`).
     """
     from splatdeform.rbf.fit import _check_inputs
 
@@ -161,8 +162,9 @@ def _kernel_times(x: np.ndarray, v: np.ndarray, y: np.ndarray, threads: int = 1)
 
 
 def _solve(x: np.ndarray, b: np.ndarray, threads: int = 1) -> tuple[np.ndarray, np.ndarray]:
-    """(polynomial part (4, k), center weights (m, k)) of the interpolation system; the
-    Cholesky factorisation on ``threads`` BLAS threads, everything else on the caller's.
+    """(polynomial part (4, k), center weights (m, k)) of the interpolation system; the kernel
+    matrix and its Cholesky factorisation on ``threads`` threads, the rest on the caller's BLAS
+    threads.
 
     r^3 is conditionally positive definite of order 2: on the vectors w with P^T w = 0 the
     quadratic form w^T Phi w is positive. With P = Q [R; 0] (Householder, Q = I - V T V^T),
