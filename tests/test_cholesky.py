@@ -20,7 +20,8 @@ def spd(n: int, seed: int) -> np.ndarray:
 
 @pytest.mark.parametrize("n", [5, ch.PANEL * 2 + 1, ch.PANEL * 3 - 7, 1100])
 @pytest.mark.parametrize("threads", [1, 2, 3])
-def test_factor_is_lapacks_and_solves(n, threads):
+def test_factor_is_lapacks_and_solves(monkeypatch, n, threads):
+    monkeypatch.setattr(ch, "MIN_THREADED", 0)  # the blocked path from 2 panels on
     a = spd(n, n)
     upper = np.triu(a, 1).copy()
     want = cholesky(a, lower=True)
@@ -33,6 +34,7 @@ def test_factor_is_lapacks_and_solves(n, threads):
 
 
 def test_the_blocked_path_runs_on_several_threads_with_the_same_factor(monkeypatch):
+    monkeypatch.setattr(ch, "MIN_THREADED", 0)
     calls = []
     real = ch._blocked
     monkeypatch.setattr(ch, "_blocked", lambda *args: calls.append(args[1]) or real(*args))
@@ -41,13 +43,17 @@ def test_the_blocked_path_runs_on_several_threads_with_the_same_factor(monkeypat
     three = ch.factor_lower(a.copy(order="F"), 3)
     one = ch.factor_lower(a.copy(order="F"), 1)
     assert calls == [2, 3]  # one thread: one dpotrf
+    monkeypatch.setattr(ch, "MIN_THREADED", a.shape[0] + 1)
+    ch.factor_lower(a.copy(order="F"), 2)
+    assert calls == [2, 3]  # a small matrix: one dpotrf too
     np.testing.assert_allclose(np.tril(two), np.tril(one), rtol=0, atol=1e-12 * np.abs(one).max())
     np.testing.assert_allclose(np.tril(three), np.tril(one), rtol=0,
                                atol=1e-12 * np.abs(one).max())
 
 
 @pytest.mark.parametrize("threads", [1, 2])
-def test_not_positive_definite_raises_naming_the_minor(threads):
+def test_not_positive_definite_raises_naming_the_minor(monkeypatch, threads):
+    monkeypatch.setattr(ch, "MIN_THREADED", 0)
     a = spd(2 * ch.PANEL + 40, 5)
     bad = 2 * ch.PANEL + 7  # in the last panel of the blocked path
     a[bad, bad] = -1.0
@@ -62,7 +68,8 @@ def test_refuses_arrays_it_cannot_factor_in_place():
         ch.factor_lower(np.zeros((3, 4), order="F"), 2)
 
 
-def test_exact_fit_on_several_threads_is_scipys_interpolant():
+def test_exact_fit_on_several_threads_is_scipys_interpolant(monkeypatch):
+    monkeypatch.setattr(ch, "MIN_THREADED", 0)
     rng = np.random.default_rng(7)
     pts = rng.normal(size=(3 * ch.PANEL + 50, 3))
     rhs = rng.normal(size=(pts.shape[0], 3))

@@ -16,7 +16,7 @@ during a call, and passes the leading dimension, so the blocks are views of the 
 copies). Measured on the development machine, 2 threads: 0.044 s idle on 2,152 points (threaded
 ``dpotrf`` 0.045 s, one thread 0.078 s), 0.078 s on 2,705 (0.088 s), 0.26 s on 4,136 (0.27 s);
 beside two busy processes 0.08-0.13 s on 2,152 (one thread 0.08-0.16 s). On one thread it is
-one ``dpotrf``.
+one ``dpotrf``, and so is a matrix smaller than :data:`MIN_THREADED`.
 """
 
 from __future__ import annotations
@@ -34,6 +34,10 @@ from splatdeform.blas import blas_threads
 
 #: Columns per step of the blocked factorisation (256 and 512 measured within 3%).
 PANEL = 256
+#: Smallest matrix factored on several threads: below it one ``dpotrf`` on one thread (30 ms
+#: at 1,536; two threads saved 2-3 ms idle at 1,100, and cost up to 3x beside busy processes,
+#: where every join waits for a descheduled thread).
+MIN_THREADED = 1536
 
 
 def factor_lower(a: np.ndarray, threads: int = 1) -> np.ndarray:
@@ -48,7 +52,7 @@ def factor_lower(a: np.ndarray, threads: int = 1) -> np.ndarray:
             or a.shape[0] != a.shape[1]:
         raise ValueError("a: expected a square Fortran-ordered float64 array")
     n = a.shape[0]
-    if threads <= 1 or n <= 2 * PANEL:
+    if threads <= 1 or n < max(MIN_THREADED, 2 * PANEL):
         with blas_threads(1):
             low, info = lapack.dpotrf(a, lower=1, overwrite_a=1, clean=0)
         _check(info)

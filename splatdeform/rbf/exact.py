@@ -32,8 +32,8 @@ from splatdeform.rbf.result import Normalization, RbfFit
 EXACT_MAX_CONSTRAINTS = 12_000
 
 #: Fewest kernel-matrix rows per thread of its build (below, one thread: the pool's start and
-#: the per-thread sums cost more than they save).
-KERNEL_ROWS_PER_THREAD = 512
+#: the per-thread sums cost more than they save, and beside busy processes the join waits).
+KERNEL_ROWS_PER_THREAD = 768
 
 #: Environment variables that set the dense solve's threads, first found wins (after an
 #: explicit ``threads``): our own, then the usual BLAS / OpenMP ones.
