@@ -302,9 +302,9 @@ def test_blocked_kernel_values_match_cdist(monkeypatch, block_bytes):
 def test_kernel_matrix_and_its_product_on_threads(monkeypatch, threads):
     from scipy.spatial.distance import cdist
 
-    from splatdeform.rbf import exact
+    from splatdeform.rbf import cholesky, exact
 
-    monkeypatch.setattr(exact, "KERNEL_ROWS_PER_THREAD", 16)  # several threads on 90 rows
+    monkeypatch.setattr(cholesky, "MIN_THREADED", 16)  # several threads on 90 rows
     rng = np.random.default_rng(8)
     x = rng.normal(size=(90, 3))
     v = rng.normal(size=(90, 4))

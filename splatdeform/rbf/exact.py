@@ -31,10 +31,6 @@ from splatdeform.rbf.result import Normalization, RbfFit
 #: cost grows with m^3, so 12,000 is ~25 s and 1.2 GB. Beyond that use the incremental fit.
 EXACT_MAX_CONSTRAINTS = 12_000
 
-#: Fewest kernel-matrix rows per thread of its build (below, one thread: the pool's start and
-#: the per-thread sums cost more than they save, and beside busy processes the join waits).
-KERNEL_ROWS_PER_THREAD = 768
-
 #: Environment variables that set the dense solve's threads, first found wins (after an
 #: explicit ``threads``): our own, then the usual BLAS / OpenMP ones.
 THREAD_VARIABLES = ("SPLATDEFORM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS",
@@ -138,8 +134,11 @@ def _kernel_times(x: np.ndarray, v: np.ndarray, y: np.ndarray, threads: int = 1)
     accumulated from each block while it is in cache (no pass over the whole matrix).
 
     threads: row ranges of equal area of the triangle built on that many Python threads (numpy
-    releases the interpreter lock in its loops and products), each with its own sum of Phi v.
+    releases the interpreter lock in its loops and products), each with its own sum of Phi v;
+    one below :data:`splatdeform.rbf.cholesky.MIN_THREADED` points, as the factorisation.
     """
+    from splatdeform.rbf import cholesky
+
     n = x.shape[0]
     phi = np.empty((n, n))
 
@@ -150,7 +149,7 @@ def _kernel_times(x: np.ndarray, v: np.ndarray, y: np.ndarray, threads: int = 1)
             acc[e:] += blk[:, e - a:].T @ v[a:e]
         return acc
 
-    parts = max(1, min(int(threads), n // KERNEL_ROWS_PER_THREAD))
+    parts = max(1, int(threads)) if n >= cholesky.MIN_THREADED else 1
     if parts == 1:
         y += rows(0, n)
         return phi.T
