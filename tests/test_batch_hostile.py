@@ -265,17 +265,18 @@ def test_clean_stale_temps_only_removes_dead_own_folders(tmp_path: Path) -> None
     a_file.write_text("not a folder")
     assert clean_stale_temps(str(tmp_path)) == [str(mine_dead)]
     assert mine_live.is_dir() and other.is_dir() and a_file.is_file()
-    # temporary outputs in output_dir: a live writer's (another batch's) are left alone
-    from splatdeform.batch import _clean_stale_temps
+    # temporary outputs in output_dir: only the atomic writer's exact names of dead writers go;
+    # a live writer's (another batch's) and every look-alike stay
+    from splatdeform.io.atomic import remove_stale_temps
 
     out = tmp_path / "out"
     out.mkdir()
-    names = [f".bar.{dead}-abc123.tmp.ply", f".bar.{os.getpid()}-abc123.tmp.ply",
-             ".bar.abc12345.tmp.ply", ".keep.yaml", "bar.ply"]
+    names = [f".bar.{dead}-abc123xy.tmp.ply", f".bar.{os.getpid()}-abc123xy.tmp.ply",
+             ".bar.abc12345.tmp.ply", f".bar.{dead}-abc123.tmp.ply", ".keep.yaml", "bar.ply"]
     for n in names:
         (out / n).write_text("x")
-    _clean_stale_temps(out)
-    assert sorted(p.name for p in out.iterdir()) == sorted(names[1:2] + names[3:])
+    assert remove_stale_temps(out, any_output=True) == [out / names[0]]
+    assert sorted(p.name for p in out.iterdir()) == sorted(names[1:])
 
 
 # -- per-scan timeout ----------------------------------------------------------------------------

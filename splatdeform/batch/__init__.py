@@ -47,9 +47,7 @@ cannot be stopped, each scan then runs in a child process of its Dask worker ins
 from __future__ import annotations
 
 import argparse
-import contextlib
 import os
-import re
 import sys
 import time
 from pathlib import Path
@@ -58,26 +56,6 @@ from typing import Any
 from .config import Batch, BatchConfig, Job, load_batch
 
 __all__ = ["Batch", "BatchConfig", "Job", "load_batch", "run_batch", "register"]
-
-
-_TEMP_NAME = re.compile(r"^\..+?\.(?:(\d+)[-.])?[A-Za-z0-9_]*\.?tmp(?:\.[^.]+)?$")
-
-
-def _clean_stale_temps(output_dir: Path) -> None:
-    """Temporary files left by a killed run (``.<stem>.<pid>-<random>.tmp.<ext>``) are never
-    trusted: remove them, unless the process named in them is still running (another batch
-    writing into the same folder). One pass over the folder."""
-    from .sources import pid_alive
-
-    if not output_dir.is_dir():
-        return
-    for p in output_dir.iterdir():
-        m = _TEMP_NAME.match(p.name)
-        if m is None or (m.group(1) and pid_alive(int(m.group(1)))):
-            continue
-        with contextlib.suppress(OSError):
-            if p.is_file() and not p.is_symlink():
-                p.unlink()
 
 
 def _strip_name(row: dict[str, Any]) -> str:
@@ -123,6 +101,7 @@ def run_batch(path: str | Path, *, workers: int | None = None, scheduler: Any = 
 
     ``scheduler`` may be an address or a Dask Cluster/Client object (tests).
     ``scan_timeout``: seconds per scan, wins over the config's ``scan_timeout_s``."""
+    from ..io.atomic import remove_stale_temps
     from .report import write_reports
     from .runner import run_dask, run_local
     from .sources import clean_stale_temps
@@ -140,7 +119,7 @@ def run_batch(path: str | Path, *, workers: int | None = None, scheduler: Any = 
         raise InputError(f"--workers: expected a positive number, got {workers}")
     workers = workers or batch.workers or os.cpu_count() or 1
     batch.output_dir.mkdir(parents=True, exist_ok=True)
-    _clean_stale_temps(batch.output_dir)
+    remove_stale_temps(batch.output_dir, any_output=True)   # a killed run's outputs in writing
     clean_stale_temps()   # archive members of killed runs / workers on this machine
 
     rows: dict[int, dict[str, Any]] = {}

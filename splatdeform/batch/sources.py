@@ -30,6 +30,7 @@ from typing import BinaryIO
 
 from ..errors import ConfigError, InputError
 from ..io import SUPPORTED
+from ..io.atomic import pid_alive
 from ..memory import HEAD_BYTES
 
 ARCHIVES = (".zip", ".tar", ".tar.gz", ".tgz", ".tar.bz2", ".tbz2", ".tar.xz", ".txz")
@@ -374,19 +375,6 @@ def _host() -> str:
 def temp_prefix() -> str:
     """``splatdeform-batch-<pid>-<host>-``: who owns a temporary folder, for stale cleanup."""
     return f"{TEMP_PREFIX}{os.getpid()}-{_host()}-"
-
-
-def pid_alive(pid: int) -> bool:
-    """Whether a process ``pid`` exists (someone else's counts; nonsense numbers do not)."""
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except (OverflowError, ValueError):
-        return False
-    except OSError:   # EPERM: another user's live process
-        return True
-    return True
 
 
 def clean_stale_temps(tmpdir: str | None = None) -> list[str]:

@@ -133,50 +133,72 @@ RANDOM_CHARS = "a-z0-9_"  # tempfile's alphabet and length for the random part o
 RANDOM_LEN = 8
 
 
-def _temp_pattern(out: Path) -> re.Pattern[str]:
-    """``.STEM.<pid>-<random>.tmp.EXT``: exactly what :func:`atomic_path` creates (a pid and
-    tempfile's 8-character random part), so a user's file that merely looks temporary
-    (``.keep.abcdef12.tmp.ply``) never matches."""
-    return re.compile(rf"^\.{re.escape(out.stem)}\.([1-9]\d{{0,9}})-[{RANDOM_CHARS}]"
-                      rf"{{{RANDOM_LEN}}}\.tmp{re.escape(out.suffix)}$")
+# ``.STEM.<pid>-<random>.tmp.EXT``: exactly what :func:`atomic_path` creates (a pid and
+# tempfile's 8-character random part), so a user's file that merely looks temporary
+# (``.keep.abcdef12.tmp.ply``, ``.notes.tmp``, ``.report.json.123-abcd.tmp.json``) never matches.
+_TEMP_NAME = re.compile(rf"^\.(?P<stem>.+)\.(?P<pid>[1-9]\d{{0,9}})-[{RANDOM_CHARS}]"
+                        rf"{{{RANDOM_LEN}}}\.tmp(?P<suffix>\.[^.]+)?$")
 
 
-def _alive(pid: int) -> bool:
+def temp_owner(name: str, out: Path | None = None) -> int | None:
+    """The pid in ``name`` when it is exactly a temporary name :func:`atomic_path` makes (for
+    the output ``out`` when given, else for any output in its folder); None otherwise."""
+    m = _TEMP_NAME.match(name)
+    if m is None:
+        return None
+    if out is not None and (m["stem"] != out.stem or (m["suffix"] or "") != out.suffix):
+        return None
+    return int(m["pid"])
+
+
+def pid_alive(pid: int) -> bool:
+    """Whether a process ``pid`` exists on this machine (another user's counts as alive, so its
+    files are kept; a number no process can have is gone)."""
     if pid == os.getpid():
         return True
     try:
         os.kill(pid, 0)
     except ProcessLookupError:
         return False
-    except (PermissionError, OverflowError, ValueError):
-        return pid > 0  # someone else's live process (or nonsense: treat as gone)
+    except (OverflowError, ValueError):
+        return False
+    except OSError:   # EPERM: another user's live process
+        return True
     return True
 
 
-def remove_stale_temps(out: PathLike) -> list[Path]:
-    """Remove this tool's temporary files for ``out`` left by a killed writer: the exact name
-    :func:`atomic_path` makes, whose pid is not running. Never a link, never anything else.
-    Returns the removed paths; never raises."""
-    out = Path(out)
-    pattern = _temp_pattern(out)
+def _remove_dead(folder: Path, names: Iterable[str], out: Path | None) -> list[Path]:
     removed = []
-    try:
-        names = os.listdir(out.parent)
-    except OSError:
-        return removed
-    prefix, suffix = f".{out.stem}.", f".tmp{out.suffix}"
     for name in names:
-        if not (name.startswith(prefix) and name.endswith(suffix)):
-            continue  # cheap filter first: output folders of a batch hold many files
-        m = pattern.match(name)
-        if m is None or _alive(int(m.group(1))):
+        pid = temp_owner(name, out)
+        if pid is None or pid_alive(pid):
             continue
-        p = out.parent / name
+        p = folder / name
         with contextlib.suppress(OSError):
             if stat.S_ISREG(os.lstat(p).st_mode):
                 p.unlink()
                 removed.append(p)
     return removed
+
+
+def remove_stale_temps(out: PathLike, *, any_output: bool = False) -> list[Path]:
+    """The one stale-temporary cleaner: remove this tool's temporary files beside ``out`` left
+    by a killed writer, i.e. files named exactly as :func:`atomic_path` names them whose pid is
+    not running. Never a link, never anything else. ``any_output``: ``out`` is a folder, and
+    the temporaries of every output in it are candidates (a batch's ``output_dir``).
+    Returns the removed paths; never raises."""
+    out = Path(out)
+    folder = out if any_output else out.parent
+    try:
+        names = os.listdir(folder)
+    except OSError:
+        return []
+    if any_output:
+        return _remove_dead(folder, names, None)
+    prefix, suffix = f".{out.stem}.", f".tmp{out.suffix}"
+    # cheap filter first: output folders of a batch hold many files
+    return _remove_dead(folder, [n for n in names if n.startswith(prefix) and n.endswith(suffix)],
+                        out)
 
 
 def current_umask() -> int:
