@@ -31,6 +31,7 @@ from typing import BinaryIO
 from ..errors import ConfigError, InputError
 from ..io import SUPPORTED
 from ..io.atomic import pid_alive
+from ..io.regular import open_regular
 from ..memory import HEAD_BYTES
 
 ARCHIVES = (".zip", ".tar", ".tar.gz", ".tgz", ".tar.bz2", ".tbz2", ".tar.xz", ".txz")
@@ -451,17 +452,12 @@ def _open_member(scan: Scan) -> Iterator[BinaryIO]:
 
 
 def _open_regular(path: Path) -> BinaryIO:
-    """Open for reading without ever blocking on a FIFO; InputError for a non-regular file."""
+    """Open for reading through the one opener (never blocks on a FIFO); InputError for a
+    non-regular or unreadable file."""
     try:
-        fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | getattr(os, "O_CLOEXEC", 0))
+        return open_regular(path)
     except OSError as exc:
         raise InputError(f"{path}: cannot read it: {exc.strerror or exc}") from exc
-    mode = os.fstat(fd).st_mode
-    if not stat.S_ISREG(mode):
-        os.close(fd)
-        raise InputError(f"{path}: not a regular file ({file_kind(mode)}); expected a model file")
-    os.set_blocking(fd, True)
-    return os.fdopen(fd, "rb")
 
 
 def _copy_capped(src: BinaryIO, dst: BinaryIO, head: bytes, size: int, name: str) -> None:
