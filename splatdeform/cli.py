@@ -229,7 +229,8 @@ def cmd_edit(args: argparse.Namespace) -> int:
 
     if not 0 <= args.port <= 65535:
         raise InputError(f"--port: expected 0..65535, got {args.port}")
-    return run(args.path, host=args.host, port=args.port, save_dir=args.save_dir)
+    return run(args.path, host=args.host, port=args.port, save_dir=args.save_dir,
+               allow_hosts=tuple(args.allow_host or ()))
 
 
 def _frames(text: str) -> int:
@@ -430,6 +431,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--save-dir", metavar="DIR",
                    help="the one folder Save writes into, by file name (default: the folder "
                         "of MODEL or EDIT.yaml)")
+    p.add_argument("--allow-host", metavar="NAME", action="append",
+                   help="a name the browser may reach the editor by (the Host header), "
+                        "besides loopback names and addresses and --host; repeatable (others "
+                        "are refused: DNS rebinding)")
     p.add_argument("--viewer", choices=("page", "viser"), default="page",
                    help="page (default): the editor's WebGL2 page, deforming on the browser's "
                         "GPU; viser: the older viewer fed whole deformed frames")

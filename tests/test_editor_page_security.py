@@ -77,7 +77,7 @@ def test_page_save_replaces_only_after_confirmation(work):
     # replace without having been asked: asks first, writes nothing
     st = s.act({"op": "save", "model": "x.ply", "yaml": "x.yaml", "png": "x.png",
                 "replace": True})
-    assert st["confirm"] == ["x.ply", "x.yaml", "x.png"]
+    assert st["confirm"] == ["x.ply", "x.yaml", "x.png", "x.camera.json"]
     assert (work / "work" / "x.ply").read_bytes() == b"user's own file"
     # names changed since the question: asked again
     st = s.act({"op": "save", "model": "x.ply", "yaml": "x.yaml", "png": "y.png",

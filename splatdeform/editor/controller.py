@@ -54,6 +54,27 @@ from .curve import CurveState, CurveView, curve_view
 
 ROLES = ("fixed", "handle")
 FREE, FIXED, HANDLE = 0, 1, 2
+MAX_HANDLES = 64        # handles one edit may have in the editor
+MAX_SELECTORS = 1000    # selectors over the fixed region and all handles together
+MIN_SINGULAR = 1e-6     # a pose's 3x3 part: smallest singular value, absolute (README: scale)
+MIN_CONDITION = 1e-9    # ... and relative to the largest
+
+
+def check_pose(matrix: Any, key: str) -> np.ndarray:
+    """``matrix`` as a (4, 4) float64 affine pose, or InputError naming ``key``: non-finite
+    entries, a last row other than 0 0 0 1, or a 3x3 part that is singular or nearly so
+    (smallest singular value below :data:`MIN_SINGULAR` or :data:`MIN_CONDITION` of the
+    largest: the handle's points would collapse onto a plane, a line or a point)."""
+    m = np.asarray(matrix, dtype=np.float64)
+    if m.shape != (4, 4) or not np.isfinite(m).all() or not np.allclose(m[3], [0, 0, 0, 1]):
+        raise InputError(f"{key}: expected a finite 4x4 affine matrix (last row 0 0 0 1)")
+    s = np.linalg.svd(m[:3, :3], compute_uv=False)
+    if not s[-1] >= MIN_SINGULAR or not s[-1] >= MIN_CONDITION * s[0]:
+        raise InputError(f"{key}: the 3x3 part is singular or nearly so (singular values "
+                         f"{s[0]:.3g} .. {s[-1]:.3g}; expected the smallest at least "
+                         f"{MIN_SINGULAR:g} and {MIN_CONDITION:g} of the largest): it would "
+                         "collapse the handle's points")
+    return m
 
 
 class StaleFitError(InputError):
@@ -206,6 +227,10 @@ class EditorController:
         ("box", "sphere", "plane") makes a default one at ``center`` (model coordinates).
         Returns its index in that region."""
         region = self._region(role, handle)
+        total = len(self.fixed) + sum(len(h.selectors) for h in self.handles)
+        if total >= MAX_SELECTORS:
+            raise InputError(f"selectors: at most {MAX_SELECTORS} in one edit (fixed and "
+                             "handles together); remove some, or combine them with all/not")
         if isinstance(selector, str):
             selector = sl.default_selector(selector, self.model, self.units, center=center)
         region.append(selector)
@@ -350,6 +375,8 @@ class EditorController:
 
     def add_handle(self, selectors: list[Selector] | None = None) -> int:
         """A new handle (its own region and pose; one fit for all). Returns its index."""
+        if len(self.handles) >= MAX_HANDLES:
+            raise InputError(f"handles: at most {MAX_HANDLES} in one edit")
         self.handles.append(HandleState(list(selectors or [])))
         return len(self.handles) - 1
 
@@ -466,10 +493,7 @@ class EditorController:
         positions and normals / axes / covariances of all points, or with ``full=False`` of the
         non-fixed points only (``frame.index``; the viewer's fast path). Raises StaleFitError
         when the fit is stale."""
-        m4 = np.asarray(matrix, dtype=np.float64)
-        if m4.shape != (4, 4) or not np.allclose(m4[3], [0, 0, 0, 1]) or \
-                not np.isfinite(m4).all():
-            raise InputError("pose: expected a finite 4x4 affine matrix (last row 0 0 0 1)")
+        m4 = check_pose(matrix, self.pose_key(handle))
         if self.stale:
             raise StaleFitError("fit: the regions changed since the last fit (or there is none);"
                                 " fit again before moving the handle")
@@ -501,6 +525,17 @@ class EditorController:
         return Frame(scatter(fd["base"], p), scatter(fd.get("normals"), n),
                      scatter(fd.get("axes"), axes), scatter(fd.get("cov6"), cov6), delta,
                      time.perf_counter() - t0)
+
+    def pose_key(self, handle: int) -> str:
+        """The YAML key of handle ``handle``'s pose (``handle.matrix``, ``handles[i].matrix``)."""
+        one = self.curve is None and len(self.handles) == 1
+        return "handle.matrix" if one else f"handles[{handle}].matrix"
+
+    def check_poses(self) -> None:
+        """Every live handle's pose passes :func:`check_pose` (InputError naming the first
+        that does not)."""
+        for i, h in enumerate(self.live_handles()):
+            check_pose(h.matrix, self.pose_key(i))
 
     def reset_pose(self, handle: int = 0) -> None:
         """Back to the identity pose (no deformation)."""
@@ -561,6 +596,7 @@ class EditorController:
         if self.stale:
             raise StaleFitError("fit: the regions changed since the last fit (or there is none);"
                                 " fit again before saving")
+        self.check_poses()
         cfg = self.to_config()
         delta_c, matrix = control_displacement(cfg, self.model, self.deformation)
         deformed = df.apply(self.deformation, self.model, delta_c, moving_matrix=matrix,
@@ -594,9 +630,12 @@ class EditorController:
         if ypath.suffix.lower() not in (".yaml", ".yml"):
             raise InputError(f"{ypath}: expected a .yaml edit file name")
         if image:
+            from ..render.camera import camera_sidecar
+
             check_output_path(png, *inputs, out, ypath)
             if png.suffix.lower() != ".png":
                 raise InputError(f"{png}: expected a .png image file name")
+            check_output_path(camera_sidecar(png), *inputs, out, ypath, png)
         deformed = self.deformed_model()
         text = yaml_text(self.to_yaml_dict(output=out, config_dir=ypath.resolve().parent),
                          "splatdeform edit written by the editor; reproduce with:\n"

@@ -5,11 +5,14 @@
   cookie the first tokened page load sets (``HttpOnly``, ``SameSite=Strict``: the browser sends
   it back to this origin only); a request whose ``Origin`` names another site than the one it
   was sent to (a web page in the user's browser reaching for ``ws://127.0.0.1:PORT``) is refused
-  even with the cookie. :func:`refusal` is the one check; :func:`guarded_viser` applies it to
-  viser's accept path.
+  even with the cookie, and so is one whose ``Host`` header is not this editor's address
+  (:class:`HostRule`: a loopback name or address, the ``--host`` value, a name given with
+  ``--allow-host``; DNS rebinding sends the attacker's own name). :func:`refusal` is the one
+  check, for the page's server and for viser's accept path (:func:`guarded_viser`).
 - Saves: :class:`SaveFolder` turns a file *name* typed in the page into a path in the editor's
   working folder; absolute paths, folders, ``..`` and the inputs are refused, and an existing
-  file is only replaced when the caller says the user confirmed it.
+  file is only replaced when the caller says the user confirmed it. The camera file a PNG
+  brings (``NAME.camera.json``) passes the same checks (:meth:`SaveFolder.save_targets`).
 """
 
 from __future__ import annotations
@@ -19,6 +22,7 @@ import hmac
 import ipaddress
 import os
 import secrets
+import socket
 from collections.abc import Callable, Iterable, Iterator, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -70,11 +74,67 @@ def _cookies(header: str) -> dict[str, str]:
 
 
 def request_token(path: str, headers: Mapping[str, str], port: int) -> str | None:
-    """The token a request carries (query parameter first, then the cookie), or None."""
-    query = parse_qs(urlsplit(path).query).get("token")
-    if query:
-        return query[0]
+    """The token a request carries (the page's ``X-Editor-Token`` header, the ``token`` or
+    ``t`` query parameter, then the cookie), or None."""
+    header = headers.get("X-Editor-Token")
+    if header:
+        return header
+    query = parse_qs(urlsplit(path).query)
+    for key in ("token", "t"):
+        if query.get(key):
+            return query[key][0]
     return _cookies(headers.get("Cookie", "") or "").get(cookie_name(port))
+
+
+def _host_name(host_header: str) -> str | None:
+    """The lower-case name or address of a ``Host`` header (optional port), or None when it is
+    not one (empty, a bad port, a user part)."""
+    if not host_header or any(c in host_header for c in "@/?#\\ \t") or \
+            not host_header.isprintable():
+        return None
+    parts = urlsplit(f"//{host_header}")
+    try:
+        parts.port  # noqa: B018 - raises on a port that is not a number in range
+    except ValueError:
+        return None
+    return (parts.hostname or "").lower() or None
+
+
+def _is_ip(name: str) -> bool:
+    try:
+        ipaddress.ip_address(name)
+    except ValueError:
+        return False
+    return True
+
+
+@dataclass(frozen=True)
+class HostRule:
+    """Which ``Host`` headers reach this editor: a loopback name or address (``localhost``,
+    ``127.x.x.x``, ``[::1]``), the address it was bound to (``--host``), the names given with
+    ``--allow-host``, any port. Bound to every interface (or another address than loopback),
+    an IP address and this machine's own name pass too: a DNS-rebinding page always sends its
+    own domain name, never an address, so only names need the list."""
+
+    bind: str = "127.0.0.1"
+    names: tuple[str, ...] = ()
+
+    def allows(self, host_header: str) -> bool:
+        name = _host_name(host_header)
+        if name is None:
+            return False
+        if is_loopback(name) or name in {n.lower().strip("[]") for n in self.names}:
+            return True
+        if is_loopback(self.bind):
+            return False
+        return name == self.bind.lower().strip("[]") or _is_ip(name) or \
+            name in _own_names()
+
+
+def _own_names() -> set[str]:
+    """This machine's host name (and its first label), lower case."""
+    name = socket.gethostname().lower()
+    return {name, name.split(".")[0]} - {""}
 
 
 def _same_origin(origin: str, host_header: str) -> bool:
@@ -92,20 +152,30 @@ def _same_origin(origin: str, host_header: str) -> bool:
         port == target_port
 
 
-def refusal(path: str, headers: Mapping[str, str], token: str, port: int) -> str | None:
-    """Why this HTTP request / websocket handshake is refused, or None to accept it."""
+def refusal(path: str, headers: Mapping[str, str], token: str, port: int,
+            hosts: HostRule | None = None) -> str | None:
+    """Why this HTTP request / websocket handshake is refused, or None to accept it: the
+    ``Host`` header (``hosts``, default: loopback only), the ``Origin`` (none, or the same
+    host and port), then the token (compared as UTF-8 bytes, in constant time)."""
+    rule = hosts or HostRule()
+    host = headers.get("Host", "") or ""
+    if not rule.allows(host):
+        shown = _host_name(host) or host[:80]
+        return (f"refused: Host {shown!r} is not this editor's address (start it with "
+                "--allow-host NAME to reach it by that name)")
     origin = headers.get("Origin")
-    if origin is not None and not _same_origin(origin, headers.get("Host", "") or ""):
-        return f"refused: requests from another site ({origin}) may not drive the editor"
+    if origin is not None and not _same_origin(origin, host):
+        return f"refused: requests from another site ({origin[:200]}) may not drive the editor"
     given = request_token(path, headers, port)
-    if given is None or not hmac.compare_digest(given.encode(), token.encode()):
+    if given is None or not hmac.compare_digest(given.encode("utf-8", "surrogatepass"),
+                                                token.encode()):
         return ("refused: open the editor with the URL it printed when it started (the URL "
                 "carries its access token)")
     return None
 
 
 @contextlib.contextmanager
-def guarded_viser(token: str) -> Iterator[None]:
+def guarded_viser(token: str, hosts: HostRule | None = None) -> Iterator[None]:
     """While a ``viser.ViserServer`` is constructed in this block, its websocket server checks
     every request with :func:`refusal` before viser sees it (403 otherwise), and a page loaded
     with ``?token=`` gets the token cookie its own websocket then sends. (viser starts serving
@@ -118,7 +188,7 @@ def guarded_viser(token: str) -> Iterator[None]:
               **kwargs: Any) -> Any:
         def guard(connection: Any, request: Any) -> Any:
             port = connection.local_address[1]
-            why = refusal(request.path, request.headers, token, port)
+            why = refusal(request.path, request.headers, token, port, hosts)
             if why is not None:
                 return connection.respond(403, why + "\n")
             response = None if process_request is None else process_request(connection,
@@ -138,10 +208,13 @@ def guarded_viser(token: str) -> Iterator[None]:
 
 
 def _check_name(name: str, what: str) -> str:
+    if not name.isprintable():
+        raise InputError(f"{what} {name!r}: expected a file name of printable characters (no "
+                         "newline, tab or other control character)")
     name = name.strip()
     if not name:
         raise InputError(f"{what}: expected a file name, got nothing")
-    if "\x00" in name or "/" in name or "\\" in name or os.path.isabs(name):
+    if "/" in name or "\\" in name or os.path.isabs(name):
         raise InputError(f"{what} {name!r}: expected a file name only (saves go into the save "
                          "folder; no folders, no absolute paths)")
     if name in (".", "..") or name.startswith(".."):
@@ -167,14 +240,22 @@ class SaveFolder:
 
     def target(self, name: str, what: str) -> Path:
         """The path of file ``name`` in the folder (InputError: not a plain name, a link or
-        something else than a file there, or an input)."""
+        something else than a file there, outside the folder once links are resolved, or an
+        input). Every file a save writes passes here."""
         path = self.root / _check_name(name, what)
         if path.is_symlink() or (path.exists() and not path.is_file()):
-            raise InputError(f"{what} {name!r}: exists in the save folder and is not a plain "
-                             "file; choose another name")
+            raise InputError(f"{what} {path.name!r}: exists in the save folder and is not a "
+                             "plain file (a link, a folder or a device); choose another name")
+        try:
+            inside = path.resolve().parent == self.root
+        except (OSError, RuntimeError):
+            inside = False
+        if not inside:
+            raise InputError(f"{what} {path.name!r}: is not inside the save folder "
+                             f"{self.root}; choose another name")
         if path.resolve() in self.inputs or any(
                 p.exists() and path.exists() and os.path.samefile(p, path) for p in self.inputs):
-            raise InputError(f"{what} {name!r}: is an input of this edit; refusing to "
+            raise InputError(f"{what} {path.name!r}: is an input of this edit; refusing to "
                              "overwrite it (choose another name)")
         return path
 
@@ -182,8 +263,20 @@ class SaveFolder:
         """Paths for (what, name) pairs; two the same are refused."""
         paths = [self.target(name, what) for what, name in names]
         if len(set(paths)) != len(paths):
-            raise InputError("save: the model, edit YAML and image need three different names")
+            raise InputError("save: the model, edit YAML and image (and the image's camera "
+                             "file NAME.camera.json) need different names")
         return paths
+
+    def save_targets(self, model: str, edit_yaml: str, image: str) -> list[Path]:
+        """The four files a save writes: model, edit YAML, before/after PNG and the PNG's
+        camera file (``NAME.camera.json`` beside it, the renderer's rule), each checked by
+        :meth:`target`; replacing any that :meth:`existing` lists needs the user's word."""
+        from ..render.camera import camera_sidecar
+
+        png = self.target(image, "before/after")
+        return self.targets([("model", model), ("edit YAML", edit_yaml),
+                             ("before/after", image),
+                             ("camera file", camera_sidecar(png).name)])
 
     @staticmethod
     def existing(paths: Iterable[Path]) -> list[Path]:
@@ -206,5 +299,5 @@ def default_save_folder(controller: Any,
     return SaveFolder(Path(root), inputs)
 
 
-__all__ = ["SaveFolder", "default_save_folder", "exposure_warning", "guarded_viser",
-           "is_loopback", "new_token", "refusal", "request_token"]
+__all__ = ["HostRule", "SaveFolder", "default_save_folder", "exposure_warning",
+           "guarded_viser", "is_loopback", "new_token", "refusal", "request_token"]

@@ -24,6 +24,7 @@ from . import view
 from .controller import EditorController, Frame
 from .foreground import serve_until, stop_on_signals
 from .security import (
+    HostRule,
     SaveFolder,
     default_save_folder,
     exposure_warning,
@@ -436,15 +437,14 @@ class EditorApp:
         line (what was written, what needs confirming, or the error)."""
         try:
             with self.lock:
-                paths = self.save_folder.targets([("model", model), ("edit YAML", edit_yaml),
-                                                  ("before/after", image)])
+                paths = self.save_folder.save_targets(model, edit_yaml, image)
                 existing = self.save_folder.existing(paths)
                 if existing and not replace:
                     self._confirm_pending = (model, edit_yaml, image)
                     return ("exists already: " + ", ".join(p.name for p in existing)
                             + "; press 'replace existing' to overwrite, or change the names")
                 self._confirm_pending = None
-                result = self.ed.save(*paths)
+                result = self.ed.save(*paths[:3])
             return f"wrote {result.model.name}, {result.config.name}, {result.image.name}"
         except SplatdeformError as exc:
             self._confirm_pending = None
@@ -513,7 +513,7 @@ class EditorApp:
 
 def run(path: str, *, host: str = "127.0.0.1", port: int = 8080,
         ready: threading.Event | None = None, save_dir: str | Path | None = None,
-        token: str | None = None) -> int:
+        token: str | None = None, allow_hosts: tuple[str, ...] = ()) -> int:
     """Load MODEL or EDIT.yaml, serve the editor, print its URL (with its access token), block
     until Ctrl-C / SIGTERM. Saves go into ``save_dir`` (default: the opened file's folder).
     Returns 0 (clean shutdown)."""
@@ -526,7 +526,7 @@ def run(path: str, *, host: str = "127.0.0.1", port: int = 8080,
     folder = default_save_folder(controller, save_dir)
     token = token or new_token()
     with stop_on_signals() as stop:
-        with guarded_viser(token):
+        with guarded_viser(token, HostRule(host, tuple(allow_hosts))):
             server = viser.ViserServer(host=host, port=port, verbose=False)
         app = None
         try:

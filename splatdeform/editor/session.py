@@ -8,6 +8,8 @@ draws them. Every change is recorded for undo / redo (:mod:`.history`); a pose d
 
 from __future__ import annotations
 
+import json
+import math
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
@@ -17,11 +19,72 @@ import numpy as np
 from ..errors import InputError, SplatdeformError
 from . import payload
 from . import selectors as sl
-from .controller import EditorController
+from .controller import EditorController, check_pose
 from .history import History
 from .security import SaveFolder, default_save_folder
 
 DEFAULT_SIZE = 0.08  # a new selector: this fraction of the model's diagonal
+MAX_NUMBER = 1e15    # the largest magnitude a number in a request may have
+
+
+def _refuse_constant(name: str) -> float:
+    raise InputError(f"request: {name} is not a number; expected finite numbers")
+
+
+def _parse_float(text: str) -> float:
+    value = float(text)
+    if not math.isfinite(value) or abs(value) > MAX_NUMBER:
+        raise InputError(f"request: number {text[:24]}: expected a finite number of magnitude "
+                         f"at most {MAX_NUMBER:g}")
+    return value
+
+
+def _parse_int(text: str) -> int:
+    if len(text.lstrip("-")) > 16 or abs(int(text)) > MAX_NUMBER:
+        raise InputError(f"request: number {text[:24]}: expected a whole number of magnitude "
+                         f"at most {MAX_NUMBER:g}")
+    return int(text)
+
+
+def parse_request(body: bytes) -> dict[str, Any]:
+    """One action request: a JSON object whose numbers are all finite and at most
+    :data:`MAX_NUMBER` in magnitude (NaN, Infinity and 1e400 refused with one line)."""
+    try:
+        req = json.loads(body.decode("utf-8"), parse_constant=_refuse_constant,
+                         parse_float=_parse_float, parse_int=_parse_int)
+    except UnicodeDecodeError:
+        raise InputError("request: expected a UTF-8 JSON body") from None
+    except json.JSONDecodeError as exc:
+        raise InputError(f"request: invalid JSON ({exc.msg} at character {exc.pos})") from None
+    if not isinstance(req, dict):
+        raise InputError("request: expected a JSON object")
+    return req
+
+
+def dumps(data: Any) -> bytes:
+    """JSON for the page: never NaN or Infinity (ValueError instead: not valid JSON)."""
+    return json.dumps(data, allow_nan=False).encode()
+
+
+def _json_value(v: Any) -> Any:
+    """A fit figure for the page: numbers as they are when finite, anything else as text."""
+    if isinstance(v, (int, bool, str)) or (isinstance(v, float) and math.isfinite(v)):
+        return v
+    return str(v)
+
+
+def _check_numbers(value: Any, key: str) -> None:
+    """Every number in ``value`` (nested lists / mappings) finite and at most
+    :data:`MAX_NUMBER` in magnitude."""
+    if isinstance(value, dict):
+        for v in value.values():
+            _check_numbers(v, key)
+    elif isinstance(value, (list, tuple)):
+        for v in value:
+            _check_numbers(v, key)
+    elif isinstance(value, float) and not (math.isfinite(value) and abs(value) <= MAX_NUMBER):
+        raise InputError(f"{key}: expected finite numbers of magnitude at most "
+                         f"{MAX_NUMBER:g}, got {value!r}")
 
 
 class Session:
@@ -57,8 +120,7 @@ class Session:
         if ed.deformation is not None:
             _, control = payload.basis_arrays_meta(ed)
             fit = {"id": self.fit_id, "k": int(ed.deformation.k), "control": control,
-                   "stats": {k: (v if isinstance(v, (int, float, bool, str)) else str(v))
-                             for k, v in self.last_fit.items()}}
+                   "stats": {k: _json_value(v) for k, v in self.last_fit.items()}}
         return {
             "selectors": sels, "handles": len(ed.handles), "fit": fit, "stale": ed.stale,
             "curve": self._curve_info(), "covariance": ed.settings.gaussians.covariance,
@@ -108,15 +170,45 @@ class Session:
             raise InputError(f"{key}: expected 3 finite numbers")
         return a + self.ed.origin
 
+    @staticmethod
+    def _size(req: dict[str, Any]) -> np.ndarray | None:
+        """``size``: a positive finite number or 3 of them, or None."""
+        size = req.get("size")
+        if size is None:
+            return None
+        try:
+            a = np.asarray(size, np.float64)
+        except (TypeError, ValueError):
+            a = np.zeros(0)
+        if a.shape not in ((), (3,)) or not np.isfinite(a).all() or (a <= 0).any() or \
+                (np.abs(a) > MAX_NUMBER).any():
+            raise InputError(f"size: expected a positive finite number or 3 of them (at most "
+                             f"{MAX_NUMBER:g}), got {str(size)[:80]}")
+        return a
+
+    def _checked(self, sel: Any, key: str = "selector") -> Any:
+        """``sel`` when every number of it is finite and bounded (the state stays JSON)."""
+        _check_numbers(sl.to_yaml(sel, self.ed.base_dir), key)
+        shape = sl.shape_of(sel, self.ed.model, self.ed.units)
+        _check_numbers([*map(float, shape.center), *map(float, shape.size)], key)
+        return sel
+
     def _op_add_selector(self, req: dict[str, Any]) -> None:
         role, kind, h = req["role"], req["kind"], int(req.get("handle", 0))
-        index = self.ed.add_selector(role, kind, handle=h, center=self._center(req))
-        if kind != "plane":
-            size = req.get("size")
-            if size is None:
-                d = DEFAULT_SIZE * self.ed.model.diagonal()
-                size = [d, d, d] if kind == "box" else d / 2
-            self.ed.move_selector(role, index, size=size, handle=h)
+        size = self._size(req)
+        center = self._center(req)
+        region = self.ed._region(role, h)
+        index = self.ed.add_selector(role, kind, handle=h, center=center)
+        try:
+            if kind != "plane":
+                if size is None:
+                    d = DEFAULT_SIZE * self.ed.model.diagonal()
+                    size = np.array([d, d, d] if kind == "box" else d / 2)
+                self.ed.move_selector(role, index, size=size, handle=h)
+            self._checked(region[index])
+        except Exception:
+            del region[index]
+            raise
 
     def _op_add_indices(self, req: dict[str, Any]) -> None:
         """A screen-space selection (rectangle) as an ``indices`` selector."""
@@ -133,24 +225,32 @@ class Session:
     def _op_add_selector_text(self, req: dict[str, Any]) -> None:
         """A selector of any kind typed as YAML (all / not nest freely)."""
         sel = sl.from_text(req.get("text", ""), self.ed.model, self.ed.units, self.ed.base_dir)
-        self.ed.add_selector(req["role"], sel, handle=int(req.get("handle", 0)))
+        self.ed.add_selector(req["role"], self._checked(sel), handle=int(req.get("handle", 0)))
 
     def _op_set_selector_text(self, req: dict[str, Any]) -> None:
         """Replace selector ``index`` of a region by one typed as YAML."""
         sel = sl.from_text(req.get("text", ""), self.ed.model, self.ed.units, self.ed.base_dir)
-        self.ed.set_selector(req["role"], int(req["index"]), sel,
+        self.ed.set_selector(req["role"], int(req["index"]), self._checked(sel),
                              handle=int(req.get("handle", 0)))
 
     def _op_move_selector(self, req: dict[str, Any]) -> None:
-        size = req.get("size")
-        if size is not None:
-            size = np.asarray(size, np.float64)
-            if not np.isfinite(size).all() or (size <= 0).any():
-                raise InputError("size: expected positive numbers")
+        size = self._size(req)
         normal = req.get("normal")
-        self.ed.move_selector(req["role"], int(req["index"]), center=self._center(req),
-                              size=size, normal=None if normal is None else np.asarray(normal),
-                              handle=int(req.get("handle", 0)))
+        if normal is not None:
+            normal = np.asarray(normal, np.float64)
+            if normal.shape != (3,) or not np.isfinite(normal).all() or not normal.any():
+                raise InputError("normal: expected 3 finite numbers, not all zero")
+        role, index, h = req["role"], int(req["index"]), int(req.get("handle", 0))
+        region = self.ed._region(role, h)
+        self.ed._check_index(region, role, index)
+        before = region[index]
+        self.ed.move_selector(role, index, center=self._center(req), size=size, normal=normal,
+                              handle=h)
+        try:
+            self._checked(region[index], "size")
+        except InputError:
+            region[index] = before
+            raise
 
     def _op_remove_selector(self, req: dict[str, Any]) -> None:
         self.ed.remove_selector(req["role"], int(req["index"]), handle=int(req.get("handle", 0)))
@@ -163,15 +263,18 @@ class Session:
         self.fit_id += 1
 
     def _op_pose(self, req: dict[str, Any]) -> dict[str, Any] | None:
-        m = np.asarray(req["matrix"], np.float64).reshape(4, 4)
         h = int(req.get("handle", 0))
+        self.ed._region("handle", h)
+        key = f"handle {h}: pose ({self.ed.pose_key(h)})"
+        try:
+            m = np.asarray(req["matrix"], np.float64).reshape(4, 4)
+        except (TypeError, ValueError):
+            raise InputError(f"{key}: expected a 4x4 matrix (16 numbers)") from None
         if self.ed.stale:
             raise InputError("fit: the regions changed since the last fit (or there is none); "
                              "fit again before moving the handle")
-        if not np.isfinite(m).all() or not np.allclose(m[3], [0, 0, 0, 1]):
-            raise InputError("pose: expected a finite 4x4 affine matrix (last row 0 0 0 1)")
-        self.ed._region("handle", h)
-        self.ed.handles[h].matrix = payload.local_to_model(self.ed, m)
+        m = check_pose(payload.local_to_model(self.ed, check_pose(m, key)), key)
+        self.ed.handles[h].matrix = m
         return None if req.get("commit") else {"ok": 1}
 
     # ---- the curve ----------------------------------------------------------------------
@@ -251,15 +354,18 @@ class Session:
         names = tuple(str(req.get(k) or "") for k in ("model", "yaml", "png"))
         replace = bool(req.get("replace")) and self._confirm_pending == names
         self._confirm_pending = None
-        paths = self.save_folder.targets([("model", names[0]), ("edit YAML", names[1]),
-                                          ("before/after", names[2])])
+        paths = self.save_folder.save_targets(*names)  # the PNG's camera file too
+        if self.ed.stale:
+            raise InputError("fit: the regions changed since the last fit (or there is none);"
+                             " fit again before saving")
+        self.ed.check_poses()
         existing = self.save_folder.existing(paths)
         if existing and not replace:
             self._confirm_pending = names
             self.message = ("exists already: " + ", ".join(p.name for p in existing)
                             + "; press Replace to overwrite, or change the names")
             return {**self.state(), "confirm": [p.name for p in existing]}
-        result = self.save(*paths)
+        result = self.save(*paths[:3])
         self.message = "wrote " + ", ".join(p.name for p in
                                             (result.model, result.config, result.image) if p)
         return self.state()
