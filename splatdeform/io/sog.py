@@ -23,15 +23,18 @@ from __future__ import annotations
 import io
 import json
 import math
+import warnings
 import zipfile
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from ..errors import FormatError
+from ..errors import FormatError, InputError
 from ..model import PointModel
+from .inflate import check_declared, inflate_zip_member
 from .kmeans import kmeans_1d, kmeans_rows
+from .regular import member_path, open_regular, read_regular
 from .splat_model import to_model
 from .splats import (
     SH_COEFFS,
@@ -49,8 +52,17 @@ PALETTE_ROW = 64
 MAX_PALETTE = 65536  # the format's limit (16-bit labels)
 PALETTE_CAP = 4096  # what this writer uses at most: the k-means cost grows with N x entries
 ALPHA_EPS = 0.5 / 255
-MAX_MEMBER = 1 << 31  # bytes of one image or meta.json in a bundle
-MAX_PIXELS = 1 << 28
+MAX_META = 16 << 20  # bytes of a meta.json (a few codebooks: tens of kilobytes)
+MAX_PIXELS = 1 << 28  # WebP's 16383 x 16383
+IMAGE_FORMATS = ("WEBP", "PNG")
+FLOAT32_MAX = float(np.finfo(np.float32).max)
+# positions are stored as sign(p) ln(1 + |p|): a bound past ln(float32 max) ~ 88.7 decodes to
+# infinity in the float32 table
+MAX_LOG_POSITION = 88.0
+# bytes a decode holds per splat (the RGBA images, the codes, float fields, the model's table)
+# and per SH rest coefficient: what the memory cap is checked against before reading images
+DECODED_PER_SPLAT = 320
+DECODED_PER_COEFF = 48
 SEED = 0
 LOSSES = ("positions 16 bits per axis (log-spaced), rotation 8 bits per component, log "
           "scales and colour through 256-entry k-means codebooks, opacity 8 bits, SH rest "
@@ -82,56 +94,77 @@ class SogCodes:
 
 
 class _Files:
-    """The SOG members by name: a ZIP bundle's entries or the files beside a meta.json."""
+    """The SOG members by name: a ZIP bundle's entries or the files beside a meta.json. Every
+    read is bounded: a bundle's member by its declared size (checked against what the caller
+    allows before inflating, then inflated a chunk at a time), a folder's member through the one
+    opener (a regular file inside the meta.json's folder, refused above what the caller
+    allows)."""
 
     def __init__(self, path: Path):
         self.path = path
         self.zip: zipfile.ZipFile | None = None
+        self._fh = None
         if path.suffix.lower() == ".sog":
+            self._fh = open_regular(path, what="SOG bundle")
             try:
-                self.zip = zipfile.ZipFile(path)
+                self.zip = zipfile.ZipFile(self._fh)
             except (zipfile.BadZipFile, OSError, EOFError, ValueError) as exc:
+                self._fh.close()
                 raise FormatError(f"{path}: not a SOG bundle (a ZIP archive expected): "
-                                  f"{exc}") from exc
+                                  f"{exc}") from None
 
-    def read(self, name: str) -> bytes:
+    def read(self, name: str, max_bytes: int, what: str = "SOG member") -> bytes | bytearray:
+        """The member ``name``, refused (one line) when it holds more than ``max_bytes``."""
         if not isinstance(name, str) or not name or "/" in name or "\\" in name or \
-                name.startswith("."):
+                "\x00" in name or name.startswith("."):
             raise FormatError(f"{self.path}: SOG file name {name!r} is not a plain file name")
         try:
             if self.zip is not None:
                 info = self.zip.getinfo(name)
-                if info.file_size > MAX_MEMBER:
-                    raise FormatError(f"{self.path}: SOG member {name} declares "
-                                      f"{info.file_size:,} bytes, more than this reader's limit")
-                return self.zip.read(name)
-            return (self.path.parent / name).read_bytes()
-        except KeyError as exc:
-            raise FormatError(f"{self.path}: the SOG bundle has no {name}") from exc
-        except FileNotFoundError as exc:
-            raise FormatError(f"{self.path}: the SOG file {name} is missing beside it") from exc
+                return inflate_zip_member(self.zip, info, max_bytes, what, self.path)
+            member = member_path(self.path, name, f"SOG file {name}")
+            return read_regular(member, max_bytes=max_bytes, inside=self.path.parent,
+                                what=f"{what} of {self.path}")
+        except KeyError:
+            raise FormatError(f"{self.path}: the SOG bundle has no {name}") from None
+        except FileNotFoundError:
+            raise FormatError(f"{self.path}: the SOG file {name} is missing beside it") from None
+        except PermissionError:
+            raise FormatError(f"{self.path}: cannot read the SOG file {name} (permission "
+                              "denied)") from None
         except (zipfile.BadZipFile, OSError, EOFError, ValueError, RuntimeError) as exc:
-            raise FormatError(f"{self.path}: cannot read SOG member {name}: {exc}") from exc
+            if isinstance(exc, InputError):
+                raise
+            raise FormatError(f"{self.path}: cannot read SOG member {name}: {exc}") from None
 
     def close(self) -> None:
         if self.zip is not None:
             self.zip.close()
+        if self._fh is not None:
+            self._fh.close()
 
 
 def _meta(path: Path, files: _Files) -> dict:
+    raw = files.read("meta.json", MAX_META) if files.zip is not None else \
+        read_regular(path, max_bytes=MAX_META, what="SOG meta.json")
     try:
-        meta = json.loads(files.read("meta.json") if files.zip is not None
-                          else path.read_bytes())
-    except (ValueError, UnicodeDecodeError) as exc:
-        raise FormatError(f"{path}: SOG meta.json is not valid JSON: {exc}") from exc
+        meta = json.loads(raw)
+    except (ValueError, UnicodeDecodeError, RecursionError) as exc:
+        raise FormatError(f"{path}: SOG meta.json is not valid JSON: {exc}") from None
     if not isinstance(meta, dict) or "means" not in meta:
         raise FormatError(f"{path}: not a SOG meta.json (no 'means' entry)")
     if meta.get("version") != VERSION:
         raise FormatError(f"{path}: SOG version {meta.get('version')!r} is not supported "
                           f"(version {VERSION} is)")
     count = meta.get("count")
-    if not isinstance(count, int) or isinstance(count, bool) or count < 1:
-        raise FormatError(f"{path}: SOG meta.json count {count!r}; expected a positive integer")
+    if not isinstance(count, int) or isinstance(count, bool) or not 1 <= count <= MAX_PIXELS:
+        raise FormatError(f"{path}: SOG meta.json count {count!r}; expected a positive integer "
+                          f"of at most {MAX_PIXELS:,} (what an image can hold)")
+    shn = meta.get("shN")
+    bands = shn.get("bands") if isinstance(shn, dict) else None
+    k = SH_COEFFS.get(bands, 0) if isinstance(bands, int) else 0
+    check_declared(path, f"SOG meta.json ({count:,} splats)", count,
+                   decoded=count * (DECODED_PER_SPLAT + DECODED_PER_COEFF * k))
     return meta
 
 
@@ -143,40 +176,74 @@ def _entry(path: Path, meta: dict, key: str, files: int) -> dict:
     return entry
 
 
-def _floats(path: Path, entry: dict, key: str, name: str, size: int) -> np.ndarray:
+def _floats(path: Path, entry: dict, key: str, name: str, size: int,
+            limit: float = FLOAT32_MAX) -> np.ndarray:
+    """``size`` finite numbers of magnitude at most ``limit`` (default: what float32 holds, so
+    a codebook value cannot become infinite when stored)."""
     value = entry.get(name)
     try:
         out = np.asarray(value, dtype=np.float64)
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, OverflowError):
         out = np.zeros(0)
-    if out.shape != (size,) or not np.isfinite(out).all():
-        raise FormatError(f"{path}: SOG meta.json '{key}.{name}' must be {size} finite numbers")
+    if out.shape != (size,) or not np.isfinite(out).all() or (np.abs(out) > limit).any():
+        raise FormatError(f"{path}: SOG meta.json '{key}.{name}' must be {size} finite numbers "
+                          f"of magnitude at most {limit:.6g}")
     return out
 
 
-def _image(path: Path, files: _Files, name: str, pixels: int | None) -> np.ndarray:
-    """(H, W, 4) uint8 of one WebP (or other 8-bit) member; at least ``pixels`` pixels."""
+def splat_image_fits(width: int, height: int, count: int) -> bool:
+    """True when a per-splat image of ``width`` x ``height`` is laid out for ``count`` splats
+    as the format's writers lay it out: row-major, at least ``count`` pixels, at most 4 rows
+    more than ``count`` needs at that width (splat-transform: a width of sqrt(count) rounded up
+    to a multiple of 4 and the height rounded up to a multiple of 4; this writer: the height
+    just enough), and a width no longer than the count needs. Checked from the header, before
+    decoding, so a small file cannot declare an 8000x8000 image for a few splats (the area is
+    below 6 x count + 96 whatever the width)."""
+    if width < 1 or height < 1 or width > count + 16:
+        return False
+    return width * height >= count and height <= -(-count // width) + 4
+
+
+def max_image_bytes(pixels: int) -> int:
+    """The most bytes an 8-bit RGBA image of ``pixels`` pixels can take as a (lossless) WebP or
+    PNG: its raw size with room for the container and incompressible data."""
+    return 5 * pixels + (1 << 16)
+
+
+def _image(path: Path, files: _Files, name: str, max_pixels: int, fits, expect: str
+           ) -> np.ndarray:
+    """(H, W, 4) uint8 of one WebP (or PNG) member: its byte size is bounded by
+    ``max_pixels`` before it is read, and its declared dimensions (the header, read without
+    decoding) must pass ``fits(width, height)`` (``expect`` says what was expected) before it is
+    decoded."""
     from PIL import Image
 
-    raw = files.read(name)
+    raw = files.read(name, max_image_bytes(max_pixels), "SOG image")
     try:
-        with Image.open(io.BytesIO(raw)) as img:
-            if img.width * img.height > MAX_PIXELS:
-                raise FormatError(f"{path}: SOG image {name} is {img.width}x{img.height}, "
-                                  "larger than this reader's limit")
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", Image.DecompressionBombWarning)
+            img = Image.open(io.BytesIO(raw), formats=IMAGE_FORMATS)
+        with img:
+            width, height = img.size
+            if width * height > MAX_PIXELS or not fits(width, height):
+                raise FormatError(f"{path}: SOG image {name} is {width}x{height}: "
+                                  f"{width * height:,} pixels for {expect}")
             rgba = np.asarray(img.convert("RGBA"))
     except FormatError:
         raise
-    except (OSError, ValueError, SyntaxError, Image.DecompressionBombError) as exc:
-        raise FormatError(f"{path}: SOG image {name} cannot be decoded: {exc}") from exc
-    if pixels is not None and rgba.shape[0] * rgba.shape[1] < pixels:
-        raise FormatError(f"{path}: SOG image {name} has {rgba.shape[0] * rgba.shape[1]:,} "
-                          f"pixels for {pixels:,} splats")
+    except (OSError, ValueError, SyntaxError, EOFError, Image.DecompressionBombError) as exc:
+        raise FormatError(f"{path}: SOG image {name} cannot be decoded: {exc}") from None
+    if rgba.shape[:2] != (height, width):
+        raise FormatError(f"{path}: SOG image {name} decodes to {rgba.shape[1]}x"
+                          f"{rgba.shape[0]}, not the {width}x{height} its header declares")
     return rgba
 
 
 def _per_splat(path: Path, files: _Files, name: str, n: int) -> np.ndarray:
-    return _image(path, files, name, n).reshape(-1, 4)[:n]
+    rgba = _image(path, files, name, 6 * n + 96,
+                  lambda w, h: splat_image_fits(w, h, n),
+                  f"{n:,} splats (expected at least {n:,} pixels, padded by at most 4 rows)")
+    return rgba.reshape(-1, 4)[:n]
 
 
 # --------------------------------------------------------------------------------------------
@@ -201,8 +268,8 @@ def decode(path: str | Path) -> tuple[SplatFields, SogCodes]:
         meta = _meta(path, files)
         n = meta["count"]
         means = _entry(path, meta, "means", 2)
-        mins = _floats(path, means, "means", "mins", 3)
-        maxs = _floats(path, means, "means", "maxs", 3)
+        mins = _floats(path, means, "means", "mins", 3, MAX_LOG_POSITION)
+        maxs = _floats(path, means, "means", "maxs", 3, MAX_LOG_POSITION)
         lo = _per_splat(path, files, means["files"][0], n)[:, :3].astype(np.uint16)
         hi = _per_splat(path, files, means["files"][1], n)[:, :3].astype(np.uint16)
         q16 = (hi << np.uint16(8)) | lo
@@ -239,12 +306,11 @@ def _sh_rest(path: Path, files: _Files, meta: dict, n: int, codes: SogCodes) -> 
                           f"(got {bands!r}, {count!r})")
     k = SH_COEFFS[bands]
     book = _floats(path, entry, "shN", "codebook", CODEBOOK).astype(np.float32)
-    palette = _image(path, files, entry["files"][0], None)
     rows = -(-count // PALETTE_ROW)
-    if palette.shape[0] < rows or palette.shape[1] < PALETTE_ROW * k:
-        raise FormatError(f"{path}: SOG {entry['files'][0]} is {palette.shape[1]}x"
-                          f"{palette.shape[0]}; {count} entries of {k} coefficients need "
-                          f"{PALETTE_ROW * k}x{rows}")
+    palette = _image(path, files, entry["files"][0], PALETTE_ROW * k * (rows + 4),
+                     lambda w, h: w == PALETTE_ROW * k and rows <= h <= rows + 4,
+                     f"a palette of {count} entries of {k} coefficients (expected "
+                     f"{PALETTE_ROW * k}x{rows})")
     centroids = palette[:rows, :PALETTE_ROW * k, :3].reshape(-1, k, 3)[:count]
     label_px = _per_splat(path, files, entry["files"][1], n)
     labels = label_px[:, 0].astype(np.int64) | (label_px[:, 1].astype(np.int64) << 8)

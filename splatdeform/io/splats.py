@@ -235,8 +235,8 @@ def gaussian_source(fields: SplatFields, comments: list[str], *,
 
 
 def read_bytes(path: str | Path, limit: int = 1 << 34) -> bytes:
-    """The whole file (refusing one larger than ``limit`` bytes)."""
-    size = Path(path).stat().st_size
-    if size > limit:
-        raise FormatError(f"{path}: {size:,} bytes is larger than this reader's limit")
-    return Path(path).read_bytes()
+    """The whole file, through the one opener (a regular file: a FIFO or a device is refused
+    without blocking), refusing one larger than ``limit`` bytes before reading it."""
+    from .regular import read_regular
+
+    return read_regular(path, max_bytes=limit, what="splat file")

@@ -13,20 +13,28 @@ Axes: SPZ stores RUB (x right, y up, z back); PLY space is RDF, so y and z flip 
 (positions, the quaternion's y and z, and the SH coefficients odd in y + z). An SPZ blob inside
 glTF (``KHR_gaussian_splatting_compression_spz``) is packed in glTF's LUF frame instead (that
 specification says so): x and y flip (:data:`LUF`).
+
+Reads are bounded (:mod:`.inflate`): the header is inflated first, its declared stream size
+(header + count x bytes per splat for its SH degree) is refused when the compressed bytes
+cannot hold it (deflate expands at most ~1032x) or its decoded arrays cannot fit the machine's
+memory, and the stream is inflated into a buffer of exactly that size, refused as soon as it
+passes it or ends short (:func:`gunzip_blob`, :func:`decode_blob` for in-memory blobs).
 """
 
 from __future__ import annotations
 
 import gzip
-import io
+import os
 import struct
-import zlib
 from pathlib import Path
+from typing import BinaryIO
 
 import numpy as np
 
 from ..errors import FormatError
 from ..model import PointModel
+from .inflate import Inflater, check_declared
+from .regular import open_regular
 from .splat_model import source_model
 from .splats import (
     SH_COEFFS,
@@ -95,46 +103,95 @@ def _refuse_plain(path: str | Path, head: bytes) -> None:
                           "whole file gzip-compressed")
 
 
-def _file_head(path: str | Path) -> bytes:
-    with open(path, "rb") as f:
-        return f.read(HEADER.size)
+def stream_size(info: dict) -> int:
+    """Bytes of the decompressed stream a header declares (the header and every array)."""
+    return HEADER.size + body_size(info["count"], info["sh_degree"], info["version"])
 
 
-def _gunzip(path: str | Path, limit: int, data: bytes | None = None) -> bytes:
-    """The decompressed stream of the file (or of ``data``, an SPZ blob named by ``path``),
-    reading at most ``limit + 1`` bytes (a bound from the header)."""
-    _refuse_plain(path, _file_head(path) if data is None else data[:HEADER.size])
-    try:
-        with (gzip.open(path, "rb") if data is None else
-              gzip.GzipFile(fileobj=io.BytesIO(data), mode="rb")) as f:
-            head = f.read(HEADER.size)
-            info = parse_header(path, head)
-            want = body_size(info["count"], info["sh_degree"], info["version"])
-            if want > limit:
-                raise FormatError(f"{path}: SPZ header declares {info['count']:,} splats "
-                                  f"({want:,} bytes), more than this reader's limit")
-            body = f.read(want + 1)
-    except (OSError, EOFError, zlib.error) as exc:
-        raise FormatError(f"{path}: not a readable SPZ (gzip) file: {exc}") from exc
-    if len(body) != want:
-        raise FormatError(f"{path}: SPZ body is {'longer' if len(body) > want else 'shorter'} "
-                          f"than the {info['count']:,} splats its header declares")
-    return head + body
+def decoded_size(info: dict) -> int:
+    """Bytes of the decompressed stream and the float32 table it decodes to (what a read
+    holds at its peak, besides small temporaries)."""
+    return stream_size(info) + info["count"] * 4 * (14 + 3 * SH_COEFFS[info["sh_degree"]])
 
 
-def gunzip_blob(path: str | Path, data: bytes, limit: int = 1 << 34) -> bytes:
-    """The decompressed SPZ stream of an in-memory blob (glTF's SPZ extension) named by
-    ``path`` in errors."""
-    return _gunzip(path, limit, data)
+def _inflate(source: BinaryIO | bytes | bytearray | memoryview, path: str | Path,
+             compressed: int, what: str, limit: int | None = None) -> np.ndarray:
+    """The decompressed SPZ stream (uint8) of ``source`` (a binary file at its start, or the
+    gzip'd bytes) of ``compressed`` bytes: the header is inflated first and its declared size
+    checked against the compressed size and the memory cap; the rest is inflated into one
+    buffer of exactly that size, refused as soon as the stream passes it or ends short. When
+    the gzip trailer states another size (a bomb, a cut stream, or several members), a counting
+    pass (one chunk of memory) checks the stream's length before the buffer is allocated."""
+    if hasattr(source, "read"):
+        first = source.read(HEADER.size)
+        source.seek(max(compressed - 4, 0))
+        trailer = source.read(4)
+        source.seek(0)
+    else:
+        first, trailer = bytes(source[:HEADER.size]), bytes(source[-4:])
+    _refuse_plain(path, first)
+    inflater = Inflater(source, path, what)
+    head = inflater.read(HEADER.size)
+    info = parse_header(path, head)
+    want = stream_size(info)
+    splats = f"the {info['count']:,} splats its header declares"
+    if limit is not None and want > limit:
+        raise FormatError(f"{path}: SPZ header declares {info['count']:,} splats ({want:,} "
+                          "bytes), more than this reader's limit")
+    check_declared(path, f"{what} (SPZ header: {info['count']:,} splats)", want, compressed,
+                   decoded=decoded_size(info))
+    isize = int.from_bytes(trailer, "little") if compressed >= 18 else None
+    if isize != want % (1 << 32):
+        if hasattr(source, "read"):
+            source.seek(0)
+        total = Inflater(source, path, what).skip_to_end(want, splats)
+        if total < want:
+            raise FormatError(f"{path}: SPZ body is shorter than {splats}")
+        if hasattr(source, "read"):
+            source.seek(0)
+        inflater = Inflater(source, path, what)
+        inflater.read(HEADER.size)
+    raw = np.empty(want, dtype=np.uint8)
+    raw[:HEADER.size] = np.frombuffer(head, dtype=np.uint8)
+    if inflater.readinto(raw[HEADER.size:]) < want - HEADER.size:
+        raise FormatError(f"{path}: SPZ body is shorter than {splats}")
+    inflater.expect_end(splats)
+    return raw
+
+
+def gunzip_blob(path: str | Path, data: bytes | bytearray | memoryview,
+                limit: int | None = None) -> np.ndarray:
+    """The decompressed SPZ stream (uint8 array) of an in-memory gzip'd blob (glTF's SPZ
+    extension) named by ``path`` in errors, inflated with a maximum output of what its header
+    declares (refused as soon as it passes it or ends short; a declared size its compressed
+    bytes cannot hold or the memory cannot take is refused before inflating). ``limit``: a
+    further cap on the decompressed bytes."""
+    return _inflate(data, path, len(data), "SPZ data", limit)
+
+
+def decode_blob(path: str | Path, data: bytes | bytearray | memoryview, frame: tuple = RUB,
+                limit: int | None = None) -> tuple[SplatFields, dict]:
+    """The splat fields (PLY space) and header of a gzip'd SPZ blob stored in ``frame`` (RUB
+    for a .spz file, :data:`LUF` for glTF's SPZ extension), with :func:`gunzip_blob`'s
+    bounds."""
+    raw = gunzip_blob(path, data, limit)
+    return decode(raw, path, frame)
+
+
+def read_stream(path: str | Path) -> np.ndarray:
+    """The decompressed SPZ stream of a .spz file (opened through the one opener: a regular
+    file), with :func:`gunzip_blob`'s bounds."""
+    with open_regular(path, what="SPZ file") as fh:
+        return _inflate(fh, path, os.fstat(fh.fileno()).st_size, "SPZ data")
 
 
 def read_info(path: str | Path) -> dict:
-    _refuse_plain(path, _file_head(path))
-    try:
-        with gzip.open(path, "rb") as f:
-            return parse_header(path, f.read(HEADER.size))
-    except (OSError, EOFError, zlib.error) as exc:
-        raise FormatError(f"{path}: not a readable SPZ (gzip) file: {exc}") from exc
+    """The header fields of a .spz file (only its first bytes are inflated)."""
+    with open_regular(path, what="SPZ file") as fh:
+        _refuse_plain(path, fh.read(HEADER.size))
+        fh.seek(0)
+        head = Inflater(fh, path, "SPZ data").read(HEADER.size)
+    return parse_header(path, head)
 
 
 def _v3_rotations(words: np.ndarray) -> np.ndarray:
@@ -170,6 +227,9 @@ def decode(raw: bytes, path: str | Path, frame: tuple = RUB,
     info = parse_header(path, raw)
     n, degree, version = info["count"], info["sh_degree"], info["version"]
     k = SH_COEFFS[degree]
+    if len(raw) != stream_size(info):
+        raise FormatError(f"{path}: SPZ stream is {len(raw):,} bytes; its header declares "
+                          f"{n:,} splats ({stream_size(info):,} bytes)")
     buf = np.frombuffer(raw, dtype=np.uint8, offset=HEADER.size)
     at = 0
 
@@ -273,7 +333,7 @@ def encode(f: SplatFields, version: int = WRITE_VERSION, antialiased: bool = Fal
 
 
 def read_model(path: str | Path, *, drop_nonfinite: bool = False) -> PointModel:
-    raw = _gunzip(path, 1 << 34)
+    raw = read_stream(path)
     info = parse_header(path, raw)
     table, views = gaussian_table(info["count"], 3 * SH_COEFFS[info["sh_degree"]])
     decode(raw, path, into=views)  # straight into the model's float32 table
