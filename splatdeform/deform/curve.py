@@ -176,6 +176,35 @@ def _listed(indices: np.ndarray, limit: int = 8) -> str:
     return shown + (f", ... ({indices.size} in all)" if indices.size > limit else "")
 
 
+MIN_SEPARATION = 1e-9  # control points closer than this fraction of the model's diagonal
+
+
+def check_curve_points(control_points: np.ndarray, moved_to: np.ndarray, diagonal: float,
+                       key: str = "curve") -> None:
+    """Refuse a degenerate curve pose: ConfigError naming ``key.control_points`` or
+    ``key.moved_to`` for a non-finite point, or two points (of either list) closer than
+    :data:`MIN_SEPARATION` of the model's ``diagonal`` (coincident control points make the
+    spline's spans vanish; coincident moved points collapse the band between them). Both
+    (k, 3) in model units."""
+    limit = MIN_SEPARATION * float(diagonal)
+    for name, points in (("control_points", control_points), ("moved_to", moved_to)):
+        pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+        bad = np.flatnonzero(~np.isfinite(pts).all(axis=1))
+        if bad.size:
+            raise ConfigError.at(f"{key}.{name}", f"point {int(bad[0])} is not finite in model "
+                                 f"units ({pts[bad[0]].tolist()}); expected finite coordinates")
+        with np.errstate(over="ignore", invalid="ignore"):
+            gaps = np.linalg.norm(pts[:, None, :] - pts[None, :, :], axis=2)
+        gaps[np.tril_indices(len(pts))] = np.inf
+        if gaps.size and gaps.min() < limit:
+            i, j = np.unravel_index(int(np.argmin(gaps)), gaps.shape)
+            what = ("the spline would have an empty span" if name == "control_points"
+                    else "the band between them would collapse")
+            raise ConfigError.at(f"{key}.{name}", f"points {i} and {j} are {gaps[i, j]:.3g} "
+                                 f"apart, closer than {MIN_SEPARATION:g} of the model's "
+                                 f"diagonal ({limit:.3g}): {what}; expected distinct points")
+
+
 def snapped_curve(model: PointModel, control_points: np.ndarray, *, degree: int = 3,
                   parametrization: str = "chord") -> SplineCurve:
     """The curve through ``control_points`` (k, 3) snapped to the nearest model points."""

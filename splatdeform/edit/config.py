@@ -10,11 +10,20 @@ import math
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
+import numpy as np
 import yaml
 from pydantic import BaseModel, Field, ValidationError, field_validator, model_validator
 
 from splatdeform.basis.names import BACKENDS
-from splatdeform.edit.schema import Strict, Vec3
+from splatdeform.edit.schema import (
+    MAX_INT_DIGITS,
+    MAX_VALUE,
+    LongInt,
+    Number,
+    Strict,
+    Vec3,
+    shown,
+)
 from splatdeform.edit.selectors import SelectorCfg
 from splatdeform.errors import ConfigError
 from splatdeform.rbf.defaults import (
@@ -38,12 +47,12 @@ class RegionsCfg(_Strict):
 
 MAX_DEGREES = 1e6  # a rotation angle beyond this is a typo or an attack, not an edit
 MIN_SCALE, MAX_SCALE = 1e-6, 1e6  # a handle scale outside this (by magnitude) is degenerate
-MAX_VALUE = 1e15  # translations, pivots and matrix entries (the LAS coordinate bound)
+MIN_SINGULAR_RATIO = 1e-9  # a handle's 3x3 part: smallest singular value / largest, at least
 
 
 class RotateCfg(_Strict):
     axis: Vec3 = [0.0, 0.0, 1.0]
-    degrees: float = 0.0
+    degrees: Number = 0.0
 
     @field_validator("axis")
     @classmethod
@@ -71,7 +80,7 @@ def _bounded(values: list[float], what: str) -> list[float]:
 
 class TransformCfg(_Strict):
     pivot: Literal["centroid"] | Vec3 = "centroid"
-    scale: float | Vec3 = 1.0
+    scale: Number | Vec3 = 1.0
     rotate: RotateCfg = RotateCfg()
     translate: Vec3 = [0.0, 0.0, 0.0]
 
@@ -83,6 +92,10 @@ class TransformCfg(_Strict):
                 raise ValueError(f"expected scale factors between {MIN_SCALE:g} and "
                                  f"{MAX_SCALE:g} in magnitude (a vanishing or huge scale is "
                                  f"degenerate), got {scale}")
+        if isinstance(scale, list):  # the 3x3 part's singular values are the |factors|
+            problem = _singular_problem(np.abs(np.asarray(scale, dtype=np.float64)))
+            if problem is not None:
+                raise ValueError(problem)
         return scale
 
     @field_validator("translate")
@@ -96,19 +109,66 @@ class TransformCfg(_Strict):
         return v if isinstance(v, str) else _bounded(v, "a pivot")
 
 
+def _singular_problem(sv: np.ndarray) -> str | None:
+    """Why a linear map with singular values ``sv`` cannot be a handle transform (None: it
+    can): it collapses the handle (smallest below MIN_SCALE, or below MIN_SINGULAR_RATIO of the
+    largest)."""
+    small, large = float(sv.min()), float(sv.max())
+    if small >= MIN_SCALE and small >= MIN_SINGULAR_RATIO * large:
+        return None
+    return (f"singular or nearly singular (singular values of the 3x3 part {large:.3g} .. "
+            f"{small:.3g}; expected the smallest at least {MIN_SCALE:g} and at least "
+            f"{MIN_SINGULAR_RATIO:g} of the largest): it would collapse the handle")
+
+
+def handle_matrix_problem(matrix: Any, bound: float | None = MAX_VALUE) -> str | None:
+    """Why ``matrix`` (a 4x4 affine transform, or its top 3x4 or 3x3 part) cannot be a
+    handle's transform; None when it can. ``bound``: the largest entry magnitude (None: any
+    finite entry, e.g. a transform composed about a far pivot)."""
+    try:
+        m = np.asarray(matrix, dtype=np.float64)
+    except (TypeError, ValueError, OverflowError):
+        return "expected 4 rows of 4 numbers"
+    if m.shape not in ((4, 4), (3, 4), (3, 3)):
+        return f"expected 4 rows of 4 numbers, got shape {m.shape}"
+    if not np.isfinite(m).all():
+        return "expected finite entries"
+    if bound is not None and np.abs(m).max() > bound:
+        return f"expected entries within +-{bound:g}"
+    if m.shape == (4, 4) and not np.allclose(m[3], [0, 0, 0, 1]):
+        return "the last row must be [0, 0, 0, 1] (affine)"
+    return _singular_problem(np.linalg.svd(m[:3, :3], compute_uv=False))
+
+
+def check_handle_matrix(matrix: Any, key: str, *, bound: float | None = MAX_VALUE) -> None:
+    """Refuse a handle transform that is not a usable affine map: ConfigError naming ``key``
+    (e.g. ``handles[1].matrix``) when ``matrix`` (4x4, or its 3x4 / 3x3 part) has non-finite
+    or out-of-bound entries, a last row other than [0, 0, 0, 1], or a 3x3 part whose smallest
+    singular value is below MIN_SCALE or below MIN_SINGULAR_RATIO of its largest (every handle
+    point would collapse towards a plane, a line or a point). ``bound``: the largest entry
+    magnitude (:data:`MAX_VALUE`, as in a config; None: any finite entry)."""
+    problem = handle_matrix_problem(matrix, bound)
+    if problem is not None:
+        raise ConfigError.at(key, problem)
+
+
 class HandleCfg(_Strict):
     transform: TransformCfg | None = None
-    matrix: Annotated[list[Vec3 | Annotated[list[float], Field(min_length=4, max_length=4)]],
+    matrix: Annotated[list[Annotated[list[Number], Field(min_length=4, max_length=4)]],
                       Field(min_length=4, max_length=4)] | None = None
+
+    @field_validator("matrix")
+    @classmethod
+    def _matrix(cls, matrix: list[list[float]] | None) -> list[list[float]] | None:
+        problem = None if matrix is None else handle_matrix_problem(matrix)
+        if problem is not None:
+            raise ValueError(problem)
+        return matrix
 
     @model_validator(mode="after")
     def _one(self) -> HandleCfg:
         if (self.transform is None) == (self.matrix is None):
             raise ValueError("expected exactly one of transform, matrix")
-        if self.matrix is not None and any(len(r) != 4 for r in self.matrix):
-            raise ValueError("matrix: expected 4 rows of 4 numbers")
-        if self.matrix is not None:
-            _bounded([v for r in self.matrix for v in r], "matrix entries")
         return self
 
 
@@ -122,7 +182,7 @@ class CurveCfg(_Strict):
     control_points: list[Vec3] = Field(min_length=2, max_length=MAX_CONTROL_POINTS)
     moved_to: list[Vec3]
     degree: int = Field(default=3, ge=1, le=5)
-    capture_radius: float = Field(gt=0)
+    capture_radius: Number = Field(gt=0)
     parametrization: Literal["uniform", "chord"] = "chord"
 
 
@@ -283,7 +343,7 @@ def _message(err: dict[str, Any]) -> str:
     msg = str(raised) if kind == "value_error" and raised is not None else err["msg"]
     got = err.get("input")
     if kind not in ("value_error",) and not isinstance(got, (dict, list)):
-        msg += f" (got {got!r})"
+        msg += f" (got {shown(got)})"
     return msg
 
 
@@ -307,7 +367,24 @@ def format_validation_error(source: str, exc: ValidationError, prefix: str = "",
 
 MAX_CONFIG_BYTES = 2 * 2**20  # a config file (edit or batch); larger data goes in files
 MAX_CONFIG_NODES = 1_000_000  # values in the parsed config, aliases counted where they expand
-_Loader = getattr(yaml, "CSafeLoader", yaml.SafeLoader)  # libyaml: the same YAML, 10x faster
+_SafeLoader = getattr(yaml, "CSafeLoader", yaml.SafeLoader)  # libyaml: the same YAML, 10x faster
+
+
+class _Loader(_SafeLoader):  # type: ignore[misc,valid-type]
+    """The safe loader, with integers too long to be a config number kept as :class:`LongInt`
+    (refused by the key that holds it) instead of converted (Python raises ValueError past
+    4,300 digits)."""
+
+
+def _construct_int(loader: Any, node: yaml.ScalarNode) -> int | LongInt:
+    text = str(node.value).replace("_", "").lstrip("+-")
+    digits = len(text) - (2 if text[:2].lower() in ("0x", "0o", "0b") else 0)
+    if digits > MAX_INT_DIGITS:
+        return LongInt(digits)
+    return yaml.SafeLoader.construct_yaml_int(loader, node)
+
+
+_Loader.add_constructor("tag:yaml.org,2002:int", _construct_int)
 
 
 def _expanded_size(data: Any, limit: int) -> int:

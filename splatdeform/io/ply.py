@@ -374,7 +374,8 @@ def _drop_vertices(source: PlySource, path: str | Path, bad: np.ndarray) -> PlyS
                 else:
                     data[p.name] = remap[data[p.name].astype(np.int64)]
             data = data[~drop_row]
-        elements.append(PlyElementData(el.name, el.properties, data))
+        # the text as read stays: unchanged rows keep it, and a save keeps the file's line end
+        elements.append(PlyElementData(el.name, el.properties, data, el.ascii_text))
     return replace(source, elements=elements)
 
 

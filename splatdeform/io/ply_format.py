@@ -13,6 +13,7 @@ import array
 import io
 import os
 from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -33,6 +34,34 @@ FORMATS = {"ascii": None, "binary_little_endian": "<", "binary_big_endian": ">"}
 MAX_HEADER_BYTES = 1 << 20
 ASCII_CHUNK_ROWS = 100_000  # ascii rows parsed (and written) per block: bounded token lists
 MAX_COUNT_DIGITS = 15  # 1e15 rows: far beyond any file that fits on a disk
+SPAN_BLOCK = 1 << 24  # ascii body bytes scanned for row boundaries at a time
+_SPACE = np.zeros(256, dtype=bool)
+_SPACE[list(b" \t\n\r\x0b\x0c")] = True  # bytes.strip()'s whitespace
+_INFINITY = (b"inf", b"infinity")  # the literal spellings of an infinity (any case, any sign)
+
+
+@dataclass
+class AsciiText(AsciiRows):
+    """An ascii element's rows as read plus the exact bytes around them, so that a save of an
+    unchanged element (and header) reproduces the file byte for byte: line ends (CRLF, LF, CR),
+    blank lines, leading and trailing spaces, a final newline or its absence.
+
+    raw: the whole file as read (shared by every element of the file); header: its header
+    bytes up to and including the ``end_header`` line; header_normal: :func:`header_text` of
+    the source as read (a save writes ``header`` verbatim when its header text is still this);
+    newline: the file's line end (that of its first line), used for every line a save writes
+    anew; spans: (R, 2) int64 offsets in ``raw`` of each row's text; begin / end: the bytes of
+    ``raw`` this element owns (from the line after the previous element's last row to the line
+    end after its own last row; the last element also owns whatever follows).
+    """
+
+    raw: bytes = b""
+    header: bytes = b""
+    header_normal: bytes = b""
+    newline: bytes = b"\n"
+    spans: np.ndarray | None = None
+    begin: int = 0
+    end: int = 0
 
 
 class PlyHeader:
@@ -335,6 +364,9 @@ class _AsciiElement:
                  line_of: Callable[[int], int]) -> None:
         self.path, self.name, self.rows, self.line_of = path, name, rows, line_of
         self.starts = np.zeros(len(rows), dtype=np.int64)
+        # (T,) bool over the flat tokens: a number too large for float64 (1e400), which
+        # parses as an infinity but is not one of the literal spellings (inf, Infinity)
+        self.overflow: np.ndarray | None = None
 
     def error(self, row: int, message: str) -> FormatError:
         return FormatError(f"{self.path}: malformed ascii body, line {self.line_of(row)} of "
@@ -342,7 +374,8 @@ class _AsciiElement:
 
     def convert(self, values: np.ndarray, code: str, what: str, at: np.ndarray) -> np.ndarray:
         """Parsed tokens (float64, any shape) -> ``code``, rejecting values the type cannot
-        hold (300 in a uchar, -1 in a uint, 1.9 in an int, 1e39 in a float) with the line.
+        hold (300 in a uchar, -1 in a uint, 1.9 in an int, 1e39 in a float, 1e400 in any type)
+        with the line; the literal tokens inf / nan are kept in float types.
 
         at: flat token index of each value (same shape), to name the offending token.
         """
@@ -350,6 +383,8 @@ class _AsciiElement:
             if code[0] == "f":
                 out = values.astype(code)
                 bad = np.isfinite(values) & ~np.isfinite(out)
+                if self.overflow is not None:
+                    bad |= self.overflow[at]
                 expected = f"within {TYPE_NAMES[code]} range"
             else:
                 info = np.iinfo(code)
@@ -377,8 +412,9 @@ def _parse_ascii_rows(el: _AsciiElement, props: list[PlyProperty]) -> np.ndarray
     if count == 0:
         return out
     lengths = np.fromiter((len(r.split()) for r in rows), dtype=np.int64, count=count)
+    tokens = b" ".join(rows).split()
     try:
-        flat = np.array(b" ".join(rows).split(), dtype=np.float64)
+        flat = np.array(tokens, dtype=np.float64)
     except ValueError:
         for i, row in enumerate(rows):
             try:
@@ -387,6 +423,12 @@ def _parse_ascii_rows(el: _AsciiElement, props: list[PlyProperty]) -> np.ndarray
                 raise el.error(i, "not a number in "
                                f"{row.decode(errors='replace').strip()[:60]!r}") from exc
         raise
+    infinite = np.flatnonzero(np.isinf(flat))
+    if infinite.size:  # 1e400 overflows to inf in the parse: refused like 1e39 in a float
+        el.overflow = np.zeros(flat.size, dtype=bool)
+        el.overflow[infinite] = [tokens[i].lstrip(b"+-").lower() not in _INFINITY
+                                 for i in infinite]
+    del tokens
     el.starts = np.cumsum(lengths) - lengths
     pos = np.zeros(count, dtype=np.int64)  # next token of each row
 
@@ -423,6 +465,70 @@ def _parse_ascii_rows(el: _AsciiElement, props: list[PlyProperty]) -> np.ndarray
         i = first(pos != lengths)
         raise el.error(i, f"{lengths[i] - pos[i]} values too many")
     return out
+
+
+def _row_spans(raw: bytes, start: int) -> np.ndarray:
+    """(R, 2) int64 [begin, end) in ``raw`` of every non-blank line's text from ``start`` on
+    (split at \\r, \\n or \\r\\n as bytes.splitlines does, without leading and trailing
+    whitespace as bytes.strip). Vectorised over blocks of :data:`SPAN_BLOCK` bytes; only lines
+    with more than a few spaces at an end are trimmed one by one."""
+    data = np.frombuffer(raw, dtype=np.uint8)
+    parts = [np.empty((0, 2), dtype=np.int64)]
+    pos, n = start, len(raw)
+    while pos < n:
+        stop = min(n, pos + SPAN_BLOCK)
+        if stop < n:  # end the block at a line break
+            cut = max(raw.rfind(b"\n", pos, stop), raw.rfind(b"\r", pos, stop))
+            stop = cut + 1 if cut >= pos else _line_end(raw, stop)
+        seg = data[pos:stop]
+        breaks = np.flatnonzero((seg == 10) | (seg == 13))  # \r\n: an empty line between
+        begin = np.concatenate([[0], breaks + 1])
+        end = np.concatenate([breaks, [seg.size]])
+        space = _SPACE[seg]
+        for _ in range(4):
+            grow = np.flatnonzero(begin < end)
+            grow = grow[space[begin[grow]]]
+            if not grow.size:
+                break
+            begin[grow] += 1
+        for _ in range(4):
+            shrink = np.flatnonzero(begin < end)
+            shrink = shrink[space[end[shrink] - 1]]
+            if not shrink.size:
+                break
+            end[shrink] -= 1
+        rest = np.flatnonzero(begin < end)
+        rest = rest[space[begin[rest]] | space[end[rest] - 1]]
+        for i in rest.tolist():  # long runs of spaces at a line's end: trimmed by bytes.strip
+            line = raw[pos + begin[i]:pos + end[i]]
+            begin[i] += len(line) - len(line.lstrip())
+            end[i] = begin[i] + len(line.strip())
+        keep = begin < end
+        parts.append(np.stack([begin[keep], end[keep]], axis=1) + pos)
+        pos = stop
+    return np.concatenate(parts)
+
+
+def _line_breaks(raw: bytes, start: int, stop: int) -> int:
+    """Line breaks (\\n, \\r or \\r\\n, each one) in raw[start:stop]."""
+    return (raw.count(b"\n", start, stop) + raw.count(b"\r", start, stop)
+            - raw.count(b"\r\n", start, stop))
+
+
+def _line_end(raw: bytes, pos: int) -> int:
+    """The offset just past the line break at or after ``pos`` (the end of ``raw`` if none)."""
+    cr, lf = raw.find(b"\r", pos), raw.find(b"\n", pos)
+    if lf >= 0 and (cr < 0 or lf < cr):
+        return lf + 1
+    if cr >= 0:
+        return cr + 2 if raw[cr + 1:cr + 2] == b"\n" else cr + 1
+    return len(raw)
+
+
+def _newline(header: bytes) -> bytes:
+    """A file's line end: that of its first line (``ply``)."""
+    first = header.find(b"\n")
+    return b"\r\n" if first > 0 and header[first - 1:first] == b"\r" else b"\n"
 
 
 def _ascii_rows(rows: list[bytes], data: np.ndarray) -> AsciiRows:
@@ -484,17 +590,15 @@ def read_ply(path: str | Path) -> PlySource:
             raise FormatError(f"{path}: malformed ascii body, line {line}: '_' in a number "
                               "(not PLY syntax)")
         lines = [ln for ln in raw[header.size:].splitlines() if ln.strip()]
+        spans = _row_spans(raw, header.size)  # where each of them is in the file
+        exact = spans.shape[0] == len(lines)  # always (else: saves write normalised text)
 
         def line_of(index: int) -> int:  # file line number of the index-th non-blank body line
-            seen = -1
-            for number, ln in enumerate(raw[header.size:].splitlines(), header.lines + 1):
-                seen += bool(ln.strip())
-                if seen == index:
-                    return number
-            return -1
+            return header.lines + 1 + _line_breaks(raw, header.size, int(spans[index, 0]))
 
-        pos = 0
-        for name, count, props in header.elements:
+        newline = _newline(raw[:header.size])
+        pos, begin = 0, header.size
+        for number, (name, count, props) in enumerate(header.elements):
             rows = lines[pos: pos + count]
             if len(rows) < count:
                 raise FormatError(f"{path}: truncated ascii body: element '{name}' declares "
@@ -506,12 +610,23 @@ def read_ply(path: str | Path) -> PlySource:
                                    lambda i, s=start: line_of(s + i))
                 parts.append(_parse_ascii_rows(el, props))
             data = parts[0] if len(parts) == 1 else np.concatenate(parts)
-            elements.append(PlyElementData(name, props, data, _ascii_rows(rows, data)))
-            pos += count
+            last = number == len(header.elements) - 1
+            end = len(raw) if last or not exact else (
+                _line_end(raw, int(spans[pos + count - 1, 1])) if count else begin)
+            text = _ascii_rows(rows, data)
+            elements.append(PlyElementData(name, props, data, AsciiText(
+                text.body, text.starts, data, raw=raw, header=raw[:header.size],
+                newline=newline, spans=spans[pos: pos + count] if exact else None,
+                begin=begin, end=end)))
+            pos, begin = pos + count, end
         if pos < len(lines):
             raise FormatError(f"{path}: {len(lines) - pos} ascii lines after the last element "
                               f"(from line {line_of(pos)}); the header's element counts do not "
                               "match the body")
+        normal = header_text(PlySource(elements, header.comments, header.obj_info, True,
+                                       header.byte_order), True, header.byte_order)
+        for element in elements:
+            element.ascii_text.header_normal = normal
     else:
         buf = memoryview(raw)
         offset = header.size
@@ -526,9 +641,10 @@ def read_ply(path: str | Path) -> PlySource:
                      header.byte_order)
 
 
-def header_text(source: PlySource, text: bool, byte_order: str) -> bytes:
+def header_text(source: PlySource, text: bool, byte_order: str, newline: bytes = b"\n"
+                ) -> bytes:
     """The header bytes of ``source`` (its elements, counts and properties) in the given
-    encoding (``byte_order`` "<" or ">" when binary)."""
+    encoding (``byte_order`` "<" or ">" when binary), each line ended by ``newline``."""
     fmt = "ascii" if text else ("binary_big_endian" if byte_order == ">"
                                 else "binary_little_endian")
     lines = ["ply", f"format {fmt} 1.0"]
@@ -542,7 +658,7 @@ def header_text(source: PlySource, text: bool, byte_order: str) -> bytes:
             else:
                 lines.append(f"property {p.type_name} {p.name}")
     lines.append("end_header")
-    return ("\n".join(lines) + "\n").encode("ascii")
+    return newline.join(line.encode("ascii") for line in lines) + newline
 
 
 def _list_lengths(column: np.ndarray) -> np.ndarray:
@@ -589,10 +705,11 @@ def _format_ascii_column(values: np.ndarray, dtype: str) -> np.ndarray:
     return np.char.mod("%d", values.astype(np.int64))
 
 
-def _kept_rows(el: PlyElementData) -> list[bytes] | None:
-    """The element's rows as text, reusing the text read for every unchanged value (the
-    shortest round-trip text for changed ones); None when the element has no text to reuse
-    (not read from ascii, other properties or rows, or changed list properties)."""
+def _changed_rows(el: PlyElementData) -> dict[int, bytes] | None:
+    """The new text of every row whose values changed (row index -> its values, the text read
+    for every unchanged value and the shortest round-trip text for changed ones); {} when no
+    value changed; None when the element has no text to reuse (not read from ascii, other
+    properties or rows, or changed list properties)."""
     text = el.ascii_text
     if text is None or len(text.starts) - 1 != el.count:
         return None
@@ -600,9 +717,8 @@ def _kept_rows(el: PlyElementData) -> list[bytes] | None:
     names = [p.name for p in el.properties]
     if list(orig.dtype.names or ()) != names or orig.dtype != el.data.dtype:
         return None
-    body, starts = text.body, text.starts
     if el.data is orig:
-        return [body[starts[i]:starts[i + 1]] for i in range(el.count)]
+        return {}
     if any(p.is_list for p in el.properties):
         return None
     changed = np.zeros((el.count, len(names)), dtype=bool)
@@ -612,9 +728,10 @@ def _kept_rows(el: PlyElementData) -> list[bytes] | None:
         if p.dtype[0] == "f":
             diff &= ~(np.isnan(a) & np.isnan(b))
         changed[:, j] = diff
-    rows = [body[starts[i]:starts[i + 1]] for i in range(el.count)]
-    for i in np.flatnonzero(changed.any(axis=1)):
-        tokens = rows[i].split()
+    body, starts = text.body, text.starts
+    rows: dict[int, bytes] = {}
+    for i in np.flatnonzero(changed.any(axis=1)).tolist():
+        tokens = body[starts[i]:starts[i + 1]].split()
         for j in np.flatnonzero(changed[i]):
             p = el.properties[j]
             tokens[j] = shortest_text(el.data[p.name][i:i + 1], p.dtype)[0].encode()
@@ -622,13 +739,41 @@ def _kept_rows(el: PlyElementData) -> list[bytes] | None:
     return rows
 
 
-def _write_ascii_element(out: io.BufferedIOBase, el: PlyElementData) -> None:
+def _write_kept(out: io.BufferedIOBase, text: AsciiText, rows: dict[int, bytes]) -> None:
+    """The element's bytes as read, with the text of each changed row replaced (its line's
+    leading and trailing spaces and line end kept)."""
+    raw, spans = memoryview(text.raw), text.spans
+    pos = text.begin
+    for i in sorted(rows):
+        start, stop = (int(v) for v in spans[i])
+        out.write(raw[pos:start])
+        out.write(rows[i])
+        pos = stop
+    out.write(raw[pos:text.end])
+
+
+def _kept_rows(el: PlyElementData) -> list[bytes] | None:
+    """Every row's text (see :func:`_changed_rows`), without the bytes around them."""
+    rows = _changed_rows(el)
+    if rows is None:
+        return None
+    body, starts = el.ascii_text.body, el.ascii_text.starts
+    return [rows.get(i) or body[starts[i]:starts[i + 1]] for i in range(el.count)]
+
+
+def _write_ascii_element(out: io.BufferedIOBase, el: PlyElementData,
+                         newline: bytes = b"\n") -> None:
+    text = el.ascii_text
+    rows = _changed_rows(el)
+    if rows is not None and isinstance(text, AsciiText) and text.spans is not None:
+        _write_kept(out, text, rows)  # an empty element: the blank lines it owns, if any
+        return
     if el.count == 0:
         return
     kept = _kept_rows(el)
     if kept is not None:
         for first in range(0, len(kept), ASCII_CHUNK_ROWS):
-            out.write(b"\n".join(kept[first:first + ASCII_CHUNK_ROWS]) + b"\n")
+            out.write(newline.join(kept[first:first + ASCII_CHUNK_ROWS]) + newline)
         return
     columns: list[np.ndarray] = []  # one string per row and property
     for p in el.properties:
@@ -646,7 +791,7 @@ def _write_ascii_element(out: io.BufferedIOBase, el: PlyElementData) -> None:
         else:
             columns.append(_format_ascii_column(el.data[p.name], p.dtype).astype(object))
     rows = [" ".join(parts) for parts in zip(*columns, strict=True)]
-    out.write(("\n".join(rows) + "\n").encode("ascii"))
+    out.write(newline.join(row.encode("ascii") for row in rows) + newline)
 
 
 def write_ply(source: PlySource, out: io.BufferedIOBase, *, text: bool | None = None,
@@ -654,9 +799,15 @@ def write_ply(source: PlySource, out: io.BufferedIOBase, *, text: bool | None = 
     """Write ``source`` to the open binary stream ``out`` (format defaults to the source's)."""
     text = source.text if text is None else text
     bo = source.byte_order if byte_order is None else byte_order
-    out.write(header_text(source, text, bo))
+    read = next((el.ascii_text for el in source.elements
+                 if isinstance(el.ascii_text, AsciiText)), None)
+    newline = read.newline if text and read is not None else b"\n"
+    header = header_text(source, text, bo, newline)
+    if read is not None and text and header_text(source, text, bo) == read.header_normal:
+        header = read.header  # the header as read: what it says has not changed
+    out.write(header)
     for el in source.elements:
         if text:
-            _write_ascii_element(out, el)
+            _write_ascii_element(out, el, newline)
         else:
             _write_binary_element(out, el, bo)

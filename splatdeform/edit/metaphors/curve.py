@@ -50,4 +50,7 @@ def points(c: CurveCfg, units: str, model: PointModel) -> tuple[np.ndarray, np.n
     if moved.shape != given.shape:
         raise ConfigError.at("curve.moved_to", f"expected {given.shape[0]} points, got "
                                                f"{moved.shape[0]}")
+    from splatdeform.deform.curve import check_curve_points
+
+    check_curve_points(given, moved, frame.diagonal, "curve")
     return given, moved, u.length(c.capture_radius, units, frame)

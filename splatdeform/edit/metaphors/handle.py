@@ -10,8 +10,7 @@ import numpy as np
 from splatdeform.deform.handle import compose_transform, delta_for_transform
 from splatdeform.deform.metaphor import Metaphor, handle_metaphor
 from splatdeform.edit import units as u
-from splatdeform.edit.config import EditConfig, HandleCfg, TransformCfg
-from splatdeform.errors import ConfigError
+from splatdeform.edit.config import EditConfig, HandleCfg, TransformCfg, check_handle_matrix
 from splatdeform.model import PointModel
 
 
@@ -49,11 +48,12 @@ def delta(key: str, entry: tuple[HandleCfg, list, str], group: Any, deformation:
 def transform_matrix(h: HandleCfg, key: str, units: str, model: PointModel,
                      handle: np.ndarray) -> np.ndarray:
     """The 4x4 transform of one handle from its ``transform`` or ``matrix`` (config key
-    ``key``); ``handle`` (N,) bool or (M,) int64 selects its points (for a centroid pivot)."""
+    ``key``); ``handle`` (N,) bool or (M,) int64 selects its points (for a centroid pivot).
+    Checked like the config (:func:`check_handle_matrix`) whoever built ``h``: a singular or
+    non-finite transform is a ConfigError naming the key."""
     if h.matrix is not None:
         m = np.asarray(h.matrix, dtype=np.float64)
-        if not np.allclose(m[3], [0, 0, 0, 1]):
-            raise ConfigError.at(f"{key}.matrix", "the last row must be [0, 0, 0, 1] (affine)")
+        check_handle_matrix(m, f"{key}.matrix")
         return m
     t: TransformCfg = h.transform
     frame = u.Frame.of(model)
@@ -61,6 +61,7 @@ def transform_matrix(h: HandleCfg, key: str, units: str, model: PointModel,
         pivot = model.positions[handle].mean(axis=0)
     else:
         pivot = u.point(t.pivot, units, frame)
-    return compose_transform(pivot=pivot, scale=t.scale, axis=t.rotate.axis,
-                             degrees=t.rotate.degrees,
-                             translate=u.vector(t.translate, units, frame))
+    m = compose_transform(pivot=pivot, scale=t.scale, axis=t.rotate.axis,
+                          degrees=t.rotate.degrees, translate=u.vector(t.translate, units, frame))
+    check_handle_matrix(m[:3, :3], f"{key}.transform", bound=None)  # the pivot: not checked
+    return m

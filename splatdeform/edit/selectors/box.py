@@ -7,6 +7,7 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
+from pydantic import model_validator
 
 from splatdeform.edit.schema import Strict, Vec3
 from splatdeform.edit.units import Frame, check_units
@@ -54,6 +55,13 @@ def in_frame(points: np.ndarray, origin, scale) -> np.ndarray:
 class BoxCfg(Strict):
     min: Vec3
     max: Vec3
+
+    @model_validator(mode="after")
+    def _ordered(self) -> BoxCfg:
+        if any(lo > hi for lo, hi in zip(self.min, self.max, strict=True)):
+            raise ValueError(f"min {self.min} exceeds max {self.max}; expected min <= max "
+                             "on every axis")
+        return self
 
 
 class Entry(Strict):

@@ -6,12 +6,12 @@ from __future__ import annotations
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Annotated, Literal
+from typing import Literal
 
 import numpy as np
-from pydantic import Field, field_validator
+from pydantic import field_validator
 
-from splatdeform.edit.schema import MAX_INDEX, Strict
+from splatdeform.edit.schema import Index, Strict
 from splatdeform.edit.units import Frame, check_units
 from splatdeform.errors import InputError
 from splatdeform.model import PointModel
@@ -99,7 +99,7 @@ def load_indices(sel: Indices, base_dir: Path | None) -> np.ndarray:
 
 
 class Entry(Strict):
-    indices: list[Annotated[int, Field(ge=0, le=MAX_INDEX)]] | dict[Literal["file"], str]
+    indices: list[Index] | dict[Literal["file"], str]
 
     @field_validator("indices", mode="before")
     @classmethod

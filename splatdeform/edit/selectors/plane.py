@@ -7,6 +7,7 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
+from pydantic import field_validator
 
 from splatdeform.edit.schema import Strict, Vec3
 from splatdeform.edit.selectors.box import in_frame
@@ -49,6 +50,13 @@ class Plane:
 class PlaneCfg(Strict):
     point: Vec3
     normal: Vec3
+
+    @field_validator("normal")
+    @classmethod
+    def _nonzero(cls, normal: list[float]) -> list[float]:
+        if not np.linalg.norm(np.asarray(normal, dtype=np.float64)) > 0:
+            raise ValueError(f"expected a non-zero vector, got {normal}")
+        return normal
 
 
 class Entry(Strict):

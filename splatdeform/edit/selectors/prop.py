@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 from pydantic import Field, model_validator
 
-from splatdeform.edit.schema import Strict
+from splatdeform.edit.schema import Real, Strict
 from splatdeform.edit.units import Frame, check_units
 from splatdeform.model import PointModel, vertex_column
 
@@ -62,10 +62,10 @@ class Property:
 
 class PropertyCfg(Strict):
     name: str
-    equals: float | None = None
-    in_: list[float] | None = Field(default=None, alias="in", min_length=1)
-    min: float | None = None
-    max: float | None = None
+    equals: Real | None = None
+    in_: list[Real] | None = Field(default=None, alias="in", min_length=1)
+    min: Real | None = None
+    max: Real | None = None
 
     @model_validator(mode="after")
     def _some_condition(self) -> PropertyCfg:

@@ -10,7 +10,7 @@ import numpy as np
 from pydantic import Field
 
 from splatdeform.edit import units as u
-from splatdeform.edit.schema import Strict, Vec3
+from splatdeform.edit.schema import Number, Strict, Vec3
 from splatdeform.model import PointModel
 
 NAME = "sphere"
@@ -39,7 +39,7 @@ class Sphere:
 
 class SphereCfg(Strict):
     center: Vec3
-    radius: float = Field(gt=0)
+    radius: Number = Field(gt=0)
 
 
 class Entry(Strict):
