@@ -318,7 +318,8 @@ def cmd_render(args: argparse.Namespace) -> int:
 
     view = View(azimuth=args.azimuth, elevation=args.elevation,
                 fov=args.fov).with_options(args.up, args.roll, args.camera)
-    inputs = _render_inputs(args.models, _budget(args.memory_budget), args.drop_nonfinite)
+    inputs = _render_inputs(args.models, _budget(args.memory_budget), args.drop_nonfinite,
+                            explicit=args.memory_budget is not None)
     models = [_colored(r.model, args.color, view.up, [i.model for i in inputs])
               for r in inputs]
     after = models[1] if len(models) > 1 else None
@@ -341,11 +342,14 @@ def _budget(text: str | None, config_value=None) -> int:
     return budget_bytes(text, config_value) or default_budget()
 
 
-def _render_inputs(paths, budget: int, drop_nonfinite: bool = False) -> list:
-    """Each model whole, or a streamed sample when it does not fit its share of ``budget``."""
+def _render_inputs(paths, budget: int, drop_nonfinite: bool = False,
+                   explicit: bool = False) -> list:
+    """Each model whole, or a streamed sample when it does not fit its share of ``budget``
+    (``explicit``: a --memory-budget cap: a model over it that cannot be sampled is refused)."""
     from splatdeform.edit.stream.sample import load_for_render
 
-    return [load_for_render(p, budget, drop_nonfinite=drop_nonfinite, share=1 / len(paths))
+    return [load_for_render(p, budget, drop_nonfinite=drop_nonfinite, share=1 / len(paths),
+                            explicit=explicit)
             for p in paths]
 
 
@@ -386,8 +390,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--drop-nonfinite", action="store_true",
                    help="drop vertices with NaN/Inf coordinates instead of failing")
     p.add_argument("--memory-budget", metavar="SIZE",
-                   help="stream the scan out of core when the in-memory estimate exceeds SIZE "
-                        "(e.g. 512MB, 2GB; config memory_budget; default half the RAM)")
+                   help="a cap: when the in-memory estimate exceeds SIZE the scan streams out "
+                        "of core (PLY binary, LAS/LAZ), other formats are refused; the peak "
+                        "stays within SIZE plus a 256 MB margin for the interpreter and "
+                        "libraries (e.g. 512MB, 2GB; config memory_budget; default half the "
+                        "RAM, which runs in memory with a warning when --reuse or "
+                        "--drop-nonfinite needs it)")
     p.add_argument("--scheduler", metavar="ADDRESS",
                    help="split the scan over this Dask scheduler (tcp://HOST:PORT)")
     p.add_argument("--workers", type=int, metavar="N",

@@ -170,15 +170,22 @@ def test_streamed_output_format_is_the_inputs(tmp_path: Path, capsys) -> None:
     assert not (tmp_path / "o.compressed.ply").exists()
 
 
-def test_config_budget_with_reuse_runs_in_memory_and_says_so(tmp_path: Path, capsys) -> None:
+def test_config_budget_with_reuse_is_a_cap(tmp_path: Path, capsys) -> None:
     """A config ``memory_budget`` the scan exceeds, with ``--reuse`` (which needs the whole
-    model): the edit runs in memory, one warning line says so, and the output is written."""
+    model): the budget is a cap (issue 32 item 9), so the edit is refused with one line naming
+    the estimate, the budget and the key, and nothing is written. Without the key (the default
+    budget, half the RAM) the same edit runs in memory."""
     big = tmp_path / "big.ply"
     save(bumpy_bar(150_000, seed=6), big)
     cfg = write_edit(tmp_path, big, "o.ply", memory_budget="64MB")
-    assert main(["deform", str(cfg), "--reuse", "--quiet"]) == 0
+    assert main(["deform", str(cfg), "--reuse", "--quiet"]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "--reuse needs the whole model" in err
+    assert "in-memory estimate is" in err and "64 MB (memory_budget)" in err
+    assert not (tmp_path / "o.ply").exists()
+    cfg = write_edit(tmp_path, big, "o.ply")
+    assert main(["deform", str(cfg), "--reuse", "--quiet"]) == 0
+    assert capsys.readouterr().err == ""
     assert (tmp_path / "o.ply").exists()
 
 

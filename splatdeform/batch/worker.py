@@ -63,7 +63,7 @@ def process_scan(job: Job) -> dict[str, Any]:
     from ..errors import SplatdeformError
     from ..io import atomic_write
     from ..rbf.defaults import DEFAULT_MAX_CENTERS
-    from .probe import check, probe
+    from .probe import check, estimate_memory, probe
     from .sources import clean_stale_temps, materialize
 
     t0 = time.perf_counter()
@@ -78,9 +78,9 @@ def process_scan(job: Job) -> dict[str, Any]:
         p = probe(job.scan.name, head, size, suffix=job.scan.suffix)
         fit = job.edit.get("fit") if isinstance(job.edit.get("fit"), dict) else {}
         centers = fit.get("max_centers", DEFAULT_MAX_CENTERS)
-        check(job.scan.name, p, job.memory_budget,
-              None if job.memory_budget is not None else available_memory(),
-              max_centers=centers if isinstance(centers, int) else DEFAULT_MAX_CENTERS)
+        centers = centers if isinstance(centers, int) else DEFAULT_MAX_CENTERS
+        check(job.scan.name, p, None, None)   # the header against the size
+        budget_check(job, estimate_memory(p, centers), p)
 
     try:
         with materialize(job.scan, vet) as local:
@@ -131,6 +131,27 @@ def process_scan(job: Job) -> dict[str, Any]:
 OUT_OF_MEMORY = ("out of memory: the scan outgrew its {mib:.0f} MiB per-worker budget (plus "
                  "300 MiB) and was stopped; raise memory_per_worker_mb or use fewer workers")
 CAP_SLACK_BYTES = 300 * 2**20   # above the budget, for what the estimate cannot see
+
+
+def budget_check(job: Job, need: int, p) -> None:
+    """The one budget rule (:func:`splatdeform.memory.choose`) for a scan of a batch: a worker
+    holds its per-worker budget (``memory_per_worker_mb``, else the available memory) and
+    does not stream (several scans share the machine; a scan over its share is refused with
+    one line naming the estimate and the budget)."""
+    from ..errors import InputError
+    from ..memory import choose
+
+    if job.memory_budget is not None:
+        budget, what = int(job.memory_budget), "MiB per worker; use fewer workers or set " \
+            "memory_per_worker_mb"
+    else:
+        budget, what = available_memory(), "MiB available on this worker"
+    choice = choose(need, budget, streamable=False, name=job.scan.name)
+    if choice.mode == "refuse":
+        mib = 2**20
+        raise InputError(f"{job.scan.name}: needs about {need / mib:.0f} MiB for "
+                         f"{p.points:,} points in {p.size / mib:.1f} MiB (the in-memory "
+                         f"estimate), more than the {budget / mib:.0f} {what}")
 
 
 def _vm_data() -> int:

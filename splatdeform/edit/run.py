@@ -16,7 +16,7 @@ from splatdeform.edit import plain
 from splatdeform.edit.config import EditConfig, input_paths
 from splatdeform.edit.plain import control_displacement, metaphors, transform_matrix  # noqa: F401
 from splatdeform.edit.result import EditResult, edit_stats, format_report  # noqa: F401
-from splatdeform.edit.stream import StreamOptions, run_stream, should_stream
+from splatdeform.edit.stream import StreamOptions, edit_choice, run_stream
 from splatdeform.errors import ConfigError, InputError, ProcessingError
 from splatdeform.io import SUPPORTED, extension_of, load, save
 from splatdeform.io.atomic import check_io_paths
@@ -86,21 +86,25 @@ def streams(cfg: EditConfig, in_path: Path, options: StreamOptions, budget: int 
             reuse: str | Path | None = None, drop_nonfinite: bool = False,
             warn: Callable[[str], None] | None = None) -> bool:
     """True when this edit runs out of core: Dask asked for (``options.scheduler``/``workers``),
-    or the input's in-memory estimate exceeds ``budget`` (None: half the RAM). ``--reuse`` and
-    ``--drop-nonfinite`` need the model in memory: with them an edit over the budget runs in
-    memory (``warn`` is told so), and asking for Dask is a ConfigError."""
-    if not options.distributed and not should_stream(cfg, in_path, budget):
-        return False
-    if reuse is not None or drop_nonfinite:
-        if options.distributed:
+    or the budget rule (:func:`splatdeform.memory.choose`) says stream. ``budget``: the
+    explicit budget (``--memory-budget`` / ``memory_budget``), a cap: an edit over it that
+    cannot stream (its format, or ``--reuse`` / ``--drop-nonfinite`` which need the whole model)
+    is refused with one line naming the estimate and the budget. None: half the RAM, and the
+    rule from before the cap: over it, ``--reuse``/``--drop-nonfinite`` run in memory (``warn``
+    is told so). Asking for Dask with those options is a ConfigError."""
+    whole = "--reuse" if reuse is not None else "--drop-nonfinite" if drop_nonfinite else None
+    if options.distributed:
+        if whole is not None:
             raise ConfigError("--scheduler/--workers: cannot be combined with --reuse or "
                               "--drop-nonfinite")
-        if warn is not None:
-            flag = "--reuse" if reuse is not None else "--drop-nonfinite"
-            warn(f"{in_path}: over the memory budget, but {flag} needs the whole model in "
-                 "memory: running in memory")
-        return False
-    return True
+        return True
+    key = "--memory-budget" if options.budget is not None else "memory_budget"
+    choice = edit_choice(cfg, in_path, budget, whole=whole, budget_name=key)
+    if choice.mode == "refuse":
+        raise InputError(choice.message)
+    if choice.message and warn is not None:
+        warn(choice.message)
+    return choice.mode == "stream"
 
 
 def run_edit(cfg: EditConfig, base_dir: str | Path = ".", *, output: str | Path | None = None,

@@ -19,6 +19,7 @@ and :class:`LasWriter`.
 
 from __future__ import annotations
 
+import contextlib
 import warnings
 from collections.abc import Iterator
 from dataclasses import dataclass, field
@@ -193,10 +194,16 @@ def _read_records(path: Path, reader, start: int, stop: int, chunk: int) -> Iter
         yield array
 
 
-def _open(path: Path):
-    """laspy reader of a LAS/LAZ file whose header :func:`check_header` accepted."""
+def _open(path: Path, sequential: bool = False):
+    """laspy reader of a LAS/LAZ file whose header :func:`check_header` accepted.
+    ``sequential``: LAZ through lazrs's one-thread decompressor, which holds one compressed
+    chunk at a time (the default, parallel one decompresses whole LAZ chunks into a buffer
+    beside the points asked for: with a file written as one big chunk that is the whole
+    file's records, see :func:`splatdeform.memory.laz_reader_bytes`)."""
     laspy = _laspy()
     try:
+        if sequential:
+            return laspy.open(path, laz_backend=laspy.LazBackend.Lazrs)
         return laspy.open(path)
     except BaseException as exc:
         if not _decode_failure(exc):
@@ -430,21 +437,26 @@ def read_header(path: str | Path):
         return reader.header, layout.compressed, evlrs
 
 
+def _seek(path: Path, reader, start: int) -> None:
+    try:
+        reader.seek(start)
+    except BaseException as exc:
+        if not _decode_failure(exc):
+            raise
+        raise FormatError(f"{path}: corrupt LAS/LAZ point data: cannot seek to point "
+                          f"{start}: {type(exc).__name__}") from None
+
+
 def iter_chunks(path: str | Path, chunk: int, start: int = 0,
                 stop: int | None = None) -> Iterator[np.ndarray]:
-    """Raw point records of points [start, stop) in chunks of at most ``chunk`` rows."""
+    """Raw point records of points [start, stop) in chunks of at most ``chunk`` rows (LAZ
+    through the sequential decompressor: memory bounded by one compressed chunk)."""
     path = Path(path)
     layout = check_header(path)
     stop = layout.point_count if stop is None else min(stop, layout.point_count)
-    with _open(path) as reader:
+    with _open(path, sequential=True) as reader:
         if start:
-            try:
-                reader.seek(start)
-            except BaseException as exc:
-                if not _decode_failure(exc):
-                    raise
-                raise FormatError(f"{path}: corrupt LAS/LAZ point data: cannot seek to point "
-                                  f"{start}: {type(exc).__name__}") from None
+            _seek(path, reader, start)
         yield from _read_records(path, reader, start, stop, chunk)
 
 
@@ -484,10 +496,44 @@ class LasChunks(ChunkFile):
         self.record_bytes = int(self.header.point_format.size)
         self.scales = np.asarray(self.header.scales, dtype=np.float64)
         self.offsets = np.asarray(self.header.offsets, dtype=np.float64)
+        self._reader = None   # kept open between rows() calls that follow each other
+        self._at = -1
+
+    def __getstate__(self) -> dict:
+        state = dict(self.__dict__)
+        state["_reader"], state["_at"] = None, -1   # an open reader does not travel
+        return state
 
     def rows(self, start: int, stop: int) -> np.ndarray:
-        parts = list(iter_chunks(self.path, stop - start, start, stop))
+        """Raw records [start, stop). Reads that follow each other (every pass) go on with one
+        open reader: a LAZ chunk is decompressed once, not again from its start for every
+        streamed chunk (a LAZ written as one chunk would otherwise cost quadratic time)."""
+        stop = min(stop, self.n_points)
+        if self._reader is None or start != self._at:
+            self.close()
+            check_header(self.path)
+            self._reader = _open(self.path, sequential=True)
+            if start:
+                _seek(self.path, self._reader, start)
+        try:
+            parts = list(_read_records(self.path, self._reader, start, stop, stop - start))
+        except BaseException:
+            self.close()
+            raise
+        self._at = stop
+        if stop >= self.n_points:
+            self.close()
         return parts[0] if len(parts) == 1 else np.concatenate(parts)
+
+    def close(self) -> None:
+        """Close the reader kept between reads (reopened when needed)."""
+        if self._reader is not None:
+            reader, self._reader, self._at = self._reader, None, -1
+            reader.close()
+
+    def __del__(self) -> None:
+        with contextlib.suppress(Exception):
+            self.close()
 
     def positions(self, start: int, stop: int) -> np.ndarray:
         return positions_of(self.header, self.rows(start, stop))

@@ -18,6 +18,7 @@ from pathlib import Path
 
 from ..errors import FormatError
 from ..model import MAX_COORDINATE
+from .regular import open_regular
 
 MIN_HEADER = 227
 HEADER_SIZES = {0: 227, 1: 227, 2: 227, 3: 235, 4: 375}  # by version minor
@@ -42,6 +43,12 @@ class LasLayout:
     offset_to_points: int
     compressed: bool
     file_size: int
+    laz_chunk_points: int = 0   # LAZ: points per compressed chunk (0: variable or unknown)
+
+
+LASZIP_USER = b"laszip encoded"
+LASZIP_RECORD = 22204
+VARIABLE_CHUNKS = 0xFFFFFFFF
 
 
 def _fail(path: Path, message: str) -> FormatError:
@@ -65,14 +72,19 @@ def _extra_bytes_size(payload: bytes) -> int | None:
 
 
 def _walk(f, path: Path, what: str, start: int, count: int, end: int, head: int,
-          long_lengths: bool) -> bytes | None:
+          long_lengths: bool, available: int | None = None) -> tuple[bytes | None, int | None]:
     """Walk ``count`` variable-length records from ``start`` that must end by ``end``; return
-    the payload of an Extra Bytes record (LASF_Spec 4) if there is one."""
+    the payload of an Extra Bytes record (LASF_Spec 4) if there is one, and the LAZ chunk size
+    of the laszip record (None when there is none). ``available``: bytes of the file that ``f``
+    holds (the first bytes only, e.g. an archive member's head): the walk stops, unchecked,
+    where they end."""
     if count > (end - start) // head:
         raise _fail(path, f"{count} {what}s declared but only {end - start} bytes for them "
                           f"(each needs at least {head})")
-    at, extra = start, None
+    at, extra, chunk = start, None, None
     for i in range(count):
+        if available is not None and at + head > available:
+            break
         f.seek(at)
         raw = f.read(head)
         if len(raw) < head:
@@ -86,77 +98,103 @@ def _walk(f, path: Path, what: str, start: int, count: int, end: int, head: int,
                               f"area (byte {end})")
         if user == b"LASF_Spec" and record_id == 4 and length <= 192 * 4096:
             extra = f.read(length)
+        elif user == LASZIP_USER and record_id == LASZIP_RECORD and length >= 16:
+            laszip = f.read(16)
+            if len(laszip) == 16:
+                chunk = struct.unpack_from("<I", laszip, 12)[0]
         at += head + length
-    return extra
+    return extra, chunk
 
 
 def check_header(path: str | Path) -> LasLayout:
     """Validate the header of the LAS/LAZ file at ``path`` against its size (raises
-    FormatError naming the file and the field)."""
+    FormatError naming the file and the field). The file is opened with the one opener
+    (:func:`splatdeform.io.regular.open_regular`: a FIFO or device is refused, not read)."""
     path = Path(path)
-    size = os.stat(path).st_size
-    with open(path, "rb") as f:
-        raw = f.read(375)
-        if raw[:4] != b"LASF":
-            raise FormatError(f"{path}: not a LAS/LAZ file (it does not start with 'LASF')")
-        if len(raw) < MIN_HEADER:
-            raise _fail(path, f"the file has {size} bytes, less than the {MIN_HEADER}-byte "
-                              "header")
-        major, minor = raw[24], raw[25]
-        if major != 1 or minor not in HEADER_SIZES:
-            raise _fail(path, f"version {major}.{minor} is not supported (expected 1.0 to 1.4)")
-        header_size, offset, n_vlrs = struct.unpack_from("<HII", raw, 94)
-        fmt_byte, record_length, legacy_count = struct.unpack_from("<BHI", raw, 104)
-        scales = struct.unpack_from("<3d", raw, 131)
-        offsets = struct.unpack_from("<3d", raw, 155)
-        need = HEADER_SIZES[minor]
-        if header_size < need or header_size > size:
-            raise _fail(path, f"header size {header_size} (expected {need} for LAS 1.{minor}, "
-                              f"within the {size}-byte file)")
-        if len(raw) < need:
-            raise _fail(path, f"the file has {size} bytes, less than the {need}-byte header")
-        if not header_size <= offset <= size:
-            raise _fail(path, f"offset to point data {offset} is outside the file "
-                              f"({header_size}..{size})")
-        compressed = bool(fmt_byte & 0xC0)
-        fmt = fmt_byte & 0x3F
-        if fmt not in RECORD_SIZES or (fmt > 5 and minor < 4):
-            raise _fail(path, f"point format {fmt} is not valid for LAS 1.{minor}")
-        if record_length < RECORD_SIZES[fmt]:
-            raise _fail(path, f"point record length {record_length} is shorter than point "
-                              f"format {fmt} needs ({RECORD_SIZES[fmt]})")
-        for axis, s, o in zip("xyz", scales, offsets, strict=True):
-            if not (math.isfinite(s) and s != 0.0 and math.isfinite(o)):
-                raise _fail(path, f"{axis} scale {s} / offset {o}: expected finite numbers "
-                                  "and a non-zero scale")
-            if abs(s) * 2.0**31 + abs(o) > MAX_COORDINATE:
-                raise _fail(path, f"{axis} scale {s} / offset {o} give coordinates beyond "
-                                  f"{MAX_COORDINATE:g}")
-        count = legacy_count
-        evlr_start, n_evlrs = 0, 0
-        if minor >= 4:
-            evlr_start, n_evlrs, count = struct.unpack_from("<QIQ", raw, 235)
-            if legacy_count and legacy_count != count:
-                raise _fail(path, f"legacy point count {legacy_count} differs from the point "
-                                  f"count {count}")
-        points_end = size
-        if n_evlrs:
-            if not offset <= evlr_start <= size - EVLR_HEAD:
-                raise _fail(path, f"{n_evlrs} EVLRs declared at byte {evlr_start}, outside the "
-                                  f"file ({offset}..{size})")
-            points_end = evlr_start
-        if compressed:
-            if count > (points_end - offset) * MAX_LAZ_POINTS_PER_BYTE:
-                raise _fail(path, f"{count} points declared in {points_end - offset} bytes of "
-                                  "compressed point data")
-        elif offset + count * record_length > points_end:
-            raise _fail(path, f"{count} points of {record_length} bytes declared but the point "
-                              f"data has {points_end - offset} bytes")
-        extra = _walk(f, path, "VLR", header_size, n_vlrs, offset, VLR_HEAD, False)
-        if n_evlrs:
-            extra = _walk(f, path, "EVLR", evlr_start, n_evlrs, size, EVLR_HEAD, True) or extra
-    _check_extra_bytes(path, fmt, record_length, extra)
-    return LasLayout((major, minor), fmt, record_length, count, offset, compressed, size)
+    with open_regular(path) as f:
+        return check_header_in(f, path, os.fstat(f.fileno()).st_size)
+
+
+def check_header_bytes(name: str | Path, head: bytes, size: int) -> LasLayout:
+    """:func:`check_header` from the file's first bytes ``head`` and its ``size`` (an archive
+    member judged before it is extracted): the same checks, except that VLRs beyond ``head``
+    are not walked (their count and area are still checked against the size)."""
+    import io
+
+    return check_header_in(io.BytesIO(head), Path(name), size, available=len(head))
+
+
+def check_header_in(f, path: Path, size: int, available: int | None = None) -> LasLayout:
+    """:func:`check_header` on an open binary file ``f`` of ``size`` bytes (``available``: how
+    many of them ``f`` holds, None: all)."""
+    raw = f.read(375)
+    if raw[:4] != b"LASF":
+        raise FormatError(f"{path}: not a LAS/LAZ file (it does not start with 'LASF')")
+    if len(raw) < MIN_HEADER:
+        raise _fail(path, f"the file has {size} bytes, less than the {MIN_HEADER}-byte "
+                          "header")
+    major, minor = raw[24], raw[25]
+    if major != 1 or minor not in HEADER_SIZES:
+        raise _fail(path, f"version {major}.{minor} is not supported (expected 1.0 to 1.4)")
+    header_size, offset, n_vlrs = struct.unpack_from("<HII", raw, 94)
+    fmt_byte, record_length, legacy_count = struct.unpack_from("<BHI", raw, 104)
+    scales = struct.unpack_from("<3d", raw, 131)
+    offsets = struct.unpack_from("<3d", raw, 155)
+    need = HEADER_SIZES[minor]
+    if header_size < need or header_size > size:
+        raise _fail(path, f"header size {header_size} (expected {need} for LAS 1.{minor}, "
+                          f"within the {size}-byte file)")
+    if len(raw) < need:
+        raise _fail(path, f"the file has {size} bytes, less than the {need}-byte header")
+    if not header_size <= offset <= size:
+        raise _fail(path, f"offset to point data {offset} is outside the file "
+                          f"({header_size}..{size})")
+    compressed = bool(fmt_byte & 0xC0)
+    fmt = fmt_byte & 0x3F
+    if fmt not in RECORD_SIZES or (fmt > 5 and minor < 4):
+        raise _fail(path, f"point format {fmt} is not valid for LAS 1.{minor}")
+    if record_length < RECORD_SIZES[fmt]:
+        raise _fail(path, f"point record length {record_length} is shorter than point "
+                          f"format {fmt} needs ({RECORD_SIZES[fmt]})")
+    for axis, s, o in zip("xyz", scales, offsets, strict=True):
+        if not (math.isfinite(s) and s != 0.0 and math.isfinite(o)):
+            raise _fail(path, f"{axis} scale {s} / offset {o}: expected finite numbers "
+                              "and a non-zero scale")
+        if abs(s) * 2.0**31 + abs(o) > MAX_COORDINATE:
+            raise _fail(path, f"{axis} scale {s} / offset {o} give coordinates beyond "
+                              f"{MAX_COORDINATE:g}")
+    count = legacy_count
+    evlr_start, n_evlrs = 0, 0
+    if minor >= 4:
+        evlr_start, n_evlrs, count = struct.unpack_from("<QIQ", raw, 235)
+        if legacy_count and legacy_count != count:
+            raise _fail(path, f"legacy point count {legacy_count} differs from the point "
+                              f"count {count}")
+    points_end = size
+    if n_evlrs:
+        if not offset <= evlr_start <= size - EVLR_HEAD:
+            raise _fail(path, f"{n_evlrs} EVLRs declared at byte {evlr_start}, outside the "
+                              f"file ({offset}..{size})")
+        points_end = evlr_start
+    if compressed:
+        if count > (points_end - offset) * MAX_LAZ_POINTS_PER_BYTE:
+            raise _fail(path, f"{count} points declared in {points_end - offset} bytes of "
+                              "compressed point data")
+    elif offset + count * record_length > points_end:
+        raise _fail(path, f"{count} points of {record_length} bytes declared but the point "
+                          f"data has {points_end - offset} bytes")
+    extra, chunk = _walk(f, path, "VLR", header_size, n_vlrs, offset, VLR_HEAD, False,
+                         available)
+    if n_evlrs:
+        more, evlr_chunk = _walk(f, path, "EVLR", evlr_start, n_evlrs, size, EVLR_HEAD,
+                                 True, available)
+        extra, chunk = more or extra, chunk or evlr_chunk
+    walked = available is None or (offset <= available and (not n_evlrs or size <= available))
+    if walked or extra is not None:
+        _check_extra_bytes(path, fmt, record_length, extra)
+    laz_chunk = 0 if not compressed or chunk in (None, 0, VARIABLE_CHUNKS) else int(chunk)
+    return LasLayout((major, minor), fmt, record_length, count, offset, compressed, size,
+                     laz_chunk)
 
 
 def _check_extra_bytes(path: Path, fmt: int, record_length: int, extra: bytes | None) -> None:

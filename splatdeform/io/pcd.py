@@ -15,6 +15,7 @@ did not change keep their original text. Packed ``rgb``/``rgba`` floats are kept
 from __future__ import annotations
 
 import io
+import os
 import re
 import struct
 from dataclasses import dataclass, field, replace
@@ -26,10 +27,12 @@ from ..errors import FormatError
 from ..model import PlyElementData, PlyProperty, PlySource, PointModel, classify
 from .checks import nonfinite_points
 from .ply_format import shortest_text
+from .regular import open_regular
 
 ENCODINGS = ("ascii", "binary", "binary_compressed")
 TYPE_SIZES = {"I": (1, 2, 4, 8), "U": (1, 2, 4, 8), "F": (4, 8)}
 MAX_HEADER_LINES = 64
+HEAD_BYTES = 2**20   # the header must end within the file's first MiB
 ASCII_CHUNK_ROWS = 200_000
 PLY_TYPES = {"i1": "char", "u1": "uchar", "i2": "short", "u2": "ushort", "i4": "int",
              "u4": "uint", "f4": "float", "f8": "double", "i8": "double", "u8": "double"}
@@ -101,15 +104,22 @@ def _ints(path, key: str, words: list[str], low: int = 0) -> list[int]:
     return values
 
 
-def parse_header(path: str | Path, raw: bytes) -> tuple[PcdSource, int]:
-    """(source without data, body offset); every field validated, one line per fault."""
+def parse_header(path: str | Path, raw: bytes, size: int | None = None) -> tuple[PcdSource, int]:
+    """(source without data, body offset); every field validated, one line per fault.
+    ``raw``: the whole file, or its first bytes (at least the header, up to
+    :data:`HEAD_BYTES`) with ``size`` the file's size: the declared points are checked against
+    the body that size leaves (binary_compressed: against the block's own size fields when
+    ``raw`` holds them)."""
     header: list[tuple[str, str]] = []
     values: dict[str, list[str]] = {}
     at = 0
+    file_size = len(raw) if size is None else size
     for _ in range(MAX_HEADER_LINES + 200):
-        end = raw.find(b"\n", at)
+        end = raw.find(b"\n", at, HEAD_BYTES)
         if end < 0:
-            raise FormatError(f"{path}: PCD header has no DATA line")
+            raise FormatError(f"{path}: PCD header has no DATA line"
+                              + (f" in the first {HEAD_BYTES:,} bytes" if file_size > HEAD_BYTES
+                                 else ""))
         try:
             line = raw[at:end].decode("ascii").strip()
         except UnicodeDecodeError:
@@ -173,16 +183,44 @@ def parse_header(path: str | Path, raw: bytes) -> tuple[PcdSource, int]:
         raise FormatError(f"{path}: PCD DATA {' '.join(values['DATA'])!r}; expected one of "
                           f"{', '.join(ENCODINGS)}")
     dtype = _dtype(names, sizes, types, counts)
-    body = len(raw) - at
+    body = file_size - at
     need = {"binary": points * dtype.itemsize, "binary_compressed": 8,
             "ascii": points * 2 * sum(counts) - 1}[encoding]
     if body < need:
         raise FormatError(f"{path}: PCD header declares {points:,} points ({need:,} bytes at "
                           f"least for DATA {encoding}); the body has {body:,}")
+    if encoding == "binary_compressed" and len(raw) >= at + 8:
+        _check_block(path, raw, at, points, dtype.itemsize, file_size)
     source = PcdSource(header=header, fields=names, sizes=sizes, types=types, counts=counts,
                        width=width, height=height, encoding=encoding,
                        data=np.empty(0, dtype=dtype))
     return source, at
+
+
+def _check_block(path, raw: bytes, at: int, points: int, itemsize: int, size: int) -> int:
+    """The binary_compressed block's sizes (uint32 compressed, uint32 raw) against the header
+    and the file: the raw size must be POINTS x the record, the block within the file.
+    Returns the compressed size."""
+    packed, raw_size = struct.unpack_from("<II", raw, at)
+    if raw_size != points * itemsize:
+        raise FormatError(f"{path}: PCD binary_compressed raw size {raw_size:,} != POINTS "
+                          f"{points:,} x {itemsize} bytes")
+    if at + 8 + packed > size:
+        raise FormatError(f"{path}: PCD binary_compressed block of {packed:,} bytes runs "
+                          "past the end of the file")
+    return packed
+
+
+def read_header(path: str | Path) -> tuple[PcdSource, int, int]:
+    """(source without data, body offset, file size) of the PCD file at ``path`` from its
+    first bytes, validated like :func:`read_source` validates it (the declared POINTS against
+    the file size, for every DATA encoding), through the one opener (no FIFO or device)."""
+    path = Path(path)
+    with open_regular(path) as fh:
+        size = os.fstat(fh.fileno()).st_size
+        head = fh.read(HEAD_BYTES + 8)
+    source, at = parse_header(path, head, size)
+    return source, at, size
 
 
 # ---- LZF (the binary_compressed block) ------------------------------------------------------
@@ -301,7 +339,8 @@ def _packed_color(word: bytes) -> int:
 
 def read_source(path: str | Path) -> tuple[PcdSource, int]:
     path = Path(path)
-    raw = path.read_bytes()
+    with open_regular(path) as fh:
+        raw = fh.read()
     source, at = parse_header(path, raw)
     points = source.width * source.height
     dtype = source.data.dtype
@@ -309,14 +348,9 @@ def read_source(path: str | Path) -> tuple[PcdSource, int]:
     if source.encoding == "binary":
         data = np.frombuffer(raw, dtype=dtype, count=points, offset=at).copy()
     elif source.encoding == "binary_compressed":
-        packed, size = struct.unpack_from("<II", raw, at)
-        if size != points * dtype.itemsize:
-            raise FormatError(f"{path}: PCD binary_compressed raw size {size:,} != POINTS "
-                              f"{points:,} x {dtype.itemsize} bytes")
-        if at + 8 + packed > len(raw):
-            raise FormatError(f"{path}: PCD binary_compressed block of {packed:,} bytes runs "
-                              "past the end of the file")
-        block = lzf_decompress(path, raw[at + 8:at + 8 + packed], size)
+        packed = _check_block(path, raw, at, points, dtype.itemsize, len(raw))
+        size = points * dtype.itemsize
+        block = lzf_decompress(path, memoryview(raw)[at + 8:at + 8 + packed], size)
         data = np.empty(points, dtype=dtype)
         offset = 0
         for name in source.fields:

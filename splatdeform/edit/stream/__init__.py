@@ -18,8 +18,6 @@ geometry :mod:`splatdeform.deform.border`.
 
 from __future__ import annotations
 
-import os
-import re
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -27,26 +25,8 @@ import numpy as np
 
 from splatdeform.edit.result import EditResult, edit_stats
 from splatdeform.edit.stream.progress import Progress
-from splatdeform.errors import ConfigError
 from splatdeform.io import STREAMABLE, extension_of
-
-_UNITS = {"": 1, "b": 1, "k": 2**10, "kb": 2**10, "kib": 2**10, "m": 2**20, "mb": 2**20,
-          "mib": 2**20, "g": 2**30, "gb": 2**30, "gib": 2**30, "t": 2**40, "tb": 2**40,
-          "tib": 2**40}
-
-
-def parse_size(text: str | int | float, what: str = "--memory-budget") -> int:
-    """'512MB', '1.5GB', '2g', 1000000 -> bytes (ConfigError naming ``what`` otherwise)."""
-    if isinstance(text, (int, float)) and not isinstance(text, bool):
-        value = int(text)
-    else:
-        m = re.fullmatch(r"\s*([0-9]*\.?[0-9]+)\s*([a-zA-Z]*)\s*", str(text))
-        if not m or m.group(2).lower() not in _UNITS:
-            raise ConfigError(f"{what}: expected a size like 512MB or 2GB, got {text!r}")
-        value = int(float(m.group(1)) * _UNITS[m.group(2).lower()])
-    if value < 64 * 2**20:
-        raise ConfigError(f"{what}: expected at least 64MB, got {text!r}")
-    return value
+from splatdeform.memory import budget_bytes, default_budget, machine_memory, parse_size
 
 
 @dataclass(frozen=True)
@@ -71,41 +51,57 @@ class StreamOptions:
         return budget_bytes(self.budget, cfg.memory_budget)
 
 
-def budget_bytes(flag: int | str | None, config_value: int | str | None = None) -> int | None:
-    """The memory budget in bytes: ``--memory-budget`` (``flag``), else the config's
-    ``memory_budget``, else None (the caller's default: half the RAM). A malformed value is a
-    ConfigError naming the flag or the key."""
-    if flag is not None:
-        return parse_size(flag) if isinstance(flag, str) else int(flag)
-    return None if config_value is None else parse_size(config_value, "memory_budget")
+#: formats whose in-memory estimate comes from their validated header (memory.file_cost)
+COSTED = (".ply", ".las", ".laz", ".pcd", ".splat")
 
 
-def machine_memory() -> int:
-    """Physical memory in bytes."""
-    try:
-        return int(os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES"))
-    except (ValueError, OSError, AttributeError):
-        return 8 * 2**30
+def stream_refusal(cfg) -> str:
+    """Why this edit cannot stream ('' when it can): what :func:`run.check_streamable` refuses."""
+    if cfg.curve is not None:
+        return "curve edits do not stream yet"
+    if cfg.handles is not None:
+        return "several handles do not stream yet"
+    if cfg.normals == "estimate":
+        return "normals: estimate needs the whole model"
+    return ""
 
 
-def default_budget() -> int:
-    """Half the machine's RAM."""
-    return machine_memory() // 2
+def edit_choice(cfg, in_path: Path, budget: int | None, *, whole: str | None = None,
+                budget_name: str = "--memory-budget"):
+    """The budget rule (:func:`splatdeform.memory.choose`) for this edit's input: in memory,
+    stream or refuse, from the in-memory estimate of the input's validated header. ``budget``:
+    the explicit budget (None: half the RAM); ``whole``: ``--reuse`` / ``--drop-nonfinite`` when
+    given (they need the whole model); ``budget_name``: the flag or key the budget came from,
+    for the refusal line. Raises FormatError/InputError for a header the reader
+    would refuse (one line, before anything is loaded)."""
+    from splatdeform import memory
+
+    ext = extension_of(in_path)
+    in_path = Path(in_path)
+    if ext not in COSTED or not in_path.is_file():   # estimated when loaded (splat formats)
+        return memory.choose(0, budget, streamable=False, name=in_path)
+    cost = memory.file_cost(in_path)
+    need = memory.deform_peak(cost, cfg.boundary.neighbors, cfg.fit.max_centers)
+    why = "" if ext in STREAMABLE else f"{ext} files do not stream"
+    why = why or stream_refusal(cfg)
+    # with the default budget an edit that cannot stream goes on to stream's own refusal,
+    # as before the budget was a cap
+    streamable = ext in STREAMABLE and (budget is None or not why)
+    return memory.choose(need, budget, streamable=streamable, name=in_path, whole=whole,
+                         why_not=why, budget_name=budget_name)
 
 
 def should_stream(cfg, in_path: Path, budget: int | None) -> bool:
     """True when the input is streamable and its in-memory peak (the one estimator,
     :mod:`splatdeform.memory`) exceeds the budget."""
-    from splatdeform import memory
     from splatdeform.errors import SplatdeformError
 
     if extension_of(in_path) not in STREAMABLE or not Path(in_path).is_file():
         return False
     try:
-        cost = memory.file_cost(in_path)
+        return edit_choice(cfg, in_path, budget).mode == "stream"
     except SplatdeformError:   # an unreadable header: the in-memory loader says why
         return False
-    return memory.deform_peak(cost, cfg.boundary.neighbors) > (budget or default_budget())
 
 
 def run_stream(cfg, base_dir: str | Path = ".", *, output: str | Path | None = None,
@@ -124,7 +120,7 @@ def run_stream(cfg, base_dir: str | Path = ".", *, output: str | Path | None = N
 
     from splatdeform.edit.stream.run import check_streamable, dask_client, stream_deform
     from splatdeform.io import check_output_path
-    from splatdeform.memory import BASE_BYTES, stream_caps, stream_chunk
+    from splatdeform.memory import BASE_BYTES, file_cost, stream_caps, stream_chunk
 
     base_dir = Path(base_dir)
     in_path = base_dir / cfg.input
@@ -134,7 +130,8 @@ def run_stream(cfg, base_dir: str | Path = ".", *, output: str | Path | None = N
     t0 = time.perf_counter()
     src = check_streamable(cfg, in_path, out_path)
     n = src.n_points
-    base = BASE_BYTES + 2 * n  # interpreter and libraries, labels
+    # interpreter and libraries, labels, what the reader holds besides its rows (a LAZ chunk)
+    base = BASE_BYTES + 2 * n + file_cost(in_path).reader_bytes
     chunk = chunk or stream_chunk(budget, src.record_bytes, fixed_bytes=base)
     max_border, whole_handle = stream_caps(budget, base)
     if max_handle is None:
@@ -163,5 +160,5 @@ def run_stream(cfg, base_dir: str | Path = ".", *, output: str | Path | None = N
                       timings)
 
 
-__all__ = ["Progress", "StreamOptions", "default_budget", "parse_size", "run_stream",
-           "should_stream"]
+__all__ = ["Progress", "StreamOptions", "budget_bytes", "default_budget", "edit_choice",
+           "machine_memory", "parse_size", "run_stream", "should_stream"]

@@ -41,19 +41,35 @@ class RenderInput:
 
 
 def load_for_render(path: str | Path, budget: int, *, drop_nonfinite: bool = False,
-                    share: float = 1.0) -> RenderInput:
+                    share: float = 1.0, explicit: bool = False) -> RenderInput:
     """The whole model when it fits ``budget`` bytes (times ``share``: two models side by side
-    take half each), else a streamed uniform sample of as many points as fit."""
-    from splatdeform.io import load
+    take half each), else a streamed uniform sample of as many points as fit. ``explicit``:
+    the budget is a cap (``--memory-budget``): a model of a format that cannot be sampled
+    whose estimate (from its validated header) exceeds it is refused with one line. The
+    header is validated before anything is read (a LAS with a corrupt VLR count is refused
+    at once)."""
+    from splatdeform.edit.stream import COSTED
+    from splatdeform.io import extension_of, load
 
     path = Path(path)
     limit = int(budget * share) if share < 1 else budget
-    if path.suffix.lower() not in STREAMABLE:
+    ext = extension_of(path)
+    if ext not in STREAMABLE:
+        if explicit and ext in COSTED and path.is_file():
+            cost = memory.file_cost(path)
+            need = memory.BASE_BYTES + cost.load_bytes + memory.render_bytes(cost.points,
+                                                                             cost.record_bytes)
+            choice = memory.choose(need, limit, streamable=False, name=path,
+                                   why_not=f"{ext} files cannot be sampled")
+            if choice.mode == "refuse":
+                from splatdeform.errors import InputError
+
+                raise InputError(choice.message)
         model = load(path, drop_nonfinite=drop_nonfinite)
         return RenderInput(model, model.n_points)
     cost = memory.file_cost(path)
     chunk_bytes = min(CHUNK_BYTES, limit // 8)
-    keep = memory.render_points(limit, cost, reserve=2 * chunk_bytes)
+    keep = memory.render_points(limit, cost, reserve=2 * chunk_bytes + cost.reader_bytes)
     if keep >= cost.points:
         model = load(path, drop_nonfinite=drop_nonfinite)
         return RenderInput(model, model.n_points)
