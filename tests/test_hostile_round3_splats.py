@@ -28,6 +28,7 @@ import numpy as np
 import pytest
 import yaml
 from splat_oracle import write_scene
+from test_cli_hostile import one_error_line
 
 import splatdeform as sd
 from splatdeform.errors import FormatError, InputError
@@ -69,17 +70,6 @@ def run_cli(*args, cwd: Path, timeout: float = TIMEOUT) -> tuple[subprocess.Comp
     return res, peak
 
 
-def one_error_line(res: subprocess.CompletedProcess, needles=()) -> str:
-    assert res.returncode == 2, (res.returncode, res.stdout, res.stderr)
-    assert "Traceback" not in res.stderr + res.stdout, res.stderr
-    lines = [ln for ln in res.stderr.splitlines() if ln.strip()]
-    assert len(lines) == 1, res.stderr
-    assert lines[0].startswith("splatdeform: error: "), lines[0]
-    for needle in needles:
-        assert needle in lines[0], (needle, lines[0])
-    return lines[0]
-
-
 def refused(path: Path, *, cwd: Path, needles=(), commands=("info",),
             file_size: int | None = None) -> None:
     """Each command on ``path``: exit 2, one line naming the file, peak RSS within bounds."""
@@ -97,7 +87,7 @@ def refused(path: Path, *, cwd: Path, needles=(), commands=("info",),
                 "handle": {"transform": {"translate": [0, 0.1, 0]}}}))
             args = [command, config]
         res, peak = run_cli(*args, cwd=cwd)
-        line = one_error_line(res, needles)
+        line = one_error_line(res, needles=needles)
         assert path.name in line, line
         assert peak <= 10 * size + 300 * MB, (command, peak / MB, size)
     assert not (cwd / "out.png").exists() and not (cwd / "out.ply").exists()
@@ -211,7 +201,7 @@ def test_sog_folder_member_linked_outside_is_refused(good, tmp_path):
     refused(folder / "meta.json", cwd=tmp_path, needles=("sh0.webp", "out of its folder"))
     # the folder given as the model: the same refusal
     res, _ = run_cli("info", folder, cwd=tmp_path)
-    one_error_line(res, ("out of its folder",))
+    one_error_line(res, needles=("out of its folder",))
 
 
 def test_sog_folder_link_inside_the_folder_still_reads(good, tmp_path):
