@@ -26,7 +26,9 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-SHARED = Path(__file__).resolve().parents[2] / "shared" / "data"
+#: the shared data (GOLDEN_SHARED overrides: a worktree elsewhere has no ../shared beside it)
+SHARED = Path(os.environ.get("GOLDEN_SHARED",
+                             Path(__file__).resolve().parents[2] / "shared" / "data"))
 SCANS = ["scans/bunny_res2.ply", "scans/head_surfels.ply", "edge_cases/igea_tristrips.ply",
          "edge_cases/pepper_extra_elements.ply", "edge_cases/horse_big_endian.ply",
          "lidar/vegetation_1_3.las", "lidar/simple.laz", "lidar/extrabytes.las",
