@@ -9,7 +9,7 @@ APT_PKGS := pocl-opencl-icd ocl-icd-libopencl1 libusb-1.0-0 libegl1 libegl-mesa0
 SUDO    := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
 DEMO_DIR := demo_out
 
-.PHONY: demo test setup system lint bench clean oracle editor-vendor
+.PHONY: demo test test-fast setup system lint bench clean oracle editor-vendor
 
 system:
 	@missing=""; for p in $(APT_PKGS); do dpkg -s $$p >/dev/null 2>&1 || missing="$$missing $$p"; done; \
@@ -36,6 +36,11 @@ oracle: setup
 
 test: setup oracle
 	$(PY) -m pytest -q
+
+# The same suite without the tests marked slow (subprocess deforms of large scans, Dask clusters,
+# signals at every pass): for quick iterations; CI runs `make test`.
+test-fast: setup oracle
+	$(PY) -m pytest -q -m "not slow"
 
 # The demo runs without ../shared: it generates its scans, bends them with a handle and a curve
 # edit, and writes models plus before/after images to demo_out/.

@@ -20,7 +20,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import yaml
+from helpers import base_config, catches_sigterm, one_error_line, snapshot, write_config
+from helpers import run_cli as run
 
 import splatdeform as sd
 from data_tools.synth import bumpy_bar
@@ -39,54 +40,6 @@ def scans(tmp_path_factory) -> Path:
     sd.save(sd.PointModel(positions=bar.positions, normals=bar.normals,
                           kind="oriented_cloud"), root / "long_normals.ply")
     return root
-
-
-def base_config(scans: Path, **extra) -> dict:
-    return {
-        "input": str(scans / "bar.ply"),
-        "output": "out/bent.ply",
-        "regions": {"units": "model",
-                    "fixed": [{"box": {"min": [-1, -1, -1], "max": [1.0, 1, 1]}}],
-                    "handle": [{"box": {"min": [3.0, -1, -1], "max": [5, 1, 1]}}]},
-        "handle": {"transform": {"rotate": {"axis": [0, 0, 1], "degrees": 20},
-                                 "translate": [0, 0.2, 0]}},
-        "fit": {"tolerance": 1e-3},
-        "backend": "numpy",
-        **extra,
-    }
-
-
-def write_config(folder: Path, cfg: dict | str, name: str = "edit.yaml") -> Path:
-    folder.mkdir(parents=True, exist_ok=True)
-    path = folder / name
-    path.write_text(cfg if isinstance(cfg, str) else yaml.safe_dump(cfg))
-    return path
-
-
-def run(*args, cwd: Path, timeout: float = TIMEOUT, **kw) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "splatdeform.cli", *map(str, args)],
-                          capture_output=True, text=True, cwd=cwd, timeout=timeout, **kw)
-
-
-def one_error_line(res: subprocess.CompletedProcess, code: int = 2, needles=()) -> str:
-    assert res.returncode == code, (res.returncode, res.stdout, res.stderr)
-    assert "Traceback" not in res.stderr + res.stdout, res.stderr
-    lines = [ln for ln in res.stderr.splitlines() if ln.strip()]
-    assert len(lines) == 1, res.stderr
-    assert lines[0].startswith("splatdeform: error: "), lines[0]
-    for needle in needles:
-        assert needle in lines[0], (needle, lines[0])
-    return lines[0]
-
-
-def snapshot(*folders: Path) -> dict[Path, tuple[int, bytes | None]]:
-    """Every entry under the folders: (mode, bytes for regular files)."""
-    out = {}
-    for folder in folders:
-        for p in [folder, *folder.rglob("*")]:
-            st = p.lstat()
-            out[p] = (st.st_mode, p.read_bytes() if stat.S_ISREG(st.st_mode) else None)
-    return out
 
 
 # ---------------------------------------------------------------- 1. outputs vs inputs
@@ -349,14 +302,6 @@ def test_huge_translate_api_raises(scans):
 
 # ---------------------------------------------------------------- 4. faults
 
-def _catches_sigterm(pid: int) -> bool:
-    with contextlib.suppress(OSError):
-        for line in Path(f"/proc/{pid}/status").read_text().splitlines():
-            if line.startswith("SigCgt:"):
-                return bool(int(line.split()[1], 16) & (1 << (signal.SIGTERM - 1)))
-    return False
-
-
 @pytest.mark.skipif(not Path("/proc/self/status").exists(), reason="needs /proc")
 def test_sigterm_cleans_up(tmp_path):
     big = tmp_path / "big.ply"
@@ -368,7 +313,7 @@ def test_sigterm_cleans_up(tmp_path):
                              "--reuse"], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                             cwd=tmp_path, text=True)
     deadline = time.monotonic() + 60
-    while not _catches_sigterm(proc.pid) and proc.poll() is None and time.monotonic() < deadline:
+    while not catches_sigterm(proc.pid) and proc.poll() is None and time.monotonic() < deadline:
         time.sleep(0.01)
     proc.send_signal(signal.SIGTERM)  # the handler is in place; loading/fitting has not ended
     out, err = proc.communicate(timeout=TIMEOUT)

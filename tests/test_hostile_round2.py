@@ -12,40 +12,16 @@ import os
 import struct
 from pathlib import Path
 
-import laspy
 import numpy as np
 import pytest
 import yaml
-from laspy.vlrs.vlrlist import VLRList
-from test_cli_hostile import base_config, one_error_line, run, snapshot, write_config
+from helpers import base_config, make_las, one_error_line, snapshot, write_config
+from helpers import run_cli as run
 
 import splatdeform as sd
 from data_tools.synth import bumpy_bar
 
 TIMEOUT = 60  # a hang of the first round took > 60 s; every case here answers in seconds
-
-
-def make_las(path: Path, version: str = "1.2", fmt: int = 3, n: int = 3000,
-             extra: bool = False, evlr: bool = False) -> Path:
-    """A small LAS/LAZ (by suffix) of ``n`` points on a bumpy sheet."""
-    rng = np.random.default_rng(len(path.name))
-    header = laspy.LasHeader(version=version, point_format=fmt)
-    if extra:
-        header.add_extra_dims([laspy.ExtraBytesParams(name="height", type=np.float32)])
-    header.scales = np.array([0.01, 0.01, 0.01])
-    header.offsets = np.array([1000.0, 2000.0, 10.0])
-    las = laspy.LasData(header)
-    xy = rng.uniform(0, 50, size=(n, 2))
-    las.x, las.y = xy[:, 0], xy[:, 1]
-    las.z = np.sin(xy[:, 0] / 5) + 0.1 * rng.normal(size=n)
-    las.intensity = rng.integers(0, 1000, n).astype(np.uint16)
-    if extra:
-        las.height = rng.normal(size=n).astype(np.float32)
-    if evlr:
-        las.evlrs = VLRList([laspy.VLR(user_id="test", record_id=1, description="an evlr",
-                                             record_data=b"x" * 100)])
-    las.write(path)
-    return path
 
 
 @pytest.fixture(scope="module")

@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import struct
 import subprocess
-import sys
 import time
 from pathlib import Path
 
@@ -24,6 +23,7 @@ import numpy as np
 import pytest
 import yaml
 from conftest import ROOT, bar_edit, shared_file
+from helpers import run_cli_peak
 
 from data_tools.synth import bumpy_bar
 from splatdeform import memory
@@ -32,31 +32,13 @@ from splatdeform.errors import FormatError, InputError
 MB = 2**20
 EDIT = bar_edit({"translate": [0, 0.1, 0]}, backend="numpy")
 
-# runs the CLI in a fresh interpreter and prints its own peak RSS (VmHWM: ru_maxrss would carry
-# the forking parent's peak over exec) on the last stderr line, whatever the exit
-PEAK = """
-import sys
-from splatdeform.cli import main
-try:
-    rc = main(sys.argv[1:])
-finally:
-    hwm = next(x for x in open("/proc/self/status") if x.startswith("VmHWM"))
-    print("PEAK", int(hwm.split()[1]) * 1024, file=sys.stderr)
-sys.exit(rc)
-"""
-
-
 def run_cli(*args: str, timeout: float = 120) -> tuple[subprocess.CompletedProcess, int]:
     """(the finished process, its peak RSS in bytes) of ``splatdeform ARGS``."""
-    r = subprocess.run([sys.executable, "-c", PEAK, *args], cwd=ROOT, capture_output=True,
-                       text=True, timeout=timeout)
-    lines = r.stderr.splitlines()
-    assert lines and lines[-1].startswith("PEAK "), r.stderr
-    return r, int(lines[-1].split()[1])
+    return run_cli_peak(*args, cwd=ROOT, timeout=timeout)
 
 
 def errors(r: subprocess.CompletedProcess) -> list[str]:
-    return [ln for ln in r.stderr.splitlines() if not ln.startswith("PEAK ")]
+    return [ln for ln in r.stderr.splitlines() if ln.strip()]
 
 
 def write_edit(folder: Path, inp: Path, out: str) -> Path:

@@ -25,7 +25,8 @@ import numpy as np
 import pytest
 import yaml
 from conftest import bar_edit
-from test_cli_hostile import one_error_line, run, snapshot, write_config
+from helpers import one_error_line, snapshot, write_config
+from helpers import run_cli as run
 
 import splatdeform as sd
 from data_tools.synth import bumpy_bar

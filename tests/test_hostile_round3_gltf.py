@@ -26,15 +26,15 @@ import json
 import os
 import struct
 import subprocess
-import sys
 import time
 import warnings
 from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers import one_error_line, run_cli_peak
+from helpers import run_cli as run
 from splat_oracle import write_scene
-from test_cli_hostile import one_error_line, run
 
 from splatdeform.errors import FormatError, InputError
 from splatdeform.io import gltf, load, save, spz
@@ -340,15 +340,6 @@ def test_data_uris_are_bounded_by_their_byte_length(tmp_path, external):
 # --------------------------------------------------------------------------------------------
 # item 4: an SPZ-compressed glb whose SPZ stream is a gzip bomb
 
-PEAK = """
-import sys
-from splatdeform.cli import main
-code = main(sys.argv[1:])
-hwm = next(x for x in open("/proc/self/status") if x.startswith("VmHWM"))
-print("PEAK", int(hwm.split()[1]) * 1024, code)
-"""
-
-
 def _spz_glb(path: Path, blob: bytes, count: int) -> Path:
     """An SPZ-compressed glb (the layout of data_tools.gltf_spz) holding ``blob`` and declaring
     ``count`` splats in its accessors."""
@@ -384,10 +375,8 @@ def _bomb(megabytes_of_zeros: int, splats: int, degree: int = 0) -> bytes:
 
 
 def _peak(path: Path) -> tuple[int, subprocess.CompletedProcess]:
-    res = subprocess.run([sys.executable, "-c", PEAK, "info", str(path)], capture_output=True,
-                         text=True, timeout=TIMEOUT, cwd=path.parent)
-    line = next(x for x in res.stdout.splitlines() if x.startswith("PEAK"))
-    return int(line.split()[1]), res
+    res, peak = run_cli_peak("info", path, cwd=path.parent, timeout=TIMEOUT)
+    return peak, res
 
 
 def _refused_early(out: Path, *needles: str) -> None:
@@ -396,9 +385,7 @@ def _refused_early(out: Path, *needles: str) -> None:
     started = time.monotonic()
     peak, res = _peak(out)
     assert time.monotonic() - started < 20
-    assert res.stdout.split()[-1] == "2", res.stderr
-    one_error_line(subprocess.CompletedProcess(res.args, 2, "", res.stderr), 2,
-                   (str(out), *needles))
+    one_error_line(res, 2, (str(out), *needles))
     assert peak <= 10 * out.stat().st_size + (300 << 20), peak
 
 

@@ -17,8 +17,6 @@ import io
 import json
 import os
 import struct
-import subprocess
-import sys
 import warnings
 import zipfile
 import zlib
@@ -27,8 +25,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
+from helpers import one_error_line, run_cli_peak
 from splat_oracle import write_scene
-from test_cli_hostile import one_error_line
 
 import splatdeform as sd
 from splatdeform.errors import FormatError, InputError
@@ -37,37 +35,9 @@ from splatdeform.io.splats import LossyWriteWarning
 
 TIMEOUT = 60
 MB = 1 << 20
-# VmHWM of the CLI run in-process, written to the file named by the first argument
-WRAPPER = """
-import runpy, sys
-out = sys.argv.pop(1)
-sys.argv[0] = "splatdeform"
-code = 0
-try:
-    runpy.run_module("splatdeform.cli", run_name="__main__", alter_sys=True)
-except SystemExit as exc:
-    code = exc.code
-finally:
-    with open("/proc/self/status") as status:
-        hwm = next(ln for ln in status if ln.startswith("VmHWM")).split()[1]
-    with open(out, "w") as fh:
-        fh.write(hwm)
-sys.exit(code)
-"""
 # an 8000 x 8000 lossless WebP of one colour (Pillow 11 / libwebp, method 0): 40 bytes
 WEBP_8000 = bytes.fromhex("5249464620000000574542505650384c140000002f3fdfcf07075081540820000a"
                           "9afec78888fe07")
-
-
-def run_cli(*args, cwd: Path, timeout: float = TIMEOUT) -> tuple[subprocess.CompletedProcess,
-                                                                 int]:
-    """The CLI run in a subprocess; (result, the child's peak RSS in bytes)."""
-    hwm = cwd / f".hwm.{os.getpid()}"
-    res = subprocess.run([sys.executable, "-c", WRAPPER, str(hwm), *map(str, args)],
-                         capture_output=True, text=True, cwd=cwd, timeout=timeout)
-    peak = int(hwm.read_text()) * 1024
-    hwm.unlink()
-    return res, peak
 
 
 def refused(path: Path, *, cwd: Path, needles=(), commands=("info",),
@@ -86,7 +56,7 @@ def refused(path: Path, *, cwd: Path, needles=(), commands=("info",),
                             "handle": [{"box": {"min": [0.75, 0, 0], "max": [1, 1, 1]}}]},
                 "handle": {"transform": {"translate": [0, 0.1, 0]}}}))
             args = [command, config]
-        res, peak = run_cli(*args, cwd=cwd)
+        res, peak = run_cli_peak(*args, cwd=cwd)
         line = one_error_line(res, needles=needles)
         assert path.name in line, line
         assert peak <= 10 * size + 300 * MB, (command, peak / MB, size)
@@ -200,7 +170,7 @@ def test_sog_folder_member_linked_outside_is_refused(good, tmp_path):
     (folder / "sh0.webp").symlink_to(outside / "sh0.webp")
     refused(folder / "meta.json", cwd=tmp_path, needles=("sh0.webp", "out of its folder"))
     # the folder given as the model: the same refusal
-    res, _ = run_cli("info", folder, cwd=tmp_path)
+    res, _ = run_cli_peak("info", folder, cwd=tmp_path)
     one_error_line(res, needles=("out of its folder",))
 
 

@@ -17,11 +17,13 @@ from pathlib import Path
 import psutil
 import pytest
 import yaml
-from test_cli_hostile import _catches_sigterm
+from helpers import catches_sigterm
 from test_stream import EDIT
 
 from data_tools.synth import bumpy_bar
 from splatdeform.io import save
+
+pytestmark = pytest.mark.slow   # 16 subprocess deforms of 300k points, 6 on a Dask cluster
 
 TIMEOUT = 300
 Trigger = Callable[[Path, str], bool]
@@ -62,7 +64,7 @@ def kill_when(scene: Path, args: list[str], trigger: Trigger, sig: int) -> None:
     deadline = time.monotonic() + TIMEOUT
     children: set[int] = set()
     try:
-        while not (_catches_sigterm(proc.pid) and trigger(scene, "".join(err))):
+        while not (catches_sigterm(proc.pid) and trigger(scene, "".join(err))):
             assert proc.poll() is None, f"ended before the trigger: {''.join(err)}"
             assert time.monotonic() < deadline, "trigger never held"
             time.sleep(0.005)
@@ -160,11 +162,22 @@ class Stop(BaseException):
 def stop(*_):
     raise Stop
 
+def threads():
+    with open("/proc/self/status") as f:
+        return next(int(ln.split()[1]) for ln in f if ln.startswith("Threads:"))
+
+def kill_once_the_query_runs(before):
+    # synchronised by polling, not by a sleep: the query's own worker threads have appeared
+    deadline = time.monotonic() + 60
+    while threads() <= before and time.monotonic() < deadline:
+        time.sleep(0.0005)
+    os.kill(os.getpid(), signal.SIGTERM)
+
 signal.signal(signal.SIGTERM, stop)
 pts = np.random.default_rng(0).random((300_000, 3))
 tree = cKDTree(pts)
-threading.Thread(target=lambda: (time.sleep(0.2), os.kill(os.getpid(), signal.SIGTERM)),
-                 daemon=True).start()
+killer = threading.Thread(target=kill_once_the_query_runs, args=(threads() + 1,), daemon=True)
+killer.start()
 try:
     knn_query(tree, pts, k=16)
 except Stop:
