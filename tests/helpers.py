@@ -203,9 +203,19 @@ def batch_report(out: Path) -> dict[str, dict]:
     return {r["scan"]: r for r in json.loads((out / "report.json").read_text())["scans"]}
 
 
-def write_batch(path: Path, edit: dict, **keys) -> Path:
-    """A batch file of ``edit`` and the batch ``keys`` (scans, output_dir, ...)."""
-    path.write_text(yaml.safe_dump({"edit": edit, **keys}))
+def batch_edit() -> dict:
+    """The batch tests' edit: ``conftest.bar_edit`` with the handle turned about its inner end
+    and at most 200 centers (generated bars fit in well under a second)."""
+    from conftest import bar_edit
+
+    return bar_edit({"pivot": [0.75, 0.5, 0.5], "translate": [0, 0.1, 0]},
+                    fit={"tolerance": 1e-3, "max_centers": 200})
+
+
+def write_batch(path: Path, edit: dict | None = None, **keys) -> Path:
+    """A batch file of ``edit`` (default :func:`batch_edit`) and the batch ``keys`` (scans,
+    output_dir, ...)."""
+    path.write_text(yaml.safe_dump({"edit": batch_edit() if edit is None else edit, **keys}))
     return path
 
 

@@ -19,9 +19,11 @@ import warnings
 import zipfile
 from pathlib import Path
 
+import helpers
 import pytest
 import yaml
-from conftest import bar_edit
+from helpers import batch_edit, dead_pid, write_batch
+from helpers import batch_report as report
 
 from data_tools.make_archive import make_scans
 from splatdeform.batch.probe import HEAD_BYTES, check, estimate_memory, probe
@@ -32,8 +34,7 @@ from splatdeform.io import load
 
 ROOT = Path(__file__).resolve().parents[1]
 PY = sys.executable
-EDIT = bar_edit({"pivot": [0.75, 0.5, 0.5], "translate": [0, 0.1, 0]},
-                fit={"tolerance": 1e-3, "max_centers": 200})
+EDIT = batch_edit()
 BIN_HEADER = (b"ply\nformat binary_little_endian 1.0\ncomment element vertex 999999999\n"
               b"element vertex 10\nproperty float x\nproperty float y\nproperty float z\n"
               b"end_header\n")
@@ -48,34 +49,17 @@ def bars(tmp_path_factory) -> list[Path]:
     return paths
 
 
-def write_batch(path: Path, **keys) -> Path:
-    path.write_text(yaml.safe_dump({"edit": EDIT, **keys}))
-    return path
-
-
-def report(out: Path) -> dict[str, dict]:
-    return {r["scan"]: r for r in json.loads((out / "report.json").read_text())["scans"]}
-
-
 def run_cli(*args, env: dict | None = None, fsize: int | None = None,
             timeout: float = 180) -> subprocess.CompletedProcess:
     def limit() -> None:
         if fsize is not None:   # a write past this kills the process (SIGXFSZ)
             resource.setrlimit(resource.RLIMIT_FSIZE, (fsize, fsize))
 
-    return subprocess.run([PY, "-m", "splatdeform.cli", *map(str, args)], capture_output=True,
-                          text=True, cwd=ROOT, timeout=timeout, preexec_fn=limit,
-                          env={**os.environ, **(env or {})})
+    return helpers.run_cli(*args, env=env, timeout=timeout, preexec_fn=limit)
 
 
 def temps(folder: Path) -> list[str]:
     return sorted(p.name for p in folder.iterdir() if p.name.startswith("splatdeform-batch-"))
-
-
-def dead_pid() -> int:
-    proc = subprocess.Popen([PY, "-c", "pass"])
-    proc.wait()
-    return proc.pid
 
 
 # -- non-regular files ---------------------------------------------------------------------------

@@ -16,7 +16,8 @@ from html.parser import HTMLParser
 from pathlib import Path
 
 import pytest
-from test_batch_hostile import report, run_cli, write_batch
+from helpers import batch_report as report
+from helpers import run_cli, write_batch
 
 from data_tools.make_archive import make_scans
 from splatdeform.batch.config import Job

@@ -10,8 +10,9 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-from test_batch_hostile import bars, dead_pid, run_cli, write_batch  # noqa: F401 (fixture)
+from helpers import dead_pid, run_cli, write_batch
 
+from data_tools.make_archive import make_scans
 from splatdeform.io.atomic import atomic_write, remove_stale_temps, temp_owner
 
 LOOK_ALIKES = [".keep.abcdef12.tmp.ply", ".notes.tmp", ".report.json.123-abcd.tmp.json",
@@ -20,11 +21,9 @@ LOOK_ALIKES = [".keep.abcdef12.tmp.ply", ".notes.tmp", ".report.json.123-abcd.tm
                ".x.0-abcdefgh.tmp.ply", ".x.12-ABCDEFGH.tmp.ply"]
 
 
-def test_batch_keeps_look_alike_files_in_output_dir(tmp_path: Path, bars) -> None:  # noqa: F811
+def test_batch_keeps_look_alike_files_in_output_dir(tmp_path: Path) -> None:
     scans = tmp_path / "scans"
-    scans.mkdir()
-    for p in bars:
-        (scans / p.name).write_bytes(p.read_bytes())
+    make_scans(scans, 2, 1500, spheres=False, zip_name=None)
     out = tmp_path / "out"
     out.mkdir()
     dead = dead_pid()
