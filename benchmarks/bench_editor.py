@@ -6,12 +6,11 @@ bar) and 152k generated Gaussians: fit once, then per pose the bytes sent (the `
 and pose -> drawn frame timed inside the page (input time to the animation frame after the
 draw, with gl.finish), plus the once-per-fit basis upload. Targets: <= 1 KB per pose,
 <= 100 ms (40k points), <= 1 s (152k Gaussians) in software WebGL.
-``--busy 2`` repeats beside two CPU-busy processes.
+``--busy 2`` repeats beside two CPU-busy processes. (The viser viewer and its ``--viser``
+benchmark were retired: the page is the one editor.) The chromium driver is the tests' helper
+``tests/browser.py``.
 
-``--viser``: the older viser path, server side (pose -> new buffers handed to viser) for a
-generated 1M-point surfel bar and 1M Gaussians.
-
-    python benchmarks/bench_editor.py [--poses 10] [--busy 2] [--viser --points 1000000]
+    python benchmarks/bench_editor.py [--poses 10] [--busy 2]
 """
 
 from __future__ import annotations
@@ -29,12 +28,11 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "tests"))  # browser.py: the tests' chromium driver
 
 from data_tools.synth import bumpy_bar, gaussian_bar  # noqa: E402
 from splatdeform.deform.handle import compose_transform  # noqa: E402
 from splatdeform.edit.selectors import Box  # noqa: E402
-from splatdeform.editor import EditorController  # noqa: E402
-from splatdeform.model import PointModel  # noqa: E402
 
 SCAN = ROOT.parent / "shared" / "data" / "scans" / "armadillo_oriented.ply"
 
@@ -48,7 +46,8 @@ def page_case(label: str, path: Path, poses: int, covariance: str = "limited"
               ) -> dict[str, float]:
     """Fit end boxes on ``path`` in the page's session, then time poses in chromium
     (Gaussians drawn with ``gaussians.covariance`` = ``covariance``)."""
-    from splatdeform.editor.browser import Chromium
+    from browser import Chromium
+
     from splatdeform.editor.page_server import make_server
 
     srv = make_server(path, port=0)
@@ -136,58 +135,12 @@ def page_main(poses: int, busy: int) -> None:
                       f"{r['max_ms']:.0f} ms | {r['draw_ms']:.0f} ms | {r['sort_ms']:.0f} ms |")
 
 
-def measure(name: str, model: PointModel, poses: int, server) -> dict[str, float]:
-    from splatdeform.editor.server import EditorApp
-
-    ed = EditorController(model, model_path=ROOT / f"{name}.ply", base_dir=ROOT)
-    ed.add_selector("fixed", Box((-1, -1, -1), (1, 1, 1)))
-    ed.add_selector("handle", Box((3, -1, -1), (5, 1, 1)))
-    ed.settings.fit.tolerance = 1e-3
-    t0 = time.perf_counter()
-    app = EditorApp(ed, server)
-    t_app = time.perf_counter() - t0
-    app._fit()  # what the Fit button does
-    stats = ed.fit_stats
-    app.apply_pose(0, np.eye(4))  # warm-up
-    total, compute = [], []
-    for i in range(poses):
-        matrix = compose_transform(pivot=np.array([3.5, 0, 0]), axis=(0, 0, 1),
-                                   degrees=3.0 * (i + 1), translate=(0, 0.02 * i, 0))
-        total.append(app.apply_pose(0, matrix))
-        compute.append(ed.set_pose(matrix, full=False).seconds)
-    app.close()
-    return {"points": model.n_points, "fit_s": stats["seconds"], "centers": stats["centers"],
-            "viewer_setup_s": t_app, "median_ms": 1000 * float(np.median(total)),
-            "max_ms": 1000 * float(np.max(total)),
-            "set_pose_ms": 1000 * float(np.median(compute))}
-
-
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--points", type=int, default=1_000_000)
     ap.add_argument("--poses", type=int, default=10)
     ap.add_argument("--busy", type=int, default=0, help="also run beside N CPU-busy processes")
-    ap.add_argument("--viser", action="store_true", help="the older viser path, server side")
     args = ap.parse_args(argv)
-    if not args.viser:
-        page_main(args.poses, args.busy)
-        return
-    import viser
-
-    server = viser.ViserServer(host="127.0.0.1", port=0, verbose=False)
-    try:
-        rows = [("points (surfels, normals shaded)", measure("bar", bumpy_bar(args.points),
-                                                              args.poses, server), 150),
-                ("3DGS (covariances)", measure("splats", gaussian_bar(args.points),
-                                               args.poses, server), 300)]
-    finally:
-        server.stop()
-    print("\n| model | N | centers | fit | per pose: set_pose (moving rows) "
-          "| pose -> viewer (median / max) | target |\n|---|---|---|---|---|---|---|")
-    for label, r, target in rows:
-        print(f"| {label} | {r['points']:,} | {r['centers']} | {r['fit_s']:.2f} s | "
-              f"{r['set_pose_ms']:.0f} ms | {r['median_ms']:.0f} / {r['max_ms']:.0f} ms | "
-              f"<= {target} ms |")
+    page_main(args.poses, args.busy)
 
 
 if __name__ == "__main__":

@@ -223,9 +223,10 @@ def cmd_select(args: argparse.Namespace) -> int:
 
 def cmd_edit(args: argparse.Namespace) -> int:
     if args.viewer == "viser":
-        from .editor.server import run
-    else:
-        from .editor.page_server import run
+        raise InputError("--viewer viser: the viser viewer was retired; the editor's page "
+                         "(--viewer page, the default) does everything it did, plus curves and "
+                         "undo")
+    from .editor.page_server import run
 
     if not 0 <= args.port <= 65535:
         raise InputError(f"--port: expected 0..65535, got {args.port}")
@@ -444,8 +445,8 @@ def build_parser() -> argparse.ArgumentParser:
                         "besides loopback names and addresses and --host; repeatable (others "
                         "are refused: DNS rebinding)")
     p.add_argument("--viewer", choices=("page", "viser"), default="page",
-                   help="page (default): the editor's WebGL2 page, deforming on the browser's "
-                        "GPU; viser: the older viewer fed whole deformed frames")
+                   help="page (default, the only one): the editor's WebGL2 page, deforming on "
+                        "the browser's GPU; viser: retired (answers with one line)")
     p.set_defaults(func=cmd_edit)
 
     from .batch import register as register_batch

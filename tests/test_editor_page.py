@@ -17,6 +17,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
+from browser import Chromium
 from conftest import shared_file
 
 import splatdeform as sd
@@ -25,7 +26,6 @@ from splatdeform.basis import reference
 from splatdeform.deform import full_basis
 from splatdeform.edit.selectors import Box
 from splatdeform.editor import EditorController, payload
-from splatdeform.editor.browser import Chromium
 from splatdeform.editor.page_server import make_server
 from splatdeform.editor.session import Session
 from splatdeform.errors import InputError
@@ -792,17 +792,6 @@ def test_page_curve_edit_drag_and_save(bar_path, tmp_path):
     out = sd.load(tmp_path / "out.ply").positions - o
     assert np.abs(out - shown).max() < 1e-3 * srv.session.ed.model.diagonal()
     _deform_again(tmp_path, "out.yaml", "out.ply")
-
-
-def test_viser_viewer_refuses_curve_edits_in_one_line(bar_path, tmp_path):
-    shutil.copy(bar_path, tmp_path / "bar.ply")
-    _curve_edit(tmp_path)
-    run = subprocess.run([sys.executable, "-m", "splatdeform.cli", "edit", "curve.yaml",
-                          "--viewer", "viser", "--port", "0"], cwd=tmp_path,
-                         capture_output=True, text=True, timeout=120)
-    assert run.returncode == 2, run.stderr
-    lines = run.stderr.strip().splitlines()
-    assert len(lines) == 1 and "--viewer page" in lines[0] and "Traceback" not in run.stderr
 
 
 def test_page_curve_points_are_clicked_on_the_model(page_server):

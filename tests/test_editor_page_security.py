@@ -1,6 +1,7 @@
-"""The WebGL page's saves go through the same save folder as the viser editor: file names only,
-never an input, never outside the folder, and an existing file only after the user confirms;
-``edit --host`` other than loopback warns (the token is still required)."""
+"""The WebGL page's saves go through the one save folder (:class:`~splatdeform.editor.security.
+SaveFolder`): file names only, never an input, never outside the folder, and an existing file
+only after the user confirms; ``edit --host`` other than loopback warns (the token is still
+required)."""
 
 from __future__ import annotations
 

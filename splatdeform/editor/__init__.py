@@ -1,8 +1,11 @@
-"""The local web editor: a plain controller (:mod:`.controller`) and a viser front end
-(:mod:`.server`, imported only by ``splatdeform edit``)."""
+"""The local web editor (``splatdeform edit``): a plain controller (:mod:`.controller`, usable
+from a notebook) and the WebGL2 page (:mod:`.page_server`, imported only by the verb)."""
 
 from __future__ import annotations
 
-from .controller import EditorController, Frame, HandleState, SaveResult, StaleFitError
+from .controller import EditorController
+from .frames import Frame
+from .saving import SaveResult
+from .state import HandleState, StaleFitError
 
 __all__ = ["EditorController", "Frame", "HandleState", "SaveResult", "StaleFitError"]

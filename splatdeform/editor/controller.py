@@ -3,8 +3,11 @@
 State: the model, the fixed region and a list of handles (each a list of selectors and its
 current 4x4 pose), the fit settings, the precomputed deformation and whether it is stale.
 Actions: add / move / resize / remove selectors, :meth:`EditorController.fit`,
-:meth:`EditorController.set_pose` (delta_c applied to the precomputed basis, the per-frame path)
-and :meth:`EditorController.save` (deformed model, edit YAML, before/after PNG).
+:meth:`EditorController.set_pose` (delta_c applied to the precomputed basis, the per-frame path:
+:mod:`.frames`) and :meth:`EditorController.save` (deformed model, edit YAML, before/after PNG:
+:mod:`.saving`). The state changes only through these public methods (also
+:meth:`~EditorController.store_pose`, :meth:`~EditorController.set_covariance`,
+:meth:`~EditorController.snapshot` / :meth:`~EditorController.restore` for undo).
 
 Everything goes through the same pipeline as ``splatdeform deform``: the config models
 (:mod:`splatdeform.edit.config`), :func:`splatdeform.edit.precompute` for rings, fit and basis, and
@@ -29,109 +32,35 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from splatdeform.blas import blas_threads
-from splatdeform.deform import arrays as ap
 from splatdeform.deform.handle import delta_for_transform
 from splatdeform.deform.regions import check_regions
 from splatdeform.edit.config import EditConfig, load_edit, parse_edit
 from splatdeform.edit.selectors import Selector, select
-from splatdeform.edit.writer import edit_yaml, yaml_text
 
 from .. import deform as df
 from ..basis import resolve_backend
 from ..errors import InputError, RegionError
-from ..geometry import full_from_triu6, triu6
-from ..io import check_output_path, save
 from ..model import PointModel
+from . import frames, saving
 from . import selectors as sl
 from .curve import CurveState, CurveView, curve_view
-
-ROLES = ("fixed", "handle")
-FREE, FIXED, HANDLE = 0, 1, 2
-MAX_HANDLES = 64        # handles one edit may have in the editor
-MAX_SELECTORS = 1000    # selectors over the fixed region and all handles together
-MIN_SINGULAR = 1e-6     # a pose's 3x3 part: smallest singular value, absolute (README: scale)
-MIN_CONDITION = 1e-9    # ... and relative to the largest
-
-
-def check_pose(matrix: Any, key: str) -> np.ndarray:
-    """``matrix`` as a (4, 4) float64 affine pose, or InputError naming ``key``: non-finite
-    entries, a last row other than 0 0 0 1, or a 3x3 part that is singular or nearly so
-    (smallest singular value below :data:`MIN_SINGULAR` or :data:`MIN_CONDITION` of the
-    largest: the handle's points would collapse onto a plane, a line or a point)."""
-    m = np.asarray(matrix, dtype=np.float64)
-    if m.shape != (4, 4) or not np.isfinite(m).all() or not np.allclose(m[3], [0, 0, 0, 1]):
-        raise InputError(f"{key}: expected a finite 4x4 affine matrix (last row 0 0 0 1)")
-    s = np.linalg.svd(m[:3, :3], compute_uv=False)
-    if not s[-1] >= MIN_SINGULAR or not s[-1] >= MIN_CONDITION * s[0]:
-        raise InputError(f"{key}: the 3x3 part is singular or nearly so (singular values "
-                         f"{s[0]:.3g} .. {s[-1]:.3g}; expected the smallest at least "
-                         f"{MIN_SINGULAR:g} and {MIN_CONDITION:g} of the largest): it would "
-                         "collapse the handle's points")
-    return m
-
-
-class StaleFitError(InputError):
-    """An action needs a fit that matches the current regions (none yet, or regions changed)."""
-
-
-@dataclass
-class HandleState:
-    """One handle: its region (a union of selectors) and its pose, a (4, 4) float64 affine
-    matrix in model coordinates (identity = not moved)."""
-
-    selectors: list[Selector] = field(default_factory=list)
-    matrix: np.ndarray = field(default_factory=lambda: np.eye(4))
-
-
-@dataclass
-class Frame:
-    """What one pose change produces for the viewer (float32, ``local`` coordinates: model
-    coordinates minus :attr:`EditorController.origin`, so large scan offsets stay precise).
-
-    positions: (M, 3) float32. normals: (M, 3) float32 unit or None. axes: (M, 2, 3) float32
-    surfel/splat tangent axes or None. cov6: (M, 6) float32 upper triangles (xx, xy, xz, yy,
-    yz, zz) of the Gaussian covariances or None (:attr:`covariances` gives (M, 3, 3)).
-    index: None when the rows are all N points, else (M,) int64: the points these rows are
-    (the non-fixed ones; fixed points never move). delta_c: (k, 3) float64. seconds: compute.
-    """
-
-    positions: np.ndarray
-    normals: np.ndarray | None
-    axes: np.ndarray | None
-    cov6: np.ndarray | None
-    delta_c: np.ndarray
-    seconds: float = 0.0
-    index: np.ndarray | None = None
-
-    @property
-    def covariances(self) -> np.ndarray | None:
-        """(M, 3, 3) float32 covariances, or None."""
-        return None if self.cov6 is None else full_from_triu6(self.cov6)
-
-
-@dataclass
-class SaveResult:
-    """Paths written by :meth:`EditorController.save` (image None when not asked)."""
-
-    model: Path
-    config: Path
-    image: Path | None
-
-
-def _gaussian_cov6(model: PointModel) -> np.ndarray:
-    """(N, 6) float32 upper triangles of the covariances R S^2 R^T of a 3DGS model."""
-    from splatdeform.deform.gaussians import scale_rotation_to_factor
-
-    g = model.gaussians
-    f = scale_rotation_to_factor(g.scale_log, g.rotation)
-    return triu6(f @ f.transpose(0, 2, 1))
+from .frames import Frame
+from .saving import SaveResult
+from .state import (
+    FIXED,
+    HANDLE,
+    MAX_HANDLES,
+    MAX_SELECTORS,
+    HandleState,
+    Snapshot,
+    StaleFitError,
+    check_pose,
+)
 
 
 class EditorController:
@@ -156,7 +85,7 @@ class EditorController:
         self.curve: CurveState | None = None  # a curve edit (``curve:``), with or without handles
         self._curve_cache: tuple[Any, CurveView] | None = None
         self.settings = config if config is not None else parse_edit(
-            _bare_settings(self.model_path), str(self.model_path))
+            saving.bare_settings(self.model_path), str(self.model_path))
         lo, hi = model.bbox()
         self.origin = (lo + hi) / 2.0
         self.deformation: df.Deformation | None = None
@@ -174,7 +103,7 @@ class EditorController:
             return cls.from_config(path)
         from splatdeform.edit.run import prepare_model
 
-        settings = parse_edit(_bare_settings(path.resolve()), str(path))
+        settings = parse_edit(saving.bare_settings(path.resolve()), str(path))
         model = prepare_model(settings, path.resolve().parent, {})
         return cls(model, model_path=path, base_dir=path.resolve().parent, config=settings)
 
@@ -220,6 +149,16 @@ class EditorController:
                                  f"{handle}")
             return self.handles[handle].selectors
         raise InputError(f"role: expected 'fixed' or 'handle', got {role!r}")
+
+    def selectors(self, role: str, handle: int = 0) -> tuple[Selector, ...]:
+        """The selectors of the fixed region or of handle ``handle`` (a copy)."""
+        return tuple(self._region(role, handle))
+
+    def selector(self, role: str, index: int, *, handle: int = 0) -> Selector:
+        """Selector ``index`` of a region (InputError naming the region when there is none)."""
+        region = self._region(role, handle)
+        self._check_index(region, role, index)
+        return region[index]
 
     def add_selector(self, role: str, selector: Selector | str, *, handle: int = 0,
                      center=None) -> int:
@@ -416,7 +355,7 @@ class EditorController:
         report("viewer buffers", 0.9)
         self.deformation = deformation
         self._fit_key = key
-        self._frame_data = self._prepare_frames(deformation)
+        self._frame_data = frames.prepare(self.model, deformation, self.origin)
         self.fit_stats = {
             **fit_stats(deformation, self.model.n_points, deformation.free_idx.size),
             "seconds": time.perf_counter() - t0,
@@ -425,45 +364,9 @@ class EditorController:
         report("done", 1.0)
         return dict(self.fit_stats)
 
-    def _prepare_frames(self, d: df.Deformation) -> dict[str, Any]:
-        """Per-frame arrays over the non-fixed points (fixed points never move)."""
-        m = self.model
-        active = np.flatnonzero(~d.fixed)
-        values, grads = df.full_basis(d)
-        need_grads = any(a is not None for a in (m.normals, m.axes, m.gaussians))
-        data: dict[str, Any] = {
-            "active": active,
-            "base": (m.positions - self.origin).astype(np.float32),
-            "values": np.ascontiguousarray(values[active]),
-            "grads": np.ascontiguousarray(grads[active]) if need_grads else None,
-        }
-        data["base_active"] = np.ascontiguousarray(data["base"][active])
-        if m.normals is not None:
-            data["normals"] = m.normals.astype(np.float32)
-            data["normals_active"] = np.ascontiguousarray(data["normals"][active])
-        if m.axes is not None:
-            data["axes"] = m.axes.astype(np.float32)
-        if m.gaussians is not None:
-            data["cov6"] = _gaussian_cov6(m)
-            data["cov6_active"] = np.ascontiguousarray(data["cov6"][active])
-        return data
-
-    def moving_points(self) -> np.ndarray | None:
-        """(M,) int64 indices of the points a pose moves (the non-fixed ones, the order of
-        ``frame.index`` in ``set_pose(full=False)``); None while there is no fresh fit."""
-        if self._frame_data is None or self.stale:
-            return None
-        return self._frame_data["active"]
-
     def base_frame(self) -> Frame:
         """The undeformed model as a :class:`Frame` (what the viewer shows before a fit)."""
-        m = self.model
-        return Frame(
-            positions=(m.positions - self.origin).astype(np.float32),
-            normals=None if m.normals is None else m.normals.astype(np.float32),
-            axes=None if m.axes is None else m.axes.astype(np.float32),
-            cov6=None if m.gaussians is None else _gaussian_cov6(m),
-            delta_c=np.zeros((4, 3)))
+        return frames.base_frame(self.model, self.origin)
 
     def delta_c(self) -> np.ndarray:
         """delta_c (k, 3) of the current poses: T_h(C_h) - C_h for every handle h, stacked
@@ -478,53 +381,31 @@ class EditorController:
             parts.append(moved - given)
         return np.vstack(parts)
 
-    def handle_pivot(self, handle: int = 0) -> np.ndarray:
-        """(3,) model-space centre of handle ``handle``'s fitted frame, moved by its pose."""
-        self._region("handle", handle)
-        if self.deformation is None:
-            raise StaleFitError("fit: no fit yet; fit the regions first")
-        c0 = self.deformation.handle_groups()[handle].frame.control_points[0]
-        m = self.handles[handle].matrix
-        return m[:3, :3] @ c0 + m[:3, 3]
-
     def set_pose(self, matrix: np.ndarray, handle: int = 0, *, full: bool = True) -> Frame:
         """Set handle ``handle``'s pose (4, 4) affine and deform: delta_c applied to the
         precomputed basis (:func:`splatdeform.deform.arrays.deform_frame`); returns the new
         positions and normals / axes / covariances of all points, or with ``full=False`` of the
         non-fixed points only (``frame.index``; the viewer's fast path). Raises StaleFitError
-        when the fit is stale."""
+        when the fit is stale (:meth:`store_pose`'s checks)."""
+        self.store_pose(matrix, handle)
+        t0 = time.perf_counter()
+        return frames.deform(self._frame_data, self.delta_c(), full=full, t0=t0)
+
+    def pose(self, handle: int = 0) -> np.ndarray:
+        """Handle ``handle``'s pose: a copy of its (4, 4) model-space matrix."""
+        self._region("handle", handle)
+        return self.handles[handle].matrix.copy()
+
+    def store_pose(self, matrix: np.ndarray, handle: int = 0) -> None:
+        """Set handle ``handle``'s pose (4, 4) without deforming (the page deforms on its GPU);
+        the checks of :meth:`set_pose` (a bad matrix: InputError; a stale fit:
+        StaleFitError)."""
         m4 = check_pose(matrix, self.pose_key(handle))
         if self.stale:
             raise StaleFitError("fit: the regions changed since the last fit (or there is none);"
                                 " fit again before moving the handle")
         self._region("handle", handle)
-        t0 = time.perf_counter()
         self.handles[handle].matrix = m4.copy()
-        delta = self.delta_c()
-        fd = self._frame_data
-        active = fd["active"]
-        with blas_threads(1):  # oversubscribed: 10-30x slower
-            p, n = ap.deform_frame(fd["base_active"], fd.get("normals_active"), fd["values"],
-                                   fd["grads"], delta)
-            axes = cov6 = None
-            if "axes" in fd:
-                jac = ap.jacobians(fd["grads"], delta.astype(np.float32))
-                axes = ap.transform_axes(jac, fd["axes"][active]).astype(np.float32)
-            if "cov6" in fd:
-                cov6 = ap.covariance_frame(fd["grads"], delta, fd["cov6_active"])
-        if not full:
-            return Frame(p, n, axes, cov6, delta, time.perf_counter() - t0, index=active)
-
-        def scatter(whole: np.ndarray | None, rows: np.ndarray | None) -> np.ndarray | None:
-            if whole is None:
-                return None
-            out = whole.copy()
-            out[active] = rows
-            return out
-
-        return Frame(scatter(fd["base"], p), scatter(fd.get("normals"), n),
-                     scatter(fd.get("axes"), axes), scatter(fd.get("cov6"), cov6), delta,
-                     time.perf_counter() - t0)
 
     def pose_key(self, handle: int) -> str:
         """The YAML key of handle ``handle``'s pose (``handle.matrix``, ``handles[i].matrix``)."""
@@ -542,6 +423,36 @@ class EditorController:
         self._region("handle", handle)
         self.handles[handle].matrix = np.eye(4)
 
+    @property
+    def covariance(self) -> str:
+        """``gaussians.covariance`` of the edit (jacobian | rotation | limited)."""
+        return self.settings.gaussians.covariance
+
+    def set_covariance(self, mode: str) -> None:
+        """Set ``gaussians.covariance``: what Save writes and the viewer draws (the fit does not
+        depend on it). InputError for another mode."""
+        from splatdeform.deform.gaussians import COVARIANCE_MODES
+
+        if mode not in COVARIANCE_MODES:
+            raise InputError(f"gaussians.covariance: expected one of "
+                             f"{', '.join(COVARIANCE_MODES)}, got {mode!r}")
+        self.settings.gaussians.covariance = mode
+
+    # ---- undo ---------------------------------------------------------------------------
+    def snapshot(self) -> Snapshot:
+        """The editable state as a value (for undo / redo: :mod:`.history`)."""
+        return Snapshot(tuple(self.fixed),
+                        tuple((tuple(h.selectors), h.matrix.copy()) for h in self.handles),
+                        self.curve, self.covariance)
+
+    def restore(self, snap: Snapshot) -> None:
+        """Back to ``snap``'s state. When its regions match the last fit's, that fit is
+        current again (the fit compares region keys)."""
+        self.fixed = list(snap.fixed)
+        self.handles = [HandleState(list(s), m.copy()) for s, m in snap.handles]
+        self.curve = snap.curve
+        self.settings.gaussians.covariance = snap.covariance
+
     # ---- config and save ---------------------------------------------------------------
     def resolved_backend(self) -> str:
         """The concrete basis backend ('numpy' or 'opencl') 'auto' means here."""
@@ -558,104 +469,23 @@ class EditorController:
 
     def to_yaml_dict(self, *, output: str | Path | None = None,
                      config_dir: str | Path | None = None) -> dict[str, Any]:
-        """The edit config mapping (what :meth:`save` writes as YAML)."""
-        cdir = Path(config_dir).resolve() if config_dir is not None else self.base_dir
-        out = Path(output) if output is not None else self.default_paths()[0]
-
-        def pose(h: HandleState) -> dict[str, Any]:
-            return {"region": [sl.to_yaml(x, self.base_dir) for x in h.selectors],
-                    "matrix": [[float(v) for v in row] for row in h.matrix]}
-
-        one = self.curve is None and len(self.handles) == 1
-        return edit_yaml(
-            self.settings, input_path=self.model_path, output_path=out.resolve(),
-            config_dir=cdir, base_dir=self.base_dir, units=self.units,
-            fixed=[sl.to_yaml(x, self.base_dir) for x in self.fixed],
-            handle=pose(self.handles[0]) if one else None,
-            handles=None if one else [pose(h) for h in self.live_handles()],
-            curve=None if self.curve is None else self.curve.to_yaml(),
-            gaussians=self.model.gaussians is not None)  # the mode the saved splats used
+        """The edit config mapping (what :meth:`save` writes as YAML; :mod:`.saving`)."""
+        return saving.to_yaml_dict(self, output=output, config_dir=config_dir)
 
     def default_paths(self) -> tuple[Path, Path, Path]:
-        """(model, yaml, png) Save writes by default. From a bare MODEL: MODEL_edited.<ext>,
-        MODEL_edit.yaml and MODEL_edit.png beside it; from EDIT.yaml: its output, then
-        EDIT_edited.yaml and EDIT_edited.png beside the YAML (inputs are never overwritten)."""
-        if self.config_path is not None:
-            c = self.config_path
-            return ((self.base_dir / self.settings.output).resolve(),
-                    c.with_name(f"{c.stem}_edited.yaml"), c.with_name(f"{c.stem}_edited.png"))
-        m = self.model_path
-        return (m.with_name(f"{m.stem}_edited{m.suffix}"), m.with_name(f"{m.stem}_edit.yaml"),
-                m.with_name(f"{m.stem}_edit.png"))
+        """(model, yaml, png) Save writes by default (:func:`.saving.default_paths`)."""
+        return saving.default_paths(self)
 
     def deformed_model(self) -> PointModel:
         """The deformed model exactly as ``splatdeform deform`` computes it for
-        :meth:`to_config` (float64 :func:`splatdeform.deform.apply`)."""
-        from splatdeform.edit.plain import control_displacement
-
-        if self.stale:
-            raise StaleFitError("fit: the regions changed since the last fit (or there is none);"
-                                " fit again before saving")
-        self.check_poses()
-        cfg = self.to_config()
-        delta_c, matrix = control_displacement(cfg, self.model, self.deformation)
-        deformed = df.apply(self.deformation, self.model, delta_c, moving_matrix=matrix,
-                            covariance=cfg.gaussians.covariance)
-        if not np.isfinite(deformed.positions).all():
-            raise InputError("the deformation produced non-finite positions; check the regions "
-                             "and the transform")
-        return deformed
+        :meth:`to_config` (:func:`.saving.deformed_model`)."""
+        return saving.deformed_model(self)
 
     def save(self, model_path: str | Path | None = None, config_path: str | Path | None = None,
              image_path: str | Path | None = None, *, image: bool = True,
              image_size: tuple[int, int] | None = None) -> SaveResult:
-        """Write the deformed model (atomic, never over the input), the edit YAML that
-        reproduces it through ``splatdeform deform``, and (``image``) a before/after PNG through
-        the project's renderer, ``image_size`` (width, height) pixels for both panels, as
-        ``deform --render`` (default: ``render.size`` of the loaded YAML, else its default
-        1200 x 600; the view from ``render``'s azimuth, elevation, fov, up and roll). Defaults:
-        :meth:`default_paths`."""
-        r = self.settings.render
-        if image_size is None:
-            image_size = tuple(r.size) if r is not None else (1200, 600)
-        from ..io import atomic_write
-
-        d_model, d_yaml, d_png = self.default_paths()
-        out = Path(model_path) if model_path is not None else d_model
-        ypath = Path(config_path) if config_path is not None else d_yaml
-        png = Path(image_path) if image_path is not None else d_png
-        inputs = [self.model_path, self.config_path]
-        check_output_path(out, *inputs)
-        check_output_path(ypath, *inputs, out)
-        if ypath.suffix.lower() not in (".yaml", ".yml"):
-            raise InputError(f"{ypath}: expected a .yaml edit file name")
-        if image:
-            from ..render.camera import camera_sidecar
-
-            check_output_path(png, *inputs, out, ypath)
-            if png.suffix.lower() != ".png":
-                raise InputError(f"{png}: expected a .png image file name")
-            check_output_path(camera_sidecar(png), *inputs, out, ypath, png)
-        deformed = self.deformed_model()
-        text = yaml_text(self.to_yaml_dict(output=out, config_dir=ypath.resolve().parent),
-                         "splatdeform edit written by the editor; reproduce with:\n"
-                         f"  splatdeform deform {ypath.name}")
-        written = save(deformed, out)
-        with atomic_write(ypath) as stream:
-            stream.write(text.encode())
-        if image:
-            from ..render import View, render_comparison
-
-            panel = (max(image_size[0] // 2, 1), image_size[1])
-            view = View(size=panel) if r is None else View(
-                size=panel, azimuth=r.azimuth, elevation=r.elevation, fov=r.fov, up=r.up,
-                roll=r.roll)
-            render_comparison(self.model, deformed, png, view, labels=("before", "after"))
-        return SaveResult(written, ypath, png if image else None)
-
-
-def _bare_settings(model_path: Path) -> dict[str, Any]:
-    """Default settings of an edit started from a bare model (regions filled in later)."""
-    return {"input": str(model_path), "output": "unused.ply",
-            "regions": {"fixed": [{"indices": [0]}], "handle": [{"indices": [0]}]},
-            "handle": {"matrix": np.eye(4).tolist()}}
+        """Write the deformed model, the edit YAML that reproduces it through ``splatdeform
+        deform`` and (``image``) a before/after PNG (:func:`.saving.save`; defaults:
+        :meth:`default_paths`)."""
+        return saving.save(self, model_path, config_path, image_path, image=image,
+                           image_size=image_size)

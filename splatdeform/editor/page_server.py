@@ -5,7 +5,7 @@ JSON actions handled by :class:`~splatdeform.editor.session.Session`.
 The page deforms on its GPU: the basis goes over once per fit (``/api/basis``), a pose is a
 ``pose`` action of 16 floats. Loopback by default; every ``/api`` request carries the random
 token of the printed URL and is checked by :func:`~splatdeform.editor.security.refusal` (the
-``Host`` header, the ``Origin``, the token), the one check of both editors.
+``Host`` header, the ``Origin``, the token), the editor's one check.
 
 Hostile clients: a connection is only given a worker thread once its whole request (head and
 ``Content-Length`` body) has arrived; until then one reader thread buffers it, and drops it
@@ -335,9 +335,8 @@ class _Handler(BaseHTTPRequestHandler):
     def _refused(self, api: bool) -> bool:
         """Answer 403 and return True when the request may not go on: the ``Host`` always, the
         Origin and token for the page and the API (static files need no token)."""
-        port = self.server.server_address[1]
         if api:
-            why = refusal(self.path, self.headers, self.server.token, port, self.server.hosts)
+            why = refusal(self.path, self.headers, self.server.token, self.server.hosts)
         elif not self.server.hosts.allows(self.headers.get("Host", "") or ""):
             why = "refused: the Host header is not this editor's address"
         else:

@@ -20,7 +20,8 @@ from ..deform.normals import pca_normals
 from ..render.camera import default_up
 from ..render.gaussian_data import log_scale_shape
 from . import view
-from .controller import EditorController, _gaussian_cov6
+from .controller import EditorController
+from .frames import gaussian_cov6
 
 UP_VECTORS = {"+x": (1, 0, 0), "-x": (-1, 0, 0), "+y": (0, 1, 0), "-y": (0, -1, 0),
               "+z": (0, 0, 1), "-z": (0, 0, -1)}
@@ -74,7 +75,7 @@ def model_arrays(ed: EditorController, normals: np.ndarray | None = None
         out["faces"] = np.ascontiguousarray(m.faces, dtype=np.uint32)
     g = m.gaussians
     if g is not None:
-        out["cov6"] = _gaussian_cov6(m)
+        out["cov6"] = gaussian_cov6(m)
         out["shape"] = log_scale_shape(g.scale_log)
         if g.sh_rest is not None and g.sh_rest.shape[1] >= 9:
             out["sh_rest"] = np.ascontiguousarray(g.sh_rest, dtype=np.float32)
@@ -102,7 +103,7 @@ def scene_info(ed: EditorController, arrays: dict[str, np.ndarray] | None = None
         "origin": [float(v) for v in ed.origin], "up": up_axis(ed),
         "up_vector": list(UP_VECTORS[up_axis(ed)]), "point_size": view.point_size(ed.model),
         "normals": normals_from, "sh_degree": sh_degree(ed),
-        "covariance": ed.settings.gaussians.covariance,
+        "covariance": ed.covariance,
         "arrays": {k: {"dtype": a.dtype.str, "shape": list(a.shape)}
                    for k, a in arrays.items()},
     }

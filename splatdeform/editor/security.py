@@ -1,14 +1,13 @@
 """Who may drive the editor, and where it may write.
 
-- Access: the server prints a URL with a random token (as notebook servers do). Every HTTP
-  request and websocket handshake must carry it, in the ``token`` query parameter or in the
-  cookie the first tokened page load sets (``HttpOnly``, ``SameSite=Strict``: the browser sends
-  it back to this origin only); a request whose ``Origin`` names another site than the one it
-  was sent to (a web page in the user's browser reaching for ``ws://127.0.0.1:PORT``) is refused
-  even with the cookie, and so is one whose ``Host`` header is not this editor's address
-  (:class:`HostRule`: a loopback name or address, the ``--host`` value, a name given with
-  ``--allow-host``; DNS rebinding sends the attacker's own name). :func:`refusal` is the one
-  check, for the page's server and for viser's accept path (:func:`guarded_viser`).
+- Access: the server prints a URL with a random token (as notebook servers do). The page and
+  every API request must carry it: the page in the URL's ``t`` query parameter, the API
+  requests in the ``X-Editor-Token`` header the page sends; a request whose ``Origin`` names
+  another site than the one it was sent to (a web page in the user's browser reaching for
+  ``http://127.0.0.1:PORT``) is refused even with the token, and so is one whose ``Host``
+  header is not this editor's address (:class:`HostRule`: a loopback name or address, the
+  ``--host`` value, a name given with ``--allow-host``; DNS rebinding sends the attacker's own
+  name). :func:`refusal` is the one check (the page's server, :mod:`.page_server`).
 - Saves: :class:`SaveFolder` turns a file *name* typed in the page into a path in the editor's
   working folder; absolute paths, folders, ``..`` and the inputs are refused, and an existing
   file is only replaced when the caller says the user confirmed it. The camera file a PNG
@@ -23,7 +22,7 @@ import ipaddress
 import os
 import secrets
 import socket
-from collections.abc import Callable, Iterable, Iterator, Mapping
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -37,10 +36,6 @@ LOOPBACK_NAMES = ("localhost", "127.0.0.1", "::1", "ip6-localhost")
 def new_token() -> str:
     """A fresh random URL-safe token (192 bits)."""
     return secrets.token_urlsafe(24)
-
-
-def cookie_name(port: int) -> str:
-    return f"splatdeform-editor-{port}"
 
 
 def is_loopback(host: str) -> bool:
@@ -64,26 +59,14 @@ def exposure_warning(host: str, port: int) -> str | None:
             "default --host 127.0.0.1")
 
 
-def _cookies(header: str) -> dict[str, str]:
-    out = {}
-    for part in header.split(";"):
-        name, _, value = part.strip().partition("=")
-        if name:
-            out[name] = value
-    return out
-
-
-def request_token(path: str, headers: Mapping[str, str], port: int) -> str | None:
-    """The token a request carries (the page's ``X-Editor-Token`` header, the ``token`` or
-    ``t`` query parameter, then the cookie), or None."""
+def request_token(path: str, headers: Mapping[str, str]) -> str | None:
+    """The token a request carries (the page's ``X-Editor-Token`` header, else the ``t`` query
+    parameter of the printed URL), or None."""
     header = headers.get("X-Editor-Token")
     if header:
         return header
     query = parse_qs(urlsplit(path).query)
-    for key in ("token", "t"):
-        if query.get(key):
-            return query[key][0]
-    return _cookies(headers.get("Cookie", "") or "").get(cookie_name(port))
+    return query["t"][0] if query.get("t") else None
 
 
 def _host_name(host_header: str) -> str | None:
@@ -152,11 +135,11 @@ def _same_origin(origin: str, host_header: str) -> bool:
         port == target_port
 
 
-def refusal(path: str, headers: Mapping[str, str], token: str, port: int,
+def refusal(path: str, headers: Mapping[str, str], token: str,
             hosts: HostRule | None = None) -> str | None:
-    """Why this HTTP request / websocket handshake is refused, or None to accept it: the
-    ``Host`` header (``hosts``, default: loopback only), the ``Origin`` (none, or the same
-    host and port), then the token (compared as UTF-8 bytes, in constant time)."""
+    """Why this HTTP request is refused, or None to accept it: the ``Host`` header (``hosts``,
+    default: loopback only), the ``Origin`` (none, or the same host and port), then the token
+    (compared as UTF-8 bytes, in constant time)."""
     rule = hosts or HostRule()
     host = headers.get("Host", "") or ""
     if not rule.allows(host):
@@ -166,45 +149,12 @@ def refusal(path: str, headers: Mapping[str, str], token: str, port: int,
     origin = headers.get("Origin")
     if origin is not None and not _same_origin(origin, host):
         return f"refused: requests from another site ({origin[:200]}) may not drive the editor"
-    given = request_token(path, headers, port)
+    given = request_token(path, headers)
     if given is None or not hmac.compare_digest(given.encode("utf-8", "surrogatepass"),
                                                 token.encode()):
         return ("refused: open the editor with the URL it printed when it started (the URL "
                 "carries its access token)")
     return None
-
-
-@contextlib.contextmanager
-def guarded_viser(token: str, hosts: HostRule | None = None) -> Iterator[None]:
-    """While a ``viser.ViserServer`` is constructed in this block, its websocket server checks
-    every request with :func:`refusal` before viser sees it (403 otherwise), and a page loaded
-    with ``?token=`` gets the token cookie its own websocket then sends. (viser starts serving
-    before its constructor returns; the hook is its ``process_request``.)"""
-    import websockets.asyncio.server as wss
-
-    original = wss.serve
-
-    def serve(handler: Callable, *args: Any, process_request: Callable | None = None,
-              **kwargs: Any) -> Any:
-        def guard(connection: Any, request: Any) -> Any:
-            port = connection.local_address[1]
-            why = refusal(request.path, request.headers, token, port, hosts)
-            if why is not None:
-                return connection.respond(403, why + "\n")
-            response = None if process_request is None else process_request(connection,
-                                                                            request)
-            if response is not None and "token=" in urlsplit(request.path).query:
-                response.headers["Set-Cookie"] = (f"{cookie_name(port)}={token}; Path=/; "
-                                                  "HttpOnly; SameSite=Strict")
-            return response
-
-        return original(handler, *args, process_request=guard, **kwargs)
-
-    wss.serve = serve
-    try:
-        yield
-    finally:
-        wss.serve = original
 
 
 def _check_name(name: str, what: str) -> str:
@@ -300,4 +250,4 @@ def default_save_folder(controller: Any,
 
 
 __all__ = ["HostRule", "SaveFolder", "default_save_folder", "exposure_warning",
-           "guarded_viser", "is_loopback", "new_token", "refusal", "request_token"]
+           "is_loopback", "new_token", "refusal", "request_token"]

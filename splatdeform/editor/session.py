@@ -4,15 +4,21 @@ JSON-able state out. :mod:`.page_server` only moves these over HTTP.
 Coordinates in requests and answers are *local* (model minus ``controller.origin``), as the page
 draws them. Every change is recorded for undo / redo (:mod:`.history`); a pose drag sends
 ``pose`` messages (16 floats) and records once when the drag ends (``commit``).
+
+Requests name their action in ``op``; :data:`Session.OPS` is the table of actions. The session
+changes the controller only through its public methods (selectors, :meth:`~.controller.
+EditorController.store_pose`, ``set_curve``, ``set_covariance``, ``save``; undo through
+:mod:`.history`'s ``snapshot`` / ``restore``).
 """
 
 from __future__ import annotations
 
 import json
 import math
+from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 
@@ -112,10 +118,11 @@ class Session:
 
     def state(self) -> dict[str, Any]:
         ed = self.ed
-        sels = [self._selector_info("fixed", 0, i, s) for i, s in enumerate(ed.fixed)]
-        for h, state in enumerate(ed.handles):
+        sels = [self._selector_info("fixed", 0, i, s)
+                for i, s in enumerate(ed.selectors("fixed"))]
+        for h in range(len(ed.handles)):
             sels += [self._selector_info("handle", h, i, s)
-                     for i, s in enumerate(state.selectors)]
+                     for i, s in enumerate(ed.selectors("handle", h))]
         fit = None
         if ed.deformation is not None:
             _, control = payload.basis_arrays_meta(ed)
@@ -123,8 +130,9 @@ class Session:
                    "stats": {k: _json_value(v) for k, v in self.last_fit.items()}}
         return {
             "selectors": sels, "handles": len(ed.handles), "fit": fit, "stale": ed.stale,
-            "curve": self._curve_info(), "covariance": ed.settings.gaussians.covariance,
-            "poses": [payload.model_to_local(ed, h.matrix).tolist() for h in ed.handles],
+            "curve": self._curve_info(), "covariance": ed.covariance,
+            "poses": [payload.model_to_local(ed, ed.pose(h)).tolist()
+                      for h in range(len(ed.handles))],
             "counts": ed.counts(), "problem": ed.problem(),
             "can_undo": bool(self.history.undo_stack), "can_redo": bool(self.history.redo_stack),
             "message": self.message,
@@ -151,11 +159,11 @@ class Session:
     def act(self, req: dict[str, Any]) -> dict[str, Any]:
         """Apply one request; returns the new state (``pose`` without ``commit``: {"ok": 1})."""
         op = req.get("op")
-        handler = getattr(self, f"_op_{op}", None) if isinstance(op, str) else None
+        handler = self.OPS.get(op) if isinstance(op, str) else None
         if handler is None:
             raise InputError(f"op: unknown editor action {op!r}")
         self.message = ""
-        quick = handler(req)
+        quick = handler(self, req)
         if quick is not None:
             return quick
         self.history.record()
@@ -197,7 +205,6 @@ class Session:
         role, kind, h = req["role"], req["kind"], int(req.get("handle", 0))
         size = self._size(req)
         center = self._center(req)
-        region = self.ed._region(role, h)
         index = self.ed.add_selector(role, kind, handle=h, center=center)
         try:
             if kind != "plane":
@@ -205,9 +212,9 @@ class Session:
                     d = DEFAULT_SIZE * self.ed.model.diagonal()
                     size = np.array([d, d, d] if kind == "box" else d / 2)
                 self.ed.move_selector(role, index, size=size, handle=h)
-            self._checked(region[index])
+            self._checked(self.ed.selector(role, index, handle=h))
         except Exception:
-            del region[index]
+            self.ed.remove_selector(role, index, handle=h)
             raise
 
     def _op_add_indices(self, req: dict[str, Any]) -> None:
@@ -241,15 +248,13 @@ class Session:
             if normal.shape != (3,) or not np.isfinite(normal).all() or not normal.any():
                 raise InputError("normal: expected 3 finite numbers, not all zero")
         role, index, h = req["role"], int(req["index"]), int(req.get("handle", 0))
-        region = self.ed._region(role, h)
-        self.ed._check_index(region, role, index)
-        before = region[index]
-        self.ed.move_selector(role, index, center=self._center(req), size=size, normal=normal,
-                              handle=h)
+        before = self.ed.selector(role, index, handle=h)
+        moved = self.ed.move_selector(role, index, center=self._center(req), size=size,
+                                      normal=normal, handle=h)
         try:
-            self._checked(region[index], "size")
+            self._checked(moved, "size")
         except InputError:
-            region[index] = before
+            self.ed.set_selector(role, index, before, handle=h)
             raise
 
     def _op_remove_selector(self, req: dict[str, Any]) -> None:
@@ -264,7 +269,7 @@ class Session:
 
     def _op_pose(self, req: dict[str, Any]) -> dict[str, Any] | None:
         h = int(req.get("handle", 0))
-        self.ed._region("handle", h)
+        self.ed.pose(h)  # the handle exists
         key = f"handle {h}: pose ({self.ed.pose_key(h)})"
         try:
             m = np.asarray(req["matrix"], np.float64).reshape(4, 4)
@@ -273,8 +278,8 @@ class Session:
         if self.ed.stale:
             raise InputError("fit: the regions changed since the last fit (or there is none); "
                              "fit again before moving the handle")
-        m = check_pose(payload.local_to_model(self.ed, check_pose(m, key)), key)
-        self.ed.handles[h].matrix = m
+        self.ed.store_pose(check_pose(payload.local_to_model(self.ed, check_pose(m, key)), key),
+                           h)
         return None if req.get("commit") else {"ok": 1}
 
     # ---- the curve ----------------------------------------------------------------------
@@ -327,13 +332,8 @@ class Session:
     def _op_covariance(self, req: dict[str, Any]) -> None:
         """``gaussians.covariance`` of the edit (jacobian | rotation | limited): what the page's
         vertex stage draws and what Save writes (the fit does not depend on it)."""
-        from splatdeform.deform.gaussians import COVARIANCE_MODES
-
         mode = req.get("mode")
-        if mode not in COVARIANCE_MODES:
-            raise InputError(f"gaussians.covariance: expected one of "
-                             f"{', '.join(COVARIANCE_MODES)}, got {mode!r}")
-        self.ed.settings.gaussians.covariance = mode
+        self.ed.set_covariance(mode)
         self.message = f"gaussians.covariance: {mode}"
 
     def _op_reset_pose(self, req: dict[str, Any]) -> None:
@@ -385,6 +385,19 @@ class Session:
         if self.ed.deformation is None:
             raise InputError("fit: no fit yet")
         return payload.basis_arrays(self.ed)[0]
+
+    # ---- the actions' table: op -> handler(session, request) ------------------------------
+    OPS: ClassVar[dict[str, Callable[[Session, dict[str, Any]], dict[str, Any] | None]]] = {
+        "add_selector": _op_add_selector, "add_indices": _op_add_indices,
+        "add_selector_text": _op_add_selector_text, "set_selector_text": _op_set_selector_text,
+        "move_selector": _op_move_selector, "remove_selector": _op_remove_selector,
+        "add_handle": _op_add_handle, "fit": _op_fit, "pose": _op_pose,
+        "reset_pose": _op_reset_pose, "add_curve_point": _op_add_curve_point,
+        "move_curve_point": _op_move_curve_point, "remove_curve_point": _op_remove_curve_point,
+        "remove_curve": _op_remove_curve, "curve_settings": _op_curve_settings,
+        "reset_curve": _op_reset_curve, "covariance": _op_covariance, "undo": _op_undo,
+        "redo": _op_redo, "save": _op_save,
+    }
 
 
 def error_line(exc: Exception) -> str:

@@ -1,6 +1,7 @@
 """A headless chromium driven over the DevTools protocol, for the editor's tests and benchmark
-(software WebGL: SwiftShader through ANGLE). Needs the ``chromium`` binary (``make test``
-installs it) and ``websockets`` (a viser dependency).
+(software WebGL: SwiftShader through ANGLE). A test helper, not in the wheel: the tests import
+it as ``browser``, ``benchmarks/bench_editor.py`` puts ``tests/`` on its path. Needs the
+``chromium`` binary (``make test`` installs it) and ``websockets`` (the ``dev`` extra).
 
 Example::
 
@@ -21,7 +22,7 @@ import time
 import urllib.request
 from typing import Any
 
-from ..errors import InputError
+from splatdeform.errors import InputError
 
 FLAGS = ("--headless=new", "--no-sandbox", "--disable-gpu-sandbox", "--use-angle=swiftshader",
          "--enable-unsafe-swiftshader", "--ignore-gpu-blocklist", "--no-first-run",
