@@ -377,3 +377,22 @@ def test_chromium_shows_the_scene(bar_path):
     drawn = float((np.abs(scene - scene[0, 0]).sum(axis=2) > 60).mean())
     assert drawn > 0.02, f"the model is not drawn ({drawn:.3f})"
     assert "Fit" in panel_text and "Save" in panel_text, panel_text[:500]
+
+
+def test_default_save_names_keep_a_double_extension(tmp_path):
+    """A compressed PLY is saved as x_edited.compressed.ply (its own format), not as a plain
+    PLY named x.compressed_edited.ply."""
+    import warnings
+
+    from data_tools.synth import gaussian_bar
+    from splatdeform.editor.saving import default_paths
+    from splatdeform.io import save
+
+    src = tmp_path / "x.compressed.ply"
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")   # the lossy write's note
+        save(gaussian_bar(400, seed=5), src)
+    ed = EditorController.open(src)
+    model, config, image = default_paths(ed)
+    assert (model.name, config.name, image.name) == ("x_edited.compressed.ply", "x_edit.yaml",
+                                                      "x_edit.png")

@@ -20,7 +20,7 @@ from splatdeform.edit.writer import edit_yaml, yaml_text
 
 from .. import deform as df
 from ..errors import InputError
-from ..io import check_output_path
+from ..io import check_output_path, split_extension
 from ..io import save as save_model
 from ..model import PointModel
 from . import selectors as sl
@@ -76,8 +76,10 @@ def default_paths(ed: EditorController) -> tuple[Path, Path, Path]:
         return ((ed.base_dir / ed.settings.output).resolve(),
                 c.with_name(f"{c.stem}_edited.yaml"), c.with_name(f"{c.stem}_edited.png"))
     m = ed.model_path
-    return (m.with_name(f"{m.stem}_edited{m.suffix}"), m.with_name(f"{m.stem}_edit.yaml"),
-            m.with_name(f"{m.stem}_edit.png"))
+    stem, _ = split_extension(m)   # x.compressed.ply -> x_edited.compressed.ply, same format
+    ext = m.name[len(stem):]
+    return (m.with_name(f"{stem}_edited{ext}"), m.with_name(f"{stem}_edit.yaml"),
+            m.with_name(f"{stem}_edit.png"))
 
 
 def deformed_model(ed: EditorController) -> PointModel:
