@@ -3,7 +3,8 @@
 one :class:`Job` a scan.
 
 The edit's ``input``/``output`` keys are optional in a batch and ignored: every scan is the
-input, and its output is ``output_dir/<stem>_deformed<ext>``. Paths inside the edit (e.g.
+input, and its output is ``output_dir/<stem>_deformed<ext>`` in the scan's format (a double
+extension kept: ``x.compressed.ply`` -> ``x_deformed.compressed.ply``). Paths inside the edit (e.g.
 ``indices: {file: ...}``) are relative to the edit file, or to the batch file for an inline edit.
 """
 
@@ -32,6 +33,7 @@ from splatdeform.edit.config import (
 
 from .. import __version__
 from ..errors import ConfigError, InputError
+from ..io import split_extension
 from .sources import Scan, file_kind, find_scans, glob_base, is_glob
 
 PLACEHOLDER_IN = "__batch_input__.ply"
@@ -126,6 +128,14 @@ def deep_merge(base: dict[str, Any], extra: dict[str, Any]) -> dict[str, Any]:
     return out
 
 
+def deformed_name(filename: str) -> str:
+    """A scan's output name: ``<stem>_deformed<ext>`` in the scan's own format, its extension
+    by :func:`splatdeform.io.split_extension` (``x.compressed.ply`` ->
+    ``x_deformed.compressed.ply``)."""
+    stem, ext = split_extension(filename)
+    return f"{stem}_deformed{ext}"
+
+
 def _strip_io(edit: dict[str, Any]) -> dict[str, Any]:
     out = {k: v for k, v in edit.items() if k not in ("input", "output")}
     if isinstance(out.get("render"), dict):
@@ -201,7 +211,7 @@ def load_batch(path: str | Path) -> Batch:
             if fnmatch.fnmatch(scan.filename, ov.match) or fnmatch.fnmatch(scan.name, ov.match):
                 merged = deep_merge(merged, _strip_io(ov.edit))
                 scan_render = ov_render if ov_render is not None else scan_render
-        out = output_dir / f"{scan.stem}_deformed{scan.suffix}"
+        out = output_dir / deformed_name(scan.filename)
         if str(out) in by_output:
             raise ConfigError(f"{src}: scans: {scan.name} and {by_output[str(out)].name} would "
                               f"both write {out.name}; rename one")
@@ -310,7 +320,7 @@ def _check_output_dir(patterns: list[str], base: Path, output_dir: Path, scans: 
     for pattern in patterns:
         if is_glob(pattern):
             pat = str(base / pattern)
-            probes = [str(output_dir / f"{s.stem}_deformed{s.suffix}") for s in scans[:50]]
+            probes = [str(output_dir / deformed_name(s.filename)) for s in scans[:50]]
             recursive = "**" in pattern and _inside(output_dir, glob_base(pat))
             if recursive or any(fnmatch.fnmatch(p, pat) for p in probes):
                 raise ConfigError(f"{src}: output_dir: {output_dir} would be matched by scans "

@@ -48,23 +48,17 @@ def _max_count(len_dtype: str) -> int:
 def probe(name: str, head: bytes, size: int, *, suffix: str | None = None) -> Probe:
     """Judge a scan from its first bytes ``head`` (up to :data:`HEAD_BYTES`) and its ``size``.
 
-    ``name`` names the scan in errors; ``suffix`` (default: the name's) picks the format.
+    ``name`` names the scan in errors; ``suffix`` (the format's extension, by
+    :func:`splatdeform.io.extension_of`; default: the name's) picks the format.
     Raises FormatError (from the PLY header parser) for a malformed PLY header."""
-    suffix = (suffix or extension_of(name)).lower()
-    cost = head_cost(name, head, size, suffix)
-    if suffix in LAS_EXTENSIONS:
+    ext = (suffix or extension_of(name)).lower()
+    cost = head_cost(name, head, size, ext)
+    if ext in LAS_EXTENSIONS:
         return Probe(cost, False, None)
-    if suffix not in PLY_EXTENSIONS:
+    if ext not in PLY_EXTENSIONS:
         return Probe(cost, True, None)
-    header = parse_header(Path(name), head)
-    least = sum(count * sum(2 if header.text else
-                            np.dtype(p.len_dtype if p.is_list else p.dtype).itemsize
-                            for p in props) for _, count, props in header.elements)
-    if least > size - header.size + header.text:
-        raise InputError(f"{name}: the header declares more data than the file holds (at "
-                         f"least {least:,} body bytes, the body has {size - header.size:,}); "
-                         "file cut short, or the header's count is wrong")
-    if header.text:
+    header = parse_header(Path(name), head)   # head_cost refused a header declaring more
+    if header.text:                           # than the file holds (the PLY probe's check)
         return Probe(cost, True, None)
     body = 0
     for _, count, props in header.elements:

@@ -28,12 +28,14 @@ from dataclasses import dataclass
 from pathlib import Path, PurePosixPath
 from typing import BinaryIO
 
-from ..errors import ConfigError, InputError
-from ..io import SUPPORTED
+from ..errors import ConfigError, InputError, error_line
+from ..io import SUPPORTED, extension_of
 from ..io.atomic import pid_alive
 from ..io.regular import open_regular
 from ..memory import HEAD_BYTES
 
+#: longest archive problem a report row keeps (errors.error_line's limit)
+PROBLEM_CHARS = 300
 ARCHIVES = (".zip", ".tar", ".tar.gz", ".tgz", ".tar.bz2", ".tbz2", ".tar.xz", ".txz")
 
 
@@ -69,8 +71,10 @@ class Scan:
         return Path(self.filename).stem
 
     @property
-    def suffix(self) -> str:
-        return Path(self.filename).suffix.lower()
+    def extension(self) -> str:
+        """The format's extension (``.compressed.ply`` for a compressed PLY), by
+        :func:`splatdeform.io.extension_of`."""
+        return extension_of(self.filename)
 
 
 def is_glob(pattern: str) -> bool:
@@ -163,7 +167,8 @@ def is_archive(path: str | Path) -> bool:
 
 def _supported(name: str) -> bool:
     base = PurePosixPath(name).name
-    return not base.startswith(".") and PurePosixPath(name).suffix.lower() in SUPPORTED
+    ext = extension_of(base)   # a whole-name key (a SOG folder's meta.json) is not a scan file
+    return not base.startswith(".") and ext.startswith(".") and ext in SUPPORTED
 
 
 def file_kind(mode: int) -> str:
@@ -194,11 +199,6 @@ def _file_scan(p: Path) -> Scan:
     return Scan(str(p), None, (st.st_size, st.st_mtime_ns), size=st.st_size)
 
 
-def _one_line(exc: BaseException) -> str:
-    msg = " ".join(str(exc).split()) or type(exc).__name__
-    return msg if len(msg) < 300 else msg[:297] + "..."
-
-
 def _vet_head(name: str, head: bytes, size: int) -> tuple[str | None, int | None]:
     """A member judged from its header while the archive is listed: (problem, estimated peak
     bytes). Only the header-vs-size check refuses here; the budget is the runner's."""
@@ -209,7 +209,7 @@ def _vet_head(name: str, head: bytes, size: int) -> tuple[str | None, int | None
         p = probe(name, head, size)
         check(name, p, None)
     except SplatdeformError as exc:
-        return _one_line(exc), None
+        return error_line(exc, limit=PROBLEM_CHARS), None
     return None, estimate_memory(p)
 
 
@@ -254,7 +254,8 @@ def archive_members(path: Path) -> list[Scan]:
             try:
                 head = read_head()
             except Exception as exc:  # noqa: BLE001 - any decoder error is this member's row
-                why = f"{label}: cannot read the archive member: {_one_line(exc)}"
+                why = (f"{label}: cannot read the archive member: "
+                       f"{error_line(exc, limit=PROBLEM_CHARS)}")
             else:
                 why, need = _vet_head(label, head, size)
         out.append(Scan(str(path), name, identity, index, size, why, need=need, offset=offset))
@@ -265,7 +266,8 @@ def archive_members(path: Path) -> list[Scan]:
         else:
             _list_tar(path, add)
     except Exception as exc:  # noqa: BLE001 - zlib/lzma/bz2/struct errors too: a row, not a crash
-        out.append(Scan(str(path), problem=f"cannot read the archive: {_one_line(exc)}"))
+        why = f"cannot read the archive: {error_line(exc, limit=PROBLEM_CHARS)}"
+        out.append(Scan(str(path), problem=why))
     return out
 
 

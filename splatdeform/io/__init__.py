@@ -7,156 +7,40 @@ model was loaded from.
 
 from __future__ import annotations
 
-import importlib
-from collections.abc import Callable
-from dataclasses import dataclass, replace
 from pathlib import Path
-from types import ModuleType
 
 from ..errors import FormatError, InputError
 from ..model import PointModel
 from .atomic import atomic_path, atomic_write, check_output_path
 from .chunks import ChunkFile
+from .declare import las as _las
+from .declare import pcd as _pcd
+from .declare import ply as _ply
+from .declare import splats as _splats
+from .declare import xyz as _xyz
+from .format import HEAD_BYTES, FileCost, Format, size_cost
 from .regular import require_regular
 
+SOG_META = _splats.SOG_META
 
-@dataclass(frozen=True)
-class Format:
-    """One file format, by the module of this package that reads it (``read_model(path,
-    drop_nonfinite=) -> PointModel``) and writes it; the module is imported on first use, so a
-    load imports only its own format's module. ``writer``: the writing module when another
-    (None: ``module``); ``write_by``: how it is called (``stream``: ``write_model(model, path,
-    stream)`` into an atomic stream; ``path``: ``write_model(model, tmp_path)``; ``ply``:
-    ``write_model(model, stream, text=)``; ``folder``: ``write_folder(model, path)``);
-    ``chunk_class``: the module's ChunkFile class for the streaming and Dask paths (None: not
-    streamable); ``lossy``: a write quantises (and says once what it loses); ``fields``: the
-    format's own fields for ``info`` (None: its header shows them)."""
+#: Readers and writers in one table by extension, merged from the formats' declarations
+#: (:mod:`splatdeform.io.declare`: a new format is one declaration there, and its reader module).
+#: A double extension (``.compressed.ply``) is matched before the plain one; a key without a
+#: leading dot (``meta.json``: a SOG folder) is a whole file name.
+FORMATS: dict[str, Format] = {".ply": _ply.FORMATS[".ply"]}
+for _declared in (_splats, _pcd, _xyz, _las):
+    FORMATS.update(_declared.FORMATS)
 
-    module: str
-    write_by: str = "stream"
-    writer: str | None = None
-    chunk_class: str | None = None
-    lossy: bool = False
-    fields: Callable[[Path], dict] | None = None
-
-    @staticmethod
-    def _load(name: str) -> ModuleType:
-        return importlib.import_module(f"{__name__}.{name}")
-
-    @property
-    def read(self):
-        """``read_model`` of the format's module."""
-        return self._load(self.module).read_model
-
-    @property
-    def chunks(self) -> type[ChunkFile] | None:
-        """The chunk reader class (None: not streamable)."""
-        return None if self.chunk_class is None else getattr(self._load(self.module),
-                                                             self.chunk_class)
-
-    @property
-    def stream(self) -> bool:
-        """True when the streaming and Dask paths read this format in chunks."""
-        return self.chunk_class is not None
-
-    def write(self, model: PointModel, path: Path, text: bool | None) -> None:
-        """Write ``model`` to ``path`` atomically (``text``: PLY encoding, None: the input's)."""
-        module = self._load(self.writer or self.module)
-        if self.write_by == "folder":
-            module.write_folder(model, path)
-        elif self.write_by == "path":
-            with atomic_path(path) as tmp:
-                module.write_model(model, tmp)
-        else:
-            with atomic_write(path) as stream:
-                if self.write_by == "ply":
-                    module.write_model(model, stream, text=text)
-                else:
-                    module.write_model(model, path, stream)
-
-
-def _compressed_ply_fields(path: Path) -> dict:
-    from . import ply
-
-    source = ply.read_ply(path)
-    chunk, sh = source.element("chunk"), source.element("sh")
-    n_rest = 0 if sh is None else len(sh.properties)
-    return {"format": "PlayCanvas compressed PLY", "format_fields": {
-        "chunks": 0 if chunk is None else chunk.count, "sh_bands": {0: 0, 9: 1, 24: 2, 45: 3}
-        .get(n_rest, n_rest)}}
-
-
-def _spz_fields(path: Path) -> dict:
-    from . import spz
-
-    h = spz.read_info(path)
-    return {"format": f"SPZ v{h['version']} (gzip)", "format_fields": {
-        "version": h["version"], "sh_degree": h["sh_degree"],
-        "fractional_bits": h["fractional_bits"], "antialiased": h["antialiased"]}}
-
-
-def _gltf_fields(path: Path) -> dict:
-    from . import gltf
-
-    doc, _ = gltf.read_document(path)
-    used = doc.get("extensionsUsed", [])
-    return {"format": "glTF 2.0 " + ("binary (.glb)" if path.suffix.lower() == ".glb" else
-                                     "JSON (.gltf)"),
-            "format_fields": {"extensions": ", ".join(used) or "none",
-                              "generator": doc.get("asset", {}).get("generator", "?")}}
-
-
-def _pcd_fields(path: Path) -> dict:
-    from . import pcd
-
-    source, _ = pcd.read_source(path)
-    return {"format": f"PCD DATA {source.encoding}", "format_fields": {
-        "version": dict(source.header).get("VERSION", "?"), "width": source.width,
-        "height": source.height, "fields": " ".join(source.fields)}}
-
-
-def _sog_fields(path: Path) -> dict:
-    from . import sog
-
-    h = sog.read_info(path)
-    return {"format": f"PlayCanvas SOG v{h['version']} "
-            + ("bundle (.sog)" if path.suffix.lower() == ".sog" else "folder (meta.json)"),
-            "format_fields": {"sh_bands": h["sh_bands"], "palette": h["palette"],
-                              "antialias": h["antialias"], "generator": h["generator"]}}
-
-
-#: a SOG folder's file (the table's whole-name key)
-SOG_META = "meta.json"
-_SPLATS = {"lossy": True}
-
-#: Readers and writers in one table by extension, the one place formats are declared: a new
-#: format is one module plus one line. A double extension (``.compressed.ply``) is matched
-#: before the plain one; a key without a leading dot (``meta.json``: a SOG folder) is a whole
-#: file name.
-FORMATS: dict[str, Format] = {
-    ".ply": Format("ply", "ply", chunk_class="PlyChunks"),
-    ".compressed.ply": Format("ply", writer="playcanvas", fields=_compressed_ply_fields,
-                              **_SPLATS),
-    ".splat": Format("splat", fields=lambda path: {"format": ".splat (32-byte records)"},
-                     **_SPLATS),
-    ".spz": Format("spz", fields=_spz_fields, **_SPLATS),
-    ".sog": Format("sog", fields=_sog_fields, **_SPLATS),
-    SOG_META: Format("sog", "folder", fields=_sog_fields, **_SPLATS),
-    ".glb": Format("gltf", fields=_gltf_fields),
-    ".gltf": Format("gltf", fields=_gltf_fields),
-    ".pcd": Format("pcd", fields=_pcd_fields),
-    ".xyz": Format("open3d_io", "path"),
-    ".xyzn": Format("open3d_io", "path"),
-    ".pts": Format("open3d_io", "path"),
-    ".las": Format("las", "path", chunk_class="LasChunks"),
-    ".laz": Format("las", "path", chunk_class="LasChunks"),
-}
 SUPPORTED = tuple(FORMATS)
 #: extensions the streaming / Dask paths read in chunks
 STREAMABLE = tuple(ext for ext, fmt in FORMATS.items() if fmt.stream)
 #: extensions whose files start with a PLY header (the batch probe reads their counts there)
 PLY_EXTENSIONS = tuple(ext for ext in FORMATS if ext.endswith(".ply"))
 LAS_EXTENSIONS = tuple(ext for ext, fmt in FORMATS.items() if fmt.module == "las")
+#: extensions whose header probe counts the points (the others are judged from their size)
+COSTED = tuple(ext for ext, fmt in FORMATS.items() if fmt.probe is not None)
+#: LiDAR formats (z-up, elevation colours by default)
+LIDAR_EXTENSIONS = tuple(ext for ext, fmt in FORMATS.items() if fmt.lidar)
 
 
 def extension_of(path: str | Path) -> str:
@@ -169,6 +53,47 @@ def extension_of(path: str | Path) -> str:
         if ext.count(".") > 1 and name.endswith(ext) and len(name) > len(ext):
             return ext
     return Path(name).suffix
+
+
+def split_extension(path: str | Path) -> tuple[str, str]:
+    """(stem, extension) of ``path``'s name, by :func:`extension_of`: ``x.compressed.ply`` ->
+    (``x``, ``.compressed.ply``), ``A.PLY`` -> (``A``, ``.ply``): the stem keeps its case, the
+    extension is lower case. A whole-name key (``meta.json``) or a name without an extension
+    gives (stem, suffix) as :class:`pathlib.Path` does."""
+    name = Path(path).name
+    ext = extension_of(name)
+    if not ext.startswith(".") or not name.lower().endswith(ext) or len(name) <= len(ext):
+        return Path(name).stem, Path(name).suffix.lower()
+    return name[:-len(ext)], ext
+
+
+def header_cost(name: str | Path, head: bytes, size: int, ext: str | None = None,
+                file: str | Path | None = None) -> FileCost:
+    """What the file ``name`` holds and what reading it costs, from its first bytes ``head`` (up
+    to :data:`HEAD_BYTES`) and ``size``, by its format's declared probe (``ext``: the format's
+    table key, default ``name``'s; ``file``: the file itself when there is one, for a probe
+    that reads past ``head``). A format without a probe is judged from its size
+    (:func:`~splatdeform.io.format.size_cost`). Raises the reader's FormatError/InputError line
+    for a header it would refuse."""
+    fmt = FORMATS.get((ext or extension_of(name)).lower())
+    if fmt is None or fmt.probe is None:
+        return size_cost(size)
+    return fmt.probe(Path(name), head, size, None if file is None else Path(file))
+
+
+def is_lidar(model: PointModel) -> bool:
+    """A model read from a LiDAR format (LAS/LAZ), by its source or its path's extension."""
+    source = FORMATS.get(_source_format(model) or "")
+    return bool(source is not None and source.lidar) or \
+        extension_of(model.path or "") in LIDAR_EXTENSIONS
+
+
+def _source_format(model: PointModel) -> str | None:
+    """The table key of the first format whose reader module built ``model.source``."""
+    if model.source is None:
+        return None
+    module = type(model.source).__module__.rpartition(".")[2]
+    return next((ext for ext, fmt in FORMATS.items() if fmt.module == module), None)
 
 
 def open_chunks(path: str | Path) -> ChunkFile:
@@ -235,18 +160,16 @@ def save(model: PointModel, path: str | Path, *, text: bool | None = None) -> Pa
     ``text`` is given). Refuses to overwrite ``model.path``. Returns the written path."""
     path = check_output_path(path, model.path)
     ext = _extension(path, "output")
-    from . import las, pcd  # a source of theirs converts when written as another format
-
-    if isinstance(model.source, las.LasSource) and FORMATS[ext].module != "las":
-        model = replace(model, source=las.ply_source_from_las(model.source)
-                        if ext == ".ply" else None)
-    if isinstance(model.source, pcd.PcdSource) and FORMATS[ext].module != "pcd":
-        model = replace(model, source=pcd.ply_source_from_pcd(model.source)
-                        if ext == ".ply" else None)
+    source = FORMATS.get(_source_format(model) or "")
+    if source is not None and source.convert is not None and \
+            FORMATS[ext].module != source.module:   # a source of its own, another format
+        model = source.convert(model, ext)
     FORMATS[ext].write(model, path, text)
     return path
 
 
-__all__ = ["FORMATS", "Format", "load", "save", "SUPPORTED", "STREAMABLE", "PLY_EXTENSIONS",
-           "LAS_EXTENSIONS", "extension_of", "format_fields", "atomic_path", "atomic_write",
-           "check_output_path", "ChunkFile", "open_chunks"]
+__all__ = ["FORMATS", "Format", "FileCost", "HEAD_BYTES", "load", "save", "SUPPORTED",
+           "STREAMABLE", "PLY_EXTENSIONS", "LAS_EXTENSIONS", "COSTED", "LIDAR_EXTENSIONS",
+           "SOG_META", "extension_of", "split_extension", "header_cost", "is_lidar",
+           "format_fields", "atomic_path", "atomic_write", "check_output_path", "ChunkFile",
+           "open_chunks"]

@@ -31,7 +31,7 @@ import numpy as np
 from ..errors import FormatError, InputError
 from ..model import PointModel
 from . import spz
-from .regular import member_path, read_regular
+from .regular import member_path, open_regular, read_regular
 from .splat_model import to_model
 from .splats import (
     SH_COEFFS,
@@ -569,16 +569,82 @@ def read_document(path: str | Path) -> tuple[dict, list[bytes | memoryview]]:
     through :func:`.regular.read_regular`."""
     path = Path(path)
     raw = read_regular(path)
-    if path.suffix.lower() == ".glb":
+    if path.name.lower().endswith(".glb"):
         doc, glb_bin = _split_glb(path, raw)
     else:
         doc, glb_bin = _json(path, raw), None
+    return _check_document(path, doc), _buffers(path, doc, glb_bin)
+
+
+def _check_document(path: Path, doc: dict) -> dict:
+    """The checks of the JSON that :func:`read_document` runs before reading buffers."""
     _object(path, doc.get("asset", {}), "asset")
     for key in ("extensionsUsed", "extensionsRequired"):
         if not all(isinstance(e, str) for e in _list(path, doc, key)):
             raise FormatError(f"{path}: glTF {key} holds a non-string; expected extension "
                               "names")
-    return doc, _buffers(path, doc, glb_bin)
+    return doc
+
+
+def _head_document(path: Path, head: bytes, size: int, file: Path | None) -> dict | None:
+    """The glTF JSON from the file's first bytes ``head`` (the whole JSON of ``file`` when
+    ``head`` does not hold it), checked like :func:`_split_glb` against the file ``size``;
+    None when neither holds it."""
+    if not path.name.lower().endswith(".glb"):
+        if size <= len(head):
+            return _json(path, head[:size])
+        return None if file is None else _json(path, read_regular(file))
+    if len(head) < 20:
+        raise FormatError(f"{path}: not a GLB file (shorter than its header)")
+    magic, version, length = struct.unpack_from("<III", head)
+    if magic != GLB_MAGIC:
+        raise FormatError(f"{path}: not a GLB file (no 'glTF' magic)")
+    if version != 2:
+        raise FormatError(f"{path}: GLB version {version}; expected 2")
+    if length != size:
+        raise FormatError(f"{path}: GLB header declares {length:,} bytes, the file has "
+                          f"{size:,}")
+    doc, at = None, 12
+    while at + 8 <= size:
+        if at + 8 > len(head):
+            return doc
+        chunk, kind = struct.unpack_from("<II", head, at)
+        if at + 8 + chunk > size:
+            raise FormatError(f"{path}: GLB chunk at byte {at} runs past the end of the file")
+        if kind == JSON_CHUNK and doc is None:
+            if at + 8 + chunk > len(head):
+                if file is None:
+                    return None
+                with open_regular(file) as fh:
+                    fh.seek(at + 8)
+                    doc = _json(path, fh.read(chunk))
+            else:
+                doc = _json(path, bytes(head[at + 8:at + 8 + chunk]))
+        at += 8 + chunk
+    if doc is None:
+        raise FormatError(f"{path}: GLB file without a JSON chunk")
+    return doc
+
+
+def declared_splats(path: str | Path, head: bytes, size: int,
+                    file: Path | None = None) -> tuple[int, int] | None:
+    """(splats, SH degree) a glTF declares: the POSITION accessors' counts of its
+    ``KHR_gaussian_splatting`` primitives, from the JSON alone (no buffer is read): the file's
+    first bytes ``head`` of ``size``, or ``file`` when the JSON lies beyond them. None when the
+    JSON cannot be had (an archive member whose JSON passes ``head``). Raises the loader's
+    FormatError lines for a JSON it would refuse."""
+    path = Path(path)
+    doc = _head_document(path, head, size, file)
+    if doc is None:
+        return None
+    prims = splat_primitives(path, _check_document(path, doc))
+    total = degree = 0
+    for p in prims:
+        i, acc = _entry(path, doc, "accessors", p["attributes"]["POSITION"],
+                        "accessor index of attribute POSITION")
+        total += _int(path, acc.get("count"), f"accessor {i} (POSITION) count", low=1)
+        degree = max(degree, _sh_degree(path, p["attributes"]))
+    return total, degree
 
 
 def read_model(path: str | Path, *, drop_nonfinite: bool = False) -> PointModel:

@@ -192,7 +192,7 @@ def _min_row_bytes(props: list[PlyProperty], text: bool) -> int:
     return sum(np.dtype(p.len_dtype if p.is_list else p.dtype).itemsize for p in props)
 
 
-def _check_declared_size(path: Path, header: PlyHeader, body_bytes: int) -> None:
+def check_declared_size(path: Path, header: PlyHeader, body_bytes: int) -> None:
     """Refuse a header whose element counts cannot fit in the file, before allocating anything."""
     needed = 0
     for name, count, props in header.elements:
@@ -302,7 +302,7 @@ def _read_binary_element(path: Path, buf: memoryview, offset: int, name: str, co
         if all((packed[n + "\nlen"] == L).all() for n, L in lengths.items()):
             return _split_lists(packed, props, bo), offset + packed_dtype.itemsize * count
     # Variable-length lists: a plain-Python walk over the row layout finds where every value
-    # sits (bounded: count * the smallest row fits the file, checked by _check_declared_size),
+    # sits (bounded: count * the smallest row fits the file, checked by check_declared_size),
     # then numpy gathers each property for all rows at once.
     layout = [(p.is_list, np.dtype(p.len_dtype if p.is_list else p.dtype).itemsize,
                np.dtype(p.dtype).itemsize, p.is_list and p.len_dtype[0] == "i") for p in props]
@@ -580,7 +580,7 @@ def read_ply(path: str | Path) -> PlySource:
     if not raw:
         raise FormatError(f"{path}: empty file")
     header = parse_header(path, raw)
-    _check_declared_size(path, header, len(raw) - header.size)
+    check_declared_size(path, header, len(raw) - header.size)
     elements: list[PlyElementData] = []
     if header.text:
         raw = bytes(raw)  # lines as bytes (the buffer is released here)

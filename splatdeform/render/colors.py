@@ -12,10 +12,12 @@ from dataclasses import replace
 import numpy as np
 
 from splatdeform.errors import InputError
+from splatdeform.io import LIDAR_EXTENSIONS
+from splatdeform.io import is_lidar as _is_lidar
 from splatdeform.model import PointModel, vertex_column
 
 COLOR_MODES = ("rgb", "elevation", "intensity", "classification", "region")
-LIDAR_SUFFIXES = (".las", ".laz")
+LIDAR_SUFFIXES = LIDAR_EXTENSIONS   # declared by the formats (splatdeform.io)
 
 # a perceptual ramp (low -> high): deep blue, teal, green, yellow, light
 _RAMP = np.array([[48, 18, 120], [33, 110, 160], [40, 170, 110], [200, 210, 60],
@@ -29,8 +31,7 @@ _CLASSES = {0: (160, 160, 160), 1: (170, 170, 170), 2: (150, 110, 70), 3: (140, 
 
 def is_lidar(model: PointModel) -> bool:
     """A model read from LAS/LAZ (z-up, often without colours)."""
-    source = type(model.source).__name__ if model.source is not None else ""
-    return source == "LasSource" or str(model.path or "").lower().endswith(LIDAR_SUFFIXES)
+    return _is_lidar(model)
 
 
 def default_color(model: PointModel) -> str:
