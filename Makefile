@@ -1,6 +1,6 @@
 # The two commands: `make demo` and `make test`. Each sets up a fresh Debian machine first:
 # apt packages when missing (PoCL OpenCL for the basis kernel, libusb for Open3D, Mesa EGL for the
-# headless renderer), a .venv, and `pip install -e .[dev]`.
+# headless renderer), a .venv, and `pip install -e .[dev,dask]` (Dask is an extra).
 
 VENV    := .venv
 PY      := $(VENV)/bin/python
@@ -22,7 +22,7 @@ $(STAMP): pyproject.toml
 	$(MAKE) system
 	[ -x $(PY) ] || python3 -m venv $(VENV)
 	$(PY) -m pip install -q --upgrade pip
-	$(PY) -m pip install -q -e '.[dev]'
+	$(PY) -m pip install -q -e '.[dev,dask]'
 	touch $(STAMP)
 
 setup: $(STAMP)

@@ -77,3 +77,24 @@ class ProcessingError(SplatdeformError):
     """A valid request failed while running (numerical failure, out of memory, ...)."""
 
     exit_code = 1
+
+
+def error_line(exc: BaseException, *, limit: int | None = None, mark: str = "...") -> str:
+    """The one line an error is said in (the CLI, batch rows, archive problems, the editor).
+
+    ``str(exc)`` with every run of whitespace (line breaks included) made one space, or the
+    exception's type name when that is empty. With ``limit``, a line of ``limit`` characters or
+    more is cut to ``limit`` characters ending in ``mark``. A terminal still needs
+    :func:`one_line` for the control characters whitespace does not cover."""
+    line = " ".join(str(exc).split()) or type(exc).__name__
+    if limit is None or len(line) < limit:
+        return line
+    return line[:limit - len(mark)] + mark
+
+
+def one_line(text: str) -> str:
+    """``text`` with line breaks and other control characters escaped (``\\n``, ``\\x1b``): a
+    path may hold a newline, and an error printed on a terminal must stay one line."""
+    if text.isprintable():
+        return text
+    return "".join(c if c.isprintable() else repr(c)[1:-1] for c in text)

@@ -306,21 +306,12 @@ def run_dask(jobs: list[Job], address: Any, on_done: Callable[[Row], None],
              budget: float | None = None, timeout: float | None = None) -> list[Row]:
     """Submit every job to the Dask cluster at ``address`` (a string or a Cluster object);
     with ``timeout`` each scan runs in a child process of its Dask worker (:func:`run_isolated`)."""
-    try:
-        from distributed import Client, as_completed
-    except ImportError as exc:  # pragma: no cover
-        from ..errors import InputError
+    from ..dask_client import dask_client
 
-        raise InputError("--scheduler needs dask.distributed: pip install 'dask[distributed]'"
-                         ) from exc
-    from ..errors import InputError
-
-    try:
-        client = Client(address, timeout="15s")
-    except (OSError, TimeoutError, ValueError) as exc:
-        raise InputError(f"cannot connect to the Dask scheduler {address}: {exc}") from exc
     rows: list[Row] = []
-    try:
+    with dask_client(address) as client:   # one line naming the extra when Dask is missing
+        from distributed import as_completed
+
         if budget is None:
             budget = dask_budget(client)
         futures = {}
@@ -339,6 +330,4 @@ def run_dask(jobs: list[Job], address: Any, on_done: Callable[[Row], None],
                                                 f"{' '.join(str(exc).split())[:300]}")
             rows.append(row)
             on_done(row)
-    finally:
-        client.close()
     return rows

@@ -12,7 +12,7 @@ from __future__ import annotations
 import threading
 from typing import Any
 
-from splatdeform.errors import DeviceError
+from splatdeform.errors import DeviceError, error_line
 
 MIN_GL_VERSION = 330  # geometry shaders, GLSL 3.30 core
 
@@ -40,7 +40,7 @@ def _create_context() -> Any:
     try:
         ctx = moderngl.create_standalone_context(backend="egl", require=MIN_GL_VERSION)
     except Exception as exc:
-        reason = " ".join(str(exc).split()) or type(exc).__name__
+        reason = error_line(exc)
         raise DeviceError(
             f"render: cannot create a headless OpenGL {MIN_GL_VERSION // 100}."
             f"{MIN_GL_VERSION // 10 % 10} context through EGL ({reason}); install Mesa's EGL/GL "

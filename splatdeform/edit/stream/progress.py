@@ -1,6 +1,7 @@
 """Progress of the long passes on stderr: a tqdm bar when stderr is a terminal, else a plain
-line (points done, percent, points per second) at most every few seconds; a closing line either
-way. Batch runs use tqdm the same way (a bar on a terminal, a line per scan otherwise)."""
+line (points done, percent, points per second) at most every few seconds, written by tqdm too
+(:class:`splatdeform.progress.LineBar`); a closing line either way. Batch runs use tqdm the same
+way (a bar on a terminal, a line per scan otherwise)."""
 
 from __future__ import annotations
 
@@ -22,20 +23,35 @@ def _peak() -> str:
 class Progress:
     """Reports a pass over ``total`` points at most every ``every`` seconds, and once at the
     end; silent when ``quiet``. ``sink`` receives each line (default: stderr, where a terminal
-    gets a tqdm bar instead of the intermediate lines)."""
+    gets a tqdm bar instead of the intermediate lines). tqdm drives both (see
+    :mod:`splatdeform.progress`)."""
 
     def __init__(self, name: str, total: int, *, quiet: bool = False, every: float = 2.0,
                  sink: Callable[[str], None] | None = None) -> None:
         self.name, self.total, self.quiet, self.every = name, max(int(total), 1), quiet, every
         self.sink = sink or (lambda line: print(line, file=sys.stderr, flush=True))
         self.done = 0
-        self.t0 = self.last = time.perf_counter()
+        self.t0 = time.perf_counter()
         self.bar = None
-        if not quiet and sink is None and sys.stderr.isatty():
-            from tqdm import tqdm
+        if quiet:
+            return
+        from splatdeform.progress import LineBar, tqdm
 
+        if sink is None and sys.stderr.isatty():
             self.bar = tqdm(total=self.total, desc=name, unit=" points", unit_scale=True,
                             mininterval=min(every, 0.5), dynamic_ncols=True, leave=False)
+        else:
+            self.bar = LineBar(total=self.total, mininterval=every, line=self._line,
+                               sink=self.sink)
+
+    def _line(self, bar: dict) -> str | None:
+        """The intermediate line (none once every point is done: the closing line says it)."""
+        done = bar["n"]
+        if done >= self.total:
+            return None
+        rate = done / max(bar["elapsed"], 1e-9)
+        return (f"{self.name}: {done:,}/{self.total:,} points "
+                f"({100.0 * done / self.total:.0f}%, {rate / 1e6:.2f} M points/s)")
 
     def rate(self) -> float:
         return self.done / max(time.perf_counter() - self.t0, 1e-9)
@@ -44,13 +60,6 @@ class Progress:
         self.done += int(points)
         if self.bar is not None:
             self.bar.update(int(points))
-            return
-        now = time.perf_counter()
-        if not self.quiet and now - self.last >= self.every and self.done < self.total:
-            self.last = now
-            pct = 100.0 * self.done / self.total
-            self.sink(f"{self.name}: {self.done:,}/{self.total:,} points "
-                      f"({pct:.0f}%, {self.rate() / 1e6:.2f} M points/s)")
 
     def finish(self) -> float:
         """Print the closing line; returns the pass's seconds."""

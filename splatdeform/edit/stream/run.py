@@ -13,7 +13,6 @@ delta_c) is scattered once.
 from __future__ import annotations
 
 import contextlib
-import logging
 import os
 import shutil
 import tempfile
@@ -25,6 +24,7 @@ import numpy as np
 
 from splatdeform import deform as df
 from splatdeform.basis.result import Basis
+from splatdeform.dask_client import dask_client  # noqa: F401 - run_stream's client
 from splatdeform.edit.stream.plan import FIXED, FREE, HANDLE, Plan, build_plan, chunk_ranges
 from splatdeform.edit.stream.progress import Progress
 from splatdeform.errors import InputError, ProcessingError
@@ -199,56 +199,6 @@ def second_pass_dask(src: ChunkFile, plan: Plan, shared: Shared, out: Path, chun
     finally:
         with deferred_signals():  # a second Ctrl-C must not leave the folder behind
             _remove_parts(parts, futures)
-
-
-@contextlib.contextmanager
-def dask_client(scheduler: str | None, workers: int | None):
-    """A Dask client on ``scheduler``, or on a new LocalCluster of ``workers`` processes.
-
-    Ctrl-C / SIGTERM are held while the cluster starts and stops (a start cut short would leave
-    worker processes nobody closes) and act right after; when the run is stopped, Dask's own
-    complaints about the tasks and transfers cut short are silenced."""
-    from distributed import Client, LocalCluster
-
-    if scheduler:
-        try:
-            with deferred_signals():
-                client = Client(scheduler, timeout="20s")
-        except (OSError, TimeoutError) as exc:
-            raise InputError(f"--scheduler: cannot reach the Dask scheduler at {scheduler}: "
-                             f"{exc}") from exc
-        with _closing(client.close):
-            yield client
-        return
-    with deferred_signals():
-        cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
-                               dashboard_address=None, silence_logs=logging.ERROR)
-        try:
-            client = Client(cluster)
-        except BaseException:
-            cluster.close()
-            raise
-    with _closing(client.close, cluster.close):
-        yield client
-
-
-@contextlib.contextmanager
-def _closing(*close):
-    """Run ``close`` functions after the block, with Ctrl-C / SIGTERM held. When the block was
-    stopped (KeyboardInterrupt, SIGTERM's exception), Dask's and asyncio's loggers in this
-    process are silenced for good (the process is ending): the scheduler and client would report
-    every transfer and task cut short, some only when they are garbage-collected."""
-    try:
-        yield
-    except BaseException as exc:
-        if not isinstance(exc, Exception):
-            for name in ("distributed", "asyncio"):
-                logging.getLogger(name).setLevel(logging.CRITICAL + 1)
-        raise
-    finally:
-        with deferred_signals():
-            for fn in close:
-                fn()
 
 
 def stream_deform(src: ChunkFile, cfg, base_dir: Path, out: Path, *, chunk: int,
