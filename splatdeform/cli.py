@@ -17,12 +17,14 @@ import traceback
 import warnings
 
 from .basis.names import BACKENDS
-from .errors import InputError, SplatdeformError
+from .errors import InputError, SplatdeformError, error_line, one_line
 
 
 class _Parser(argparse.ArgumentParser):
     def error(self, message: str) -> None:  # argparse would exit 2 with usage; keep one line
-        raise InputError(f"{self.prog}: {message}")
+        # main prints "splatdeform: error: "; a verb's parser adds only the verb ("deform: ...")
+        verb = self.prog.partition(" ")[2]
+        raise InputError(f"{verb}: {message}" if verb else message)
 
 
 def cmd_info(args: argparse.Namespace) -> int:
@@ -49,6 +51,7 @@ def cmd_deform(args: argparse.Namespace) -> int:
     from pathlib import Path
 
     from splatdeform.edit.config import load_edit
+    from splatdeform.edit.plan import plan_edit
     from splatdeform.edit.result import format_report
     from splatdeform.edit.run import run_edit
     _check_workers(args)
@@ -70,13 +73,17 @@ def cmd_deform(args: argparse.Namespace) -> int:
         args.roll = cfg.render.roll if args.roll is None else args.roll
         if cfg.render.camera and not args.camera:
             args.camera = str(base / cfg.render.camera)   # relative to the config file
-    view = _edit_view(cfg, args) if render_out else None
-    _check_deform_paths(args, cfg, base, output, reuse, render_out)
-    _check_streamed_frames(args, cfg, base, render_out, reuse)
+    # the one pre-flight: the view, every path, stream-or-not (run_edit takes the plan as is)
+    plan = plan_edit(cfg, base, output=output, reuse=reuse, drop_nonfinite=args.drop_nonfinite,
+                     stream=_stream_options(args), warn=_warn, source=args.config,
+                     output_label="-o/--output" if output is not None else "output",
+                     reuse_label="--reuse-file" if args.reuse_file else "--reuse cache",
+                     render=render_out, render_label="--render" if args.render else
+                     "render.output", frames=args.frames, up=args.up, roll=args.roll,
+                     camera=args.camera)
+    view = plan.view
     try:
-        result = run_edit(cfg, base, output=output, drop_nonfinite=args.drop_nonfinite,
-                          reuse=reuse, log=None if args.quiet else print, warn=_warn,
-                          stream=_stream_options(args))
+        result = run_edit(plan, log=None if args.quiet else print, warn=_warn)
     except InputError as exc:
         # an error about a config key is said of the config file it came from
         if exc.key is not None:
@@ -115,42 +122,10 @@ def _check_budget_alone(args: argparse.Namespace, whole: str | None) -> None:
                          "memory, which the budget may not hold); give one of them")
 
 
-def _check_streamed_frames(args: argparse.Namespace, cfg, base, render_out, reuse) -> None:
-    """Frames need the model in memory: refused before any work when the edit will stream
-    (the same decision ``run_edit`` takes)."""
-    from splatdeform.edit.images import refuse_streamed_frames, render_frames_count
-    from splatdeform.edit.run import streams
-
-    if not render_out or render_frames_count(cfg, args.frames) < 2:
-        return
-    options = _stream_options(args)
-    if streams(cfg, base / cfg.input, options, options.budget_bytes(cfg), reuse=reuse,
-               drop_nonfinite=args.drop_nonfinite):
-        refuse_streamed_frames()
-
-
 def _stream_options(args: argparse.Namespace):
     from splatdeform.edit.stream import StreamOptions
 
     return StreamOptions(args.memory_budget, args.scheduler, args.workers, args.quiet)
-
-
-def _check_deform_paths(args: argparse.Namespace, cfg, base, output, reuse, render_out) -> None:
-    """Before any work: no output of this run may be an input or another output."""
-    from splatdeform.edit.config import input_paths
-    from splatdeform.edit.images import render_frames_count, render_target
-
-    from .io.atomic import check_io_paths
-
-    outputs = [("-o/--output" if output is not None else "output",
-                output if output is not None else base / cfg.output),
-               ("--reuse-file" if args.reuse_file else "--reuse cache", reuse)]
-    if render_out:
-        what = "--render" if args.render else "render.output"
-        _, files = render_target(render_out, render_frames_count(cfg, args.frames), what)
-        outputs += [(what, f) for f in files]
-    cam = [("--camera/render.camera", args.camera)] if getattr(args, "camera", None) else []
-    check_io_paths([("edit config", args.config), *input_paths(cfg, base), *cam], outputs)
 
 
 def cmd_select(args: argparse.Namespace) -> int:
@@ -598,17 +573,8 @@ def _run(argv: list[str], debug: bool) -> int:
 
 
 def _internal(exc: BaseException) -> str:
-    msg = " ".join(str(exc).split())[:300] or type(exc).__name__
-    return (f"internal error: {type(exc).__name__}: {msg} (rerun with --debug for the "
-            "traceback)")
-
-
-def one_line(text: str) -> str:
-    """``text`` with line breaks and other control characters escaped (a path may hold a
-    newline; the error must stay one line)."""
-    if text.isprintable():
-        return text
-    return "".join(c if c.isprintable() else repr(c)[1:-1] for c in text)
+    return (f"internal error: {type(exc).__name__}: {error_line(exc, limit=300, mark='')} "
+            "(rerun with --debug for the traceback)")
 
 
 if __name__ == "__main__":

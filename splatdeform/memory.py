@@ -6,16 +6,23 @@ guard, and the render budget (sample or not). The figures are peaks in bytes of 
 above the interpreter's own (see :data:`BASE_BYTES`), so a caller compares
 ``BASE_BYTES + estimate`` with its budget.
 
-The budget policy lives here too: sizes (:func:`parse_size`), the machine's memory and the
-default budget (:func:`default_budget`, half the RAM), the margin a run may exceed its budget by
-(:data:`BUDGET_MARGIN`) and the one rule (:func:`choose`) that decides in memory / stream /
-refuse for ``deform``, ``render`` (through :func:`render_points`) and batch.
+The budget policy lives here too: sizes (:func:`parse_size`), the machine's memory
+(:func:`machine_memory`: the physical RAM, the one definition) and the default budget
+(:func:`default_budget`, half of it; a batch worker's default is that divided among the workers
+running at once, :func:`worker_budget`), the margins a run may exceed its budget by
+(:data:`BUDGET_MARGIN`; a batch worker's hard cap :data:`CAP_SLACK_BYTES`), what a streamed run
+sizes from its budget (:func:`stream_sizes`, :func:`sample_sizes`) and the one rule
+(:func:`choose`) that decides in memory / stream / refuse for ``deform``, ``render`` (through
+:func:`render_points`), ``select``, batch and the editor.
 
 Every file an estimate reads is opened with :func:`splatdeform.io.regular.open_regular`, and
-its header is the reader's own, validated against the file size (LAS/LAZ:
-:mod:`splatdeform.io.las_header`, PLY: :func:`splatdeform.io.ply_format.parse_header`, PCD:
-:func:`splatdeform.io.pcd.parse_header`): never a second parser that would trust what a header
-claims before the checks run.
+judged by its format's declared header probe (:mod:`splatdeform.io.declare`, through
+:func:`splatdeform.io.header_cost`): the reader's own header parser, validated against the file
+size (LAS/LAZ: :mod:`splatdeform.io.las_header`, PLY and compressed PLY:
+:func:`splatdeform.io.ply_format.parse_header`, PCD: :func:`splatdeform.io.pcd.parse_header`,
+SPZ: its gzip'd header, SOG: meta.json, glTF: its JSON's accessors), never a second parser that
+would trust what a header claims before the checks run. The splat formats' estimates come from
+the count their header declares, so an explicit budget caps them too.
 
 A header can lie and a body can amplify: ASCII values and PLY list rows cost several times
 their bytes once parsed, so the load estimate takes the larger of what the header's counts
@@ -29,7 +36,13 @@ import re
 from dataclasses import dataclass
 from pathlib import Path
 
-from .errors import ConfigError, FormatError, InputError
+from .errors import ConfigError, InputError
+
+# the estimator's figures, declared with their formats (re-exported: one place to ask)
+from .io.declare.las import LAZ_PARALLEL_COPIES as LAZ_PARALLEL_COPIES
+from .io.declare.las import laz_reader_bytes as laz_reader_bytes
+from .io.format import HEAD_BYTES as HEAD_BYTES
+from .io.format import FileCost
 from .rbf.defaults import DEFAULT_MAX_CENTERS
 
 BASE_BYTES = 150 * 2**20   # interpreter + numpy + scipy + pyopencl resident (measured)
@@ -110,6 +123,27 @@ def default_budget() -> int:
     return machine_memory() // 2
 
 
+def worker_budget(workers: int) -> int:
+    """A batch worker's default budget (no ``memory_per_worker_mb``): the default budget
+    (:func:`default_budget`, half the RAM) shared by the ``workers`` scans running at once."""
+    return default_budget() // max(1, workers)
+
+
+#: A batch worker process runs each scan under a hard cap (RLIMIT_DATA) of what it has mapped
+#: plus its budget plus this slack, for what the estimate cannot see (see
+#: :func:`splatdeform.batch.worker.cap_memory`): a scan that outgrows it fails alone.
+CAP_SLACK_BYTES = 300 * 2**20
+
+#: Bytes per point a streamed edit holds whole beside its chunks: the label byte and the
+#: region pass's per-point bookkeeping (``select`` keeps the label byte only).
+STREAM_LABEL_BYTES = 2
+
+#: Render sampling: raw records read per chunk (at most; an eighth of the budget), and the
+#: fewest points a sample keeps whatever the budget (a picture needs some points).
+SAMPLE_CHUNK_BYTES = 64 * 2**20
+MIN_SAMPLE_POINTS = 10_000
+
+
 @dataclass(frozen=True)
 class Choice:
     """What :func:`choose` decided: ``mode`` "memory", "stream" or "refuse"; ``need``: the
@@ -164,42 +198,14 @@ def choose(need: int, budget: int | None, *, streamable: bool, name: str | Path 
     return Choice("memory", need, limit, explicit, warning)
 
 
-@dataclass(frozen=True)
-class FileCost:
-    """What a file holds and what reading it costs.
-
-    points: points the header declares (else a bound from the size); size: file bytes;
-    record_bytes: bytes per point once decoded (the model's per-point arrays);
-    load_bytes: peak bytes to read the whole file into a PointModel;
-    reader_bytes: what a streamed reader holds besides the rows it returns (LAZ: one
-    compressed chunk, :func:`laz_reader_bytes`)."""
-
-    points: int
-    size: int
-    record_bytes: int
-    load_bytes: int
-    reader_bytes: int = 0
-
-
-HEAD_BYTES = 2**20 + 4096   # enough to hold any header the readers accept (PLY: 1 MiB)
-
-# Measured parse costs of the PLY reader (tests/test_memory.py checks them as upper bounds):
-ASCII_BYTES_PER_TOKEN = 64    # a bytes object and its list slot from split(), the float64 value
-ASCII_BYTES_PER_LINE = 64     # a bytes object per body line and its slot in two lists
-LIST_BYTES_PER_ROW = 400     # one numpy array object per non-empty list row (np.split views,
-                              # the object column), row offsets and lengths (measured ~350)
-LIST_BYTES_PER_VALUE = 8      # a gather index (int64) per list value
-LIST_BYTES_PER_ITEM_BYTE = 10  # per byte of a list value: its byte indices (int64) and copies
-COPIES_OF_FILE = 3            # binary: the raw bytes, a copied body, the decoded columns
-ASCII_COPIES_OF_FILE = 5      # ascii: raw bytes, split lines, joined rows, tokens, values
-
-
 def file_cost(path: str | Path) -> FileCost:
     """Judge ``path`` from its header and size (no body is read), through the one opener
-    (:func:`splatdeform.io.regular.open_regular`: a FIFO or a device is refused, not read).
+    (:func:`splatdeform.io.regular.open_regular`: a FIFO or a device is refused, not read) and
+    its format's declared header probe (:func:`splatdeform.io.header_cost`).
 
     Raises InputError/FormatError (one line naming the file) for an unreadable header or one
     that declares more than the file holds."""
+    from .io import header_cost
     from .io.regular import open_regular
 
     path = Path(path)
@@ -213,153 +219,16 @@ def file_cost(path: str | Path) -> FileCost:
         raise InputError(f"{path}: is a directory; expected a model file") from None
     except PermissionError:
         raise InputError(f"{path}: permission denied") from None
-    return head_cost(path, head, size)
+    return header_cost(path, head, size, file=path)
 
 
 def head_cost(name: str | Path, head: bytes, size: int, suffix: str | None = None) -> FileCost:
     """:func:`file_cost` from the file's first bytes ``head`` (up to :data:`HEAD_BYTES`) and its
     ``size``: what the batch guard uses for an archive member before extracting it.
-    ``suffix`` (default: the name's) picks the format."""
-    from .io import LAS_EXTENSIONS, PLY_EXTENSIONS, extension_of
+    ``suffix`` (default: the name's extension) picks the format."""
+    from .io import header_cost
 
-    suffix = (suffix or extension_of(name)).lower()
-    if suffix in PLY_EXTENSIONS:
-        return _ply_cost(Path(name), head, size)
-    if suffix in LAS_EXTENSIONS:
-        return _las_cost(Path(name), head, size)
-    if suffix == ".pcd":
-        return _pcd_cost(Path(name), head, size)
-    if suffix == ".splat":   # 32-byte records, nothing else
-        points = max(size // 32, 1)
-        return FileCost(points, size, 96, 3 * size + 96 * points)
-    points = max(size // 12, 1)
-    return FileCost(points, size, 24, 4 * size + 48 * points)
-
-
-def _ply_cost(path: Path, head: bytes, size: int) -> FileCost:
-    """The PLY reader's peak from the header's counts and the file's size: binary rows are
-    copied once, but every non-empty list row becomes an array object and an ASCII token a
-    Python bytes object (tens of bytes for a two-byte token), so a list- or token-dense body
-    costs up to ~30x its size. Counts are bounded by what the size can hold, so a lying
-    header cannot make the estimate small."""
-    import numpy as np
-
-    from .io.ply_format import parse_header
-
-    header = parse_header(path, head)
-    body = max(size - header.size, 0)
-    _check_ply_counts(path, header, body)
-    points = sum(count for el, count, _ in header.elements if el == "vertex")
-    record = 0
-    for el, _, props in header.elements:
-        if el == "vertex":
-            record = sum(np.dtype(p.dtype).itemsize for p in props if not p.is_list)
-    record = max(record, 12) + 48   # float64 positions and normals beside the stored columns
-    load = (ASCII_COPIES_OF_FILE if header.text else COPIES_OF_FILE) * size
-    if header.text:
-        tokens = min(body // 2 + 1, sum(count * len(props) for _, count, props in
-                                        header.elements
-                                        if not any(p.is_list for p in props)))
-        if any(p.is_list for _, _, props in header.elements for p in props):
-            tokens = body // 2 + 1   # list values: as many tokens as the body can hold
-        lines = min(body // 2 + 1, sum(count for _, count, _ in header.elements))
-        load += tokens * ASCII_BYTES_PER_TOKEN + lines * ASCII_BYTES_PER_LINE
-    else:
-        for _, count, props in header.elements:
-            lists = [p for p in props if p.is_list]
-            if not lists:
-                continue
-            smallest = min(np.dtype(p.dtype).itemsize for p in lists)
-            values = body // smallest
-            rows = min(count, body // max(1, sum(np.dtype(p.len_dtype).itemsize
-                                                 for p in lists)))
-            load += rows * (LIST_BYTES_PER_ROW * len(lists) + 16 * len(props)) + \
-                values * (LIST_BYTES_PER_VALUE + LIST_BYTES_PER_ITEM_BYTE * smallest)
-    return FileCost(points, size, record, max(load, 2 * size + points * record))
-
-
-def _check_ply_counts(path: Path, header, body: int) -> None:
-    """The PLY reader's size check, on the header it parsed: the declared rows (lists empty,
-    one-character ascii tokens) must fit in the body, else one FormatError line."""
-    import numpy as np
-
-    needed = 0
-    for name, count, props in header.elements:
-        row = (2 * len(props) if header.text else
-               sum(np.dtype(p.len_dtype if p.is_list else p.dtype).itemsize for p in props))
-        needed += count * row
-        if needed > body + (1 if header.text else 0):
-            raise FormatError(
-                f"{path}: the header declares more data than the file holds: element '{name}' "
-                f"({count} rows) needs at least {needed} body bytes up to its end, the body has "
-                f"{body} (file cut short, or the header's count is wrong)")
-
-
-#: lazrs's parallel decompressor (the whole-file load) holds decompressed LAZ chunks beside the
-#: points asked for, and the compressed bytes it read: per chunk point, about this many records
-#: (measured: a 3M-point LAZ written as one chunk, 30-byte records, 67 MB compressed, read 12,000
-#: points at a time, peaked 276 MB above the interpreter: 67 MB + 2.3 x 90 MB).
-LAZ_PARALLEL_COPIES = 2.5
-
-
-def laz_reader_bytes(compressed_bytes: int, chunk_points: int, record: int,
-                     parallel: bool = False) -> int:
-    """What a LAZ reader holds besides the rows it returns: the sequential decompressor (the
-    streamed reads) one compressed chunk (at most the whole compressed point data, at most
-    ``chunk_points`` raw records when the chunk size is known); the parallel one (a whole load)
-    also the decompressed chunks (:data:`LAZ_PARALLEL_COPIES`)."""
-    chunk_bytes = compressed_bytes if chunk_points <= 0 else \
-        min(compressed_bytes, chunk_points * record)
-    if not parallel:
-        return chunk_bytes
-    points = chunk_points if chunk_points > 0 else compressed_bytes * 64 // max(record, 1)
-    return chunk_bytes + int(LAZ_PARALLEL_COPIES * points * record)
-
-
-def _las_cost(path: Path, head: bytes, size: int) -> FileCost:
-    """LAS/LAZ from the header :mod:`splatdeform.io.las_header` validated against the file size
-    (the same checks ``info`` and the loader run: a corrupt VLR count or point count is one
-    FormatError line here, before laspy sees the file): the point records (decompressed for
-    LAZ, which holds 3-10x more points than its size suggests), their decoded columns, and for
-    LAZ the decompressor's buffers (:func:`laz_reader_bytes`)."""
-    from .io.las_header import check_header_bytes
-
-    layout = check_header_bytes(path, head, size)
-    points, record = layout.point_count, layout.record_length
-    record_bytes = record + 24 + 8   # raw record, float64 positions, decoded attributes
-    load = 3 * points * record + points * 32 + size
-    reader = 0
-    if layout.compressed:
-        data = max(size - layout.offset_to_points, 0)
-        chunk = min(layout.laz_chunk_points or points, points)
-        load += laz_reader_bytes(data, chunk, record, parallel=True)
-        reader = laz_reader_bytes(data, chunk, record)
-    return FileCost(points, size, record_bytes, load, reader)
-
-
-# Measured costs of the PCD reader beside its decoded records: the raw file, and for
-# binary_compressed the LZF output buffer and its bytes copy; ascii: the split rows, a bytes
-# object per value and the (N, columns) object array of value texts kept for a lossless save.
-PCD_ASCII_BYTES_PER_VALUE = 120
-
-
-def _pcd_cost(path: Path, head: bytes, size: int) -> FileCost:
-    """PCD from :func:`splatdeform.io.pcd.parse_header` (the reader's own, which checks the
-    declared POINTS / WIDTH x HEIGHT against the file size for every DATA encoding): the points
-    are the header's, whatever the encoding (a binary_compressed body holds more points than
-    its size suggests)."""
-    from .io.pcd import parse_header
-
-    source, _ = parse_header(path, head, size)
-    points = source.width * source.height
-    item = source.data.dtype.itemsize
-    record_bytes = item + 48   # the records, float64 positions (and normals)
-    load = size + 2 * points * item + points * 48
-    if source.encoding == "binary_compressed":
-        load += 2 * points * item   # the LZF output and its bytes copy
-    elif source.encoding == "ascii":
-        load += 2 * size + points * sum(source.counts) * PCD_ASCII_BYTES_PER_VALUE
-    return FileCost(points, size, record_bytes, load)
+    return header_cost(name, head, size, suffix)
 
 
 def deform_bytes(cost: FileCost, neighbors: int = 10,
@@ -388,6 +257,48 @@ def stream_chunk(budget: int, record_bytes: int, fixed_bytes: int) -> int:
     left = max(budget - fixed_bytes, budget // 4)
     per_point = 4 * record_bytes + STREAM_BYTES_PER_POINT
     return int(min(max(left // 4 // per_point, 5_000), 4_000_000))
+
+
+@dataclass(frozen=True)
+class StreamSizes:
+    """What a streamed edit holds within its budget: ``chunk`` points per chunk,
+    ``max_border`` border points, ``max_handle`` handle points kept whole (beyond: streamed
+    moments), and ``fixed`` the bytes held whatever the chunk (interpreter, labels, what the
+    reader keeps besides its rows)."""
+
+    chunk: int
+    max_border: int
+    max_handle: int
+    fixed: int
+
+
+def stream_sizes(budget: int, points: int, record_bytes: int, reader_bytes: int = 0
+                 ) -> StreamSizes:
+    """The sizes of a streamed edit of ``points`` records of ``record_bytes`` within ``budget``
+    bytes (:func:`stream_chunk`, :func:`stream_caps`); ``reader_bytes``: what the reader holds
+    besides its rows (:attr:`FileCost.reader_bytes`)."""
+    fixed = BASE_BYTES + STREAM_LABEL_BYTES * points + reader_bytes
+    border, handle = stream_caps(budget, fixed)
+    return StreamSizes(stream_chunk(budget, record_bytes, fixed_bytes=fixed), border, handle,
+                       fixed)
+
+
+def select_chunk(budget: int, points: int, record_bytes: int) -> int:
+    """Points per chunk of ``select``'s streamed regions pass (one label byte a point)."""
+    return stream_chunk(budget, record_bytes, fixed_bytes=BASE_BYTES + points)
+
+
+def select_preview_budget(budget: int, points: int) -> int:
+    """What ``select``'s sampled preview may hold beside its labels (one byte a point)."""
+    return max(budget - points, budget // 2)
+
+
+def sample_sizes(limit: int, cost: FileCost) -> tuple[int, int]:
+    """(bytes read per chunk, points that fit) of a render within ``limit`` bytes: all the
+    file's points when it fits (:func:`render_points`, two chunks and the reader's buffers
+    reserved); a sample then keeps at least :data:`MIN_SAMPLE_POINTS`."""
+    chunk_bytes = min(SAMPLE_CHUNK_BYTES, limit // 8)
+    return chunk_bytes, render_points(limit, cost, reserve=2 * chunk_bytes + cost.reader_bytes)
 
 
 def stream_caps(budget: int, fixed_bytes: int) -> tuple[int, int]:

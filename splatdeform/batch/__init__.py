@@ -11,7 +11,7 @@ Batch config (paths relative to the batch file)::
     render: {size: [256, 256], azimuth: 30, elevation: 20}   # optional thumbnails (per half)
     workers: 2                    # optional; default: the number of cores
     scheduler: tcp://host:8786    # optional; run on a Dask distributed cluster instead
-    memory_per_worker_mb: 4000    # optional; default: available memory / workers
+    memory_per_worker_mb: 4000    # optional; default: half the RAM / workers running at once
     scan_timeout_s: 600           # optional; a scan still running after this is stopped and
                                   # reported failed (--scan-timeout SECONDS wins)
 
@@ -27,7 +27,13 @@ read (or whose tar header is cut off, or whose zip entries overlap) each become 
 without being opened; a scan whose PLY header does not fit its size, or whose estimated memory
 (:mod:`splatdeform.memory`, from the header) exceeds the budget, fails before it is loaded or
 extracted (members are never extracted past the size the archive declares); a local worker runs
-each scan under a memory cap (budget + 300 MiB), so a wrong estimate fails one scan. Archives
+each scan under a memory cap (budget + 300 MiB), so a wrong estimate fails one scan.
+
+The per-worker budget (``memory_per_worker_mb``; default :func:`splatdeform.memory.worker_budget`,
+half the RAM shared by the workers running at once) is a cap, as ``deform --memory-budget``'s:
+a scan file over it streams where ``deform`` would stream it (binary PLY, LAS/LAZ, a handle
+edit) and is refused, with deform's line, where deform would refuse it. An archive member over
+it is refused before extraction (it is not streamed: it would be extracted whole first). Archives
 are listed and their members checked in one pass. The report is written on every exit, with
 every name valid UTF-8 and escaped in ``index.html``.
 
@@ -65,13 +71,26 @@ def _strip_name(row: dict[str, Any]) -> str:
 
 
 class _Progress:
+    """A scan done: a tqdm bar on a terminal (failed scans written above it), else one line per
+    scan on stdout, ``[n/total] scan: status ...``, written by tqdm too (LineBar)."""
+
     def __init__(self, total: int, quiet: bool) -> None:
         self.total, self.quiet, self.n = total, quiet, 0
         self.bar = None
-        if not quiet and sys.stderr.isatty():
-            from tqdm import tqdm
+        self.msg = ""
+        self.terminal = not quiet and sys.stderr.isatty()
+        if quiet:
+            return
+        from ..progress import LineBar, tqdm
 
+        if self.terminal:
             self.bar = tqdm(total=total, unit="scan", dynamic_ncols=True)
+        else:
+            self.bar = LineBar(total=total, mininterval=0, line=self._line,
+                               sink=lambda line: print(line, flush=True))
+
+    def _line(self, bar: dict[str, Any]) -> str:
+        return f"[{bar['n']}/{self.total}] {self.msg}"
 
     def __call__(self, row: dict[str, Any]) -> None:
         from .report import printable
@@ -82,12 +101,11 @@ class _Progress:
             msg += f": {printable(_strip_name(row))}"
         elif row.get("seconds") is not None:
             msg += f" ({row['seconds']:.1f} s)"
+        self.msg = msg
         if self.bar is not None:
             self.bar.update(1)
-            if row["status"] == "failed":
+            if row["status"] == "failed" and self.terminal:
                 self.bar.write(msg)
-        elif not self.quiet:
-            print(f"[{self.n}/{self.total}] {msg}", flush=True)
 
     def close(self) -> None:
         if self.bar is not None:
@@ -102,10 +120,11 @@ def run_batch(path: str | Path, *, workers: int | None = None, scheduler: Any = 
     ``scheduler`` may be an address or a Dask Cluster/Client object (tests).
     ``scan_timeout``: seconds per scan, wins over the config's ``scan_timeout_s``."""
     from ..io.atomic import remove_stale_temps
+    from ..memory import worker_budget
     from .report import write_reports
     from .runner import run_dask, run_local
     from .sources import clean_stale_temps
-    from .worker import _row, available_memory, read_sidecar
+    from .worker import _row, read_sidecar
 
     t0 = time.perf_counter()
     if scan_timeout is not None:
@@ -127,7 +146,7 @@ def run_batch(path: str | Path, *, workers: int | None = None, scheduler: Any = 
     problems: list[dict[str, Any]] = []
     budget = batch.memory_per_worker_mb * 2**20 if batch.memory_per_worker_mb else None
     if budget is None and not scheduler:
-        budget = available_memory() / max(1, min(workers, len(batch.jobs)))
+        budget = worker_budget(min(workers, len(batch.jobs)))
     for i, job in enumerate(batch.jobs):
         problem = job.problem or _over_budget(job, budget)
         if problem is not None:   # never opened: a FIFO, a duplicate member, over budget ...
@@ -185,7 +204,8 @@ def run_batch(path: str | Path, *, workers: int | None = None, scheduler: Any = 
 
 def _over_budget(job: Job, budget: float | None) -> str | None:
     """An archive member whose header-based estimate exceeds the per-worker budget is refused
-    before it is extracted or sent to a worker."""
+    before it is extracted or sent to a worker (members are not streamed; a scan file's
+    stream-or-not is the worker's pre-flight, :func:`splatdeform.edit.plan.plan_edit`)."""
     need = job.scan.need
     if budget is None or need is None or need <= budget:
         return None

@@ -18,16 +18,12 @@ import traceback
 from pathlib import Path
 from typing import Any
 
+from ..errors import error_line
+from ..memory import CAP_SLACK_BYTES  # the cap's slack (memory's budget figures)
 from .config import Job
 
-
-def available_memory() -> int:
-    try:
-        import psutil
-
-        return int(psutil.virtual_memory().available)
-    except Exception:  # pragma: no cover - psutil ships with distributed
-        return int(os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE"))
+#: longest error a report row keeps (errors.error_line's limit)
+ROW_CHARS = 500
 
 
 def read_sidecar(job: Job) -> dict[str, Any] | None:
@@ -50,18 +46,15 @@ def _row(job: Job, status: str, **extra: Any) -> dict[str, Any]:
             "error": "", **extra}
 
 
-def _one_line(exc: BaseException) -> str:
-    msg = " ".join(str(exc).split()) or type(exc).__name__
-    return msg if len(msg) < 500 else msg[:497] + "..."
-
-
 def process_scan(job: Job) -> dict[str, Any]:
     """Deform one scan; returns its report row (never raises for scan problems)."""
     from splatdeform.edit.config import RenderCfg, parse_edit
+    from splatdeform.edit.plan import plan_edit
     from splatdeform.edit.run import run_edit
 
     from ..errors import SplatdeformError
     from ..io import atomic_write
+    from ..memory import MIN_BUDGET
     from ..rbf.defaults import DEFAULT_MAX_CENTERS
     from .probe import check, estimate_memory, probe
     from .sources import clean_stale_temps, materialize
@@ -74,19 +67,23 @@ def process_scan(job: Job) -> dict[str, Any]:
     local: Path | None = None
 
     def vet(head: bytes, size: int) -> None:
-        """Before loading (and before extracting a member): header vs size, memory budget."""
-        p = probe(job.scan.name, head, size, suffix=job.scan.suffix)
+        """Before loading (and before extracting a member): header vs size; an archive member
+        (never streamed: it would be extracted whole first) or a budget too small to stream
+        in must fit the budget. A file's stream-or-not is the pre-flight's (deform's rule)."""
+        p = probe(job.scan.name, head, size, suffix=job.scan.extension)
         fit = job.edit.get("fit") if isinstance(job.edit.get("fit"), dict) else {}
         centers = fit.get("max_centers", DEFAULT_MAX_CENTERS)
         centers = centers if isinstance(centers, int) else DEFAULT_MAX_CENTERS
         check(job.scan.name, p, None, None)   # the header against the size
-        budget_check(job, estimate_memory(p, centers), p)
+        if job.scan.member is not None or scan_budget(job)[0] < MIN_BUDGET:
+            budget_check(job, estimate_memory(p, centers), p)
 
     try:
         with materialize(job.scan, vet) as local:
             cfg = parse_edit({**job.edit, "input": str(local), "output": job.output},
                              job.scan.name, "edit")
-            result = run_edit(cfg, job.base_dir, output=job.output)
+            result = run_edit(plan_edit(cfg, job.base_dir, output=job.output,
+                                        stream=scan_options(job, cfg)))
             if job.png and job.render:
                 try:
                     from splatdeform.edit.images import render_result
@@ -100,9 +97,9 @@ def process_scan(job: Job) -> dict[str, Any]:
                     render_result(result, cfg, job.png, input_path=local,   # atomically
                                   budget=int(job.memory_budget) if job.memory_budget else None)
                 except Exception as exc:  # a thumbnail must not fail the scan
-                    warning = f"thumbnail not rendered: {_one_line(exc)}"
+                    warning = f"thumbnail not rendered: {error_line(exc, limit=ROW_CHARS)}"
     except SplatdeformError as exc:
-        msg = _one_line(exc)
+        msg = error_line(exc, limit=ROW_CHARS)
         if local is not None and job.scan.member is not None:   # name the member, not the temp
             msg = msg.replace(str(local), job.scan.name)
         return _row(job, "failed", seconds=time.perf_counter() - t0, error=msg)
@@ -112,7 +109,7 @@ def process_scan(job: Job) -> dict[str, Any]:
     except Exception as exc:  # an unexpected bug: keep the batch going, say where
         where = traceback.extract_tb(exc.__traceback__)[-1]
         return _row(job, "failed", seconds=time.perf_counter() - t0,
-                    error=f"{type(exc).__name__}: {_one_line(exc)} "
+                    error=f"{type(exc).__name__}: {error_line(exc, limit=ROW_CHARS)} "
                           f"({Path(where.filename).name}:{where.lineno})")
     s = result.stats
     row = _row(job, "ok", points=s["points"], constraints=s["constraints"], kept=s["kept"],
@@ -130,22 +127,47 @@ def process_scan(job: Job) -> dict[str, Any]:
 
 OUT_OF_MEMORY = ("out of memory: the scan outgrew its {mib:.0f} MiB per-worker budget (plus "
                  "300 MiB) and was stopped; raise memory_per_worker_mb or use fewer workers")
-CAP_SLACK_BYTES = 300 * 2**20   # above the budget, for what the estimate cannot see
+
+
+def scan_budget(job: Job) -> tuple[int, str]:
+    """(bytes, where it came from) a scan is held to: ``memory_per_worker_mb`` (or the batch's
+    default, :func:`splatdeform.memory.worker_budget`, set on the job by ``run_batch``), else
+    (a Dask worker without it) this machine's default budget, half its RAM
+    (:func:`splatdeform.memory.default_budget`). Either way a cap, as ``--memory-budget`` is
+    for ``deform``: several scans share the machine."""
+    from ..memory import default_budget
+
+    if job.memory_budget is not None:
+        return int(job.memory_budget), "memory_per_worker_mb"
+    return default_budget(), "half this worker's RAM (memory_per_worker_mb unset)"
+
+
+def scan_options(job: Job, cfg):
+    """The streaming options of a scan's edit: its budget (:func:`scan_budget`, or the edit's
+    own ``memory_budget`` when smaller), streamed quietly on this worker. A scan over it
+    streams where ``deform --memory-budget`` would, and is refused where deform would be."""
+    from splatdeform.edit.stream import StreamOptions
+
+    from ..memory import budget_bytes
+
+    budget, name = scan_budget(job)
+    own = budget_bytes(None, cfg.memory_budget)
+    if own is not None and own < budget:
+        budget, name = own, "memory_budget"
+    return StreamOptions(budget=budget, quiet=True, budget_name=name)
 
 
 def budget_check(job: Job, need: int, p) -> None:
-    """The one budget rule (:func:`splatdeform.memory.choose`) for a scan of a batch: a worker
-    holds its per-worker budget (``memory_per_worker_mb``, else the available memory) and
-    does not stream (several scans share the machine; a scan over its share is refused with
-    one line naming the estimate and the budget)."""
+    """A scan that does not stream (an archive member, or a budget below the 64 MiB a
+    streamed run needs) must fit its budget (:func:`scan_budget`), by the one budget rule
+    (:func:`splatdeform.memory.choose`); over it, one line naming the estimate and the
+    budget."""
     from ..errors import InputError
     from ..memory import choose
 
-    if job.memory_budget is not None:
-        budget, what = int(job.memory_budget), "MiB per worker; use fewer workers or set " \
-            "memory_per_worker_mb"
-    else:
-        budget, what = available_memory(), "MiB available on this worker"
+    budget, source = scan_budget(job)
+    what = ("MiB per worker; use fewer workers or set memory_per_worker_mb"
+            if source == "memory_per_worker_mb" else "MiB available on this worker")
     choice = choose(need, budget, streamable=False, name=job.scan.name)
     if choice.mode == "refuse":
         mib = 2**20

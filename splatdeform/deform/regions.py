@@ -57,20 +57,30 @@ class Layout:
     name: str
 
 
-def check_regions(fixed: np.ndarray, handle: np.ndarray, *, handle_name: str = "handle") -> None:
-    """Raise RegionError for empty, overlapping or all-covering regions."""
-    if not fixed.any():
+def check_region_counts(n_fixed: int, n_handle: int, n_overlap: int, n_free: int, *,
+                        handle_name: str = "handle") -> None:
+    """The one region check, from counts (so the in-memory and the streamed edit, which only
+    counts its chunks, say the same line): RegionError for an empty fixed or handle region,
+    overlapping regions, or regions that leave no free point. ``n_fixed`` / ``n_handle``:
+    points each selects (overlap included); ``n_free``: points neither selects."""
+    if n_fixed == 0:
         raise RegionError.at("regions.fixed", "selects no point; widen the fixed region")
-    if not handle.any():
+    if n_handle == 0:
         raise RegionError.at(f"regions.{handle_name}",
                              f"selects no point; widen the {handle_name} region")
-    both = fixed & handle
-    if both.any():
+    if n_overlap:
         raise RegionError.at("regions", f"fixed and {handle_name} regions overlap in "
-                          f"{int(both.sum())} points; they must be disjoint")
-    if (fixed | handle).all():
+                             f"{n_overlap} points; they must be disjoint")
+    if n_free == 0:
         raise RegionError.at("regions", f"fixed and {handle_name} regions cover every point; "
-                          "leave a free region between them")
+                             "leave a free region between them")
+
+
+def check_regions(fixed: np.ndarray, handle: np.ndarray, *, handle_name: str = "handle") -> None:
+    """Raise RegionError for empty, overlapping or all-covering regions (fixed, handle:
+    (N,) bool masks; :func:`check_region_counts`)."""
+    check_region_counts(int(fixed.sum()), int(handle.sum()), int((fixed & handle).sum()),
+                        int((~(fixed | handle)).sum()), handle_name=handle_name)
 
 
 def check_metaphor(fixed: np.ndarray, mph: Metaphor, n: int) -> None:

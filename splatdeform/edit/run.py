@@ -13,13 +13,13 @@ import numpy as np
 
 from splatdeform import deform as df
 from splatdeform.edit import plain
-from splatdeform.edit.config import EditConfig, input_paths
+from splatdeform.edit.config import EditConfig
 from splatdeform.edit.plain import control_displacement, metaphors, transform_matrix  # noqa: F401
+from splatdeform.edit.plan import EditPlan, decide, plan_edit
 from splatdeform.edit.result import EditResult, edit_stats, format_report  # noqa: F401
-from splatdeform.edit.stream import StreamOptions, edit_choice, run_stream
-from splatdeform.errors import ConfigError, InputError, ProcessingError
-from splatdeform.io import SUPPORTED, extension_of, load, save
-from splatdeform.io.atomic import check_io_paths
+from splatdeform.edit.stream import StreamOptions, run_stream
+from splatdeform.errors import InputError, ProcessingError
+from splatdeform.io import load, save
 from splatdeform.model import MAX_COORDINATE, PointModel
 from splatdeform.rbf import RbfFit
 
@@ -85,58 +85,41 @@ def check_converged(fit: RbfFit, cfg: EditConfig,
 def streams(cfg: EditConfig, in_path: Path, options: StreamOptions, budget: int | None, *,
             reuse: str | Path | None = None, drop_nonfinite: bool = False,
             warn: Callable[[str], None] | None = None) -> bool:
-    """True when this edit runs out of core: Dask asked for (``options.scheduler``/``workers``),
-    or the budget rule (:func:`splatdeform.memory.choose`) says stream. ``budget``: the
-    explicit budget (``--memory-budget`` / ``memory_budget``), a cap: an edit over it that
-    cannot stream (its format, or ``--reuse`` / ``--drop-nonfinite`` which need the whole model)
-    is refused with one line naming the estimate and the budget. None: half the RAM, and the
-    rule from before the cap: over it, ``--reuse``/``--drop-nonfinite`` run in memory (``warn``
-    is told so). Asking for Dask with those options is a ConfigError."""
-    whole = "--reuse" if reuse is not None else "--drop-nonfinite" if drop_nonfinite else None
-    if options.distributed:
-        if whole is not None:
-            raise ConfigError("--scheduler/--workers: cannot be combined with --reuse or "
-                              "--drop-nonfinite")
-        return True
-    key = "--memory-budget" if options.budget is not None else "memory_budget"
-    choice = edit_choice(cfg, in_path, budget, whole=whole, budget_name=key)
-    if choice.mode == "refuse":
-        raise InputError(choice.message)
-    if choice.message and warn is not None:
-        warn(choice.message)
-    return choice.mode == "stream"
+    """True when this edit runs out of core: the pre-flight's decision
+    (:func:`splatdeform.edit.plan.decide`, which says when; refusals and warnings there)."""
+    return decide(cfg, in_path, options, budget, reuse=reuse, drop_nonfinite=drop_nonfinite,
+                  warn=warn)[0]
 
 
-def run_edit(cfg: EditConfig, base_dir: str | Path = ".", *, output: str | Path | None = None,
+def run_edit(config: EditPlan | EditConfig | dict | str | Path,
+             base_dir: str | Path | None = None, *, output: str | Path | None = None,
              save_output: bool = True, drop_nonfinite: bool = False,
              reuse: str | Path | None = None,
              log: Callable[[str], None] | None = None,
              warn: Callable[[str], None] | None = None,
              stream: StreamOptions | None = None) -> EditResult:
-    """Run one edit. ``output`` overrides ``cfg.output``; ``reuse`` names a precomputed
-    deformation file to load when it matches this edit (and to write otherwise). ``warn``
-    receives the one-line warning of a fit that stopped above the tolerance (with
-    ``fit.on_not_converged: error`` that is a ProcessingError instead, before any output).
-    ``stream``: budget, Dask and quiet options of the out-of-core path
-    (:func:`splatdeform.edit.stream.run_stream`), taken (see :func:`streams`) when the input
-    exceeds the budget or Dask is asked for; only when the output is saved."""
-    base_dir = Path(base_dir)
-    out_path = Path(output) if output is not None else base_dir / cfg.output
-    in_path = base_dir / cfg.input
-    if save_output:
-        if extension_of(out_path) not in SUPPORTED:  # a SOG folder's meta.json too
-            raise InputError(f"{out_path}: unknown output extension {out_path.suffix!r}; "
-                             f"expected one of {', '.join(SUPPORTED)}")
-        check_io_paths(input_paths(cfg, base_dir),
-                       [("output", out_path), ("reuse cache", reuse)])
-        options = stream or StreamOptions()
-        budget = options.budget_bytes(cfg)
-        if streams(cfg, in_path, options, budget, reuse=reuse, drop_nonfinite=drop_nonfinite,
-                   warn=warn):
-            return run_stream(cfg, base_dir, output=out_path, budget=budget,
-                              scheduler=options.scheduler, workers=options.workers,
-                              quiet=options.quiet, log=log,
-                              check_fit=lambda fit: check_converged(fit, cfg, warn))
+    """Run one edit.
+
+    ``config``: an :class:`~splatdeform.edit.plan.EditPlan` (the CLI's and batch's: paths
+    checked, stream-or-not decided; the planning arguments below are then not used), or what
+    :func:`~splatdeform.edit.plan.plan_edit` plans from: an edit file's path (its relative
+    paths resolve against its folder: ``run_edit("path/to/edit.yaml")``), or a mapping or an
+    EditConfig whose relative paths resolve against ``base_dir`` (default: the current folder).
+    ``output`` overrides ``cfg.output``; ``reuse`` names a precomputed deformation file to
+    load when it matches this edit (and to write otherwise). ``warn`` receives the one-line
+    warning of a fit that stopped above the tolerance (with ``fit.on_not_converged: error``
+    that is a ProcessingError instead, before any output). ``stream``: budget, Dask and quiet
+    options of the out-of-core path (:func:`splatdeform.edit.stream.run_stream`), taken when
+    the input exceeds the budget or Dask is asked for; only when the output is saved."""
+    if isinstance(config, EditPlan):
+        plan = config
+    else:
+        plan = plan_edit(config, base_dir, output=output, save_output=save_output,
+                         reuse=reuse, drop_nonfinite=drop_nonfinite, stream=stream, warn=warn)
+    cfg, base_dir, in_path, reuse = plan.cfg, plan.base_dir, plan.input, plan.reuse
+    drop_nonfinite = plan.drop_nonfinite
+    if plan.streamed:
+        return run_stream(plan, log=log, check_fit=lambda fit: check_converged(fit, cfg, warn))
     timings: dict[str, float] = {}
     model = prepare_model(cfg, base_dir, timings, drop_nonfinite)
     deformation = None
@@ -172,8 +155,8 @@ def run_edit(cfg: EditConfig, base_dir: str | Path = ".", *, output: str | Path 
                        free_points=deformation.free_idx.size, diagonal=model.diagonal(),
                        refused_splats=int(applied.get("refused_splats", 0)))
     result = EditResult(model, deformed, deformation, delta_c, matrix, None, stats, timings)
-    if save_output:
+    if plan.output is not None:
         t0 = time.perf_counter()
-        result.output = save(deformed, out_path)
+        result.output = save(deformed, plan.output)
         timings["save"] = time.perf_counter() - t0
     return result

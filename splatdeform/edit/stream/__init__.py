@@ -11,7 +11,8 @@ given a Dask scheduler (``--scheduler``) or local worker processes (``--workers`
    the output file (same format and properties), renamed into place at the end.
 
 See :mod:`splatdeform.edit.stream.plan` for why the rings equal the in-memory rings. The
-choice stream-or-not is :func:`splatdeform.edit.run.run_edit`'s (with :class:`StreamOptions`);
+choice stream-or-not is the pre-flight's (:func:`splatdeform.edit.plan.plan_edit`, with
+:class:`StreamOptions`);
 the chunk readers are the io format table's (:func:`splatdeform.io.open_chunks`), the border
 geometry :mod:`splatdeform.deform.border`.
 """
@@ -25,6 +26,7 @@ import numpy as np
 
 from splatdeform.edit.result import EditResult, edit_stats
 from splatdeform.edit.stream.progress import Progress
+from splatdeform.io import COSTED as io_costed
 from splatdeform.io import STREAMABLE, extension_of
 from splatdeform.memory import budget_bytes, default_budget, machine_memory, parse_size
 
@@ -34,12 +36,15 @@ class StreamOptions:
     """How ``deform`` may run out of core: ``budget`` in bytes or a size string like '2GB'
     (None: the config's ``memory_budget``, else half the RAM); a Dask ``scheduler`` address or
     a number of local ``workers`` (either one makes the edit stream); ``quiet``: no progress
-    or streaming lines."""
+    or streaming lines; ``budget_name``: where the budget came from, for the refusal line
+    (default ``--memory-budget`` when ``budget`` is given, else ``memory_budget``; batch:
+    ``memory_per_worker_mb``)."""
 
     budget: int | str | None = None
     scheduler: str | None = None
     workers: int | None = None
     quiet: bool = False
+    budget_name: str | None = None
 
     @property
     def distributed(self) -> bool:
@@ -51,8 +56,9 @@ class StreamOptions:
         return budget_bytes(self.budget, cfg.memory_budget)
 
 
-#: formats whose in-memory estimate comes from their validated header (memory.file_cost)
-COSTED = (".ply", ".las", ".laz", ".pcd", ".splat")
+#: formats whose in-memory estimate comes from their validated header (memory.file_cost): the
+#: ones whose declaration has a header probe (splatdeform.io), splat formats included
+COSTED = io_costed
 
 
 def stream_refusal(cfg) -> str:
@@ -111,6 +117,10 @@ def run_stream(cfg, base_dir: str | Path = ".", *, output: str | Path | None = N
                max_handle: int | None = None) -> EditResult:
     """Run one handle edit out of core (locally, or on Dask with ``scheduler``/``workers``).
 
+    ``cfg``: an :class:`~splatdeform.edit.plan.EditPlan` (what ``run_edit`` passes: its paths
+    were checked and its budget and Dask options decided by the pre-flight; ``base_dir``,
+    ``output``, ``budget``, ``scheduler``, ``workers`` and ``quiet`` come from it), or an
+    EditConfig with ``base_dir`` (the output path is checked here).
     Returns an :class:`~splatdeform.edit.result.EditResult` with ``model``/``deformed`` None
     (the models are never whole in memory) and the figures ``format_report`` prints.
     ``client``: an open Dask client to use; ``chunk``: points per chunk (default: from the
@@ -118,24 +128,32 @@ def run_stream(cfg, base_dir: str | Path = ".", *, output: str | Path | None = N
     moments)."""
     import time
 
+    from splatdeform.edit.config import EditConfig
     from splatdeform.edit.stream.run import check_streamable, dask_client, stream_deform
-    from splatdeform.io import check_output_path
-    from splatdeform.memory import BASE_BYTES, file_cost, stream_caps, stream_chunk
+    from splatdeform.memory import file_cost, stream_sizes
 
-    base_dir = Path(base_dir)
-    in_path = base_dir / cfg.input
-    out_path = Path(output) if output is not None else base_dir / cfg.output
-    check_output_path(out_path, in_path)
+    if not isinstance(cfg, EditConfig):   # an EditPlan (edit.plan imports this module)
+        plan_ = cfg
+        cfg, base_dir, in_path, out_path = plan_.cfg, plan_.base_dir, plan_.input, plan_.output
+        budget, options = plan_.budget, plan_.options
+        scheduler, workers, quiet = options.scheduler, options.workers, options.quiet
+    else:
+        from splatdeform.io import check_output_path
+
+        base_dir = Path(base_dir)
+        in_path = base_dir / cfg.input
+        out_path = Path(output) if output is not None else base_dir / cfg.output
+        check_output_path(out_path, in_path)
     budget = budget or default_budget()
     t0 = time.perf_counter()
     src = check_streamable(cfg, in_path, out_path)
     n = src.n_points
     # interpreter and libraries, labels, what the reader holds besides its rows (a LAZ chunk)
-    base = BASE_BYTES + 2 * n + file_cost(in_path).reader_bytes
-    chunk = chunk or stream_chunk(budget, src.record_bytes, fixed_bytes=base)
-    max_border, whole_handle = stream_caps(budget, base)
+    sizes = stream_sizes(budget, n, src.record_bytes, file_cost(in_path).reader_bytes)
+    chunk = chunk or sizes.chunk
+    max_border = sizes.max_border
     if max_handle is None:
-        max_handle = whole_handle
+        max_handle = sizes.max_handle
     if log and not quiet:
         log(f"streaming {n:,} points in chunks of {chunk:,} (memory budget "
             f"{budget / 2**20:,.0f} MB)")

@@ -41,11 +41,12 @@ from splatdeform.deform.border import (
     voxel_keys,
 )
 from splatdeform.deform.handle import AffineFrame, delta_for_transform, handle_frame
+from splatdeform.deform.regions import check_region_counts
 from splatdeform.edit.config import EditConfig
 from splatdeform.edit.selectors import Indices, Property, leaves, map_leaves, select
 from splatdeform.edit.selectors.indices import index_mask
 from splatdeform.edit.stream.progress import Progress
-from splatdeform.errors import ProcessingError, RegionError
+from splatdeform.errors import ProcessingError
 from splatdeform.io import ChunkFile
 from splatdeform.model import PointModel
 
@@ -217,16 +218,9 @@ def labels_pass(src: ChunkFile, cfg: EditConfig, base_dir: Path, lo: np.ndarray,
             handle_pos = None if kept > max_handle else handle_pos + [cm.positions[handle]]
         progress.update(b - a)
     seconds = progress.finish()
-    if counts[FIXED] == 0 and overlap == 0:
-        raise RegionError("regions.fixed: selects no point; widen the fixed region")
-    if counts[HANDLE] == 0:
-        raise RegionError("regions.handle: selects no point; widen the handle region")
-    if overlap:
-        raise RegionError(f"regions: fixed and handle regions overlap in {overlap} points; "
-                          "they must be disjoint")
-    if counts[FREE] == 0:
-        raise RegionError("regions: fixed and handle regions cover every point; leave a free "
-                          "region between them")
+    # the in-memory check itself, from counts (labels give the handle its overlap points)
+    check_region_counts(int(counts[FIXED]) + overlap, int(counts[HANDLE]), overlap,
+                        int(counts[FREE]))
     return labels, (None if handle_pos is None else np.concatenate(handle_pos)), moments, \
         seconds
 

@@ -16,8 +16,8 @@ from splatdeform.io import STREAMABLE, open_chunks
 from splatdeform.model import PointModel
 
 SEED = 20240524
-CHUNK_BYTES = 64 * 2**20   # raw records read per chunk (at most; an eighth of the budget)
-MIN_SAMPLE = 10_000        # a picture needs some points whatever the budget
+CHUNK_BYTES = memory.SAMPLE_CHUNK_BYTES   # the budget figures are memory's (sample_sizes)
+MIN_SAMPLE = memory.MIN_SAMPLE_POINTS
 
 
 @dataclass
@@ -68,17 +68,17 @@ def load_for_render(path: str | Path, budget: int, *, drop_nonfinite: bool = Fal
         model = load(path, drop_nonfinite=drop_nonfinite)
         return RenderInput(model, model.n_points)
     cost = memory.file_cost(path)
-    chunk_bytes = min(CHUNK_BYTES, limit // 8)
-    keep = memory.render_points(limit, cost, reserve=2 * chunk_bytes + cost.reader_bytes)
+    chunk_bytes, keep = memory.sample_sizes(limit, cost)
     if keep >= cost.points:
         model = load(path, drop_nonfinite=drop_nonfinite)
         return RenderInput(model, model.n_points)
-    return sample_file(path, max(keep, MIN_SAMPLE), chunk_bytes=chunk_bytes,
+    return sample_file(path, max(keep, memory.MIN_SAMPLE_POINTS), chunk_bytes=chunk_bytes,
                        drop_nonfinite=drop_nonfinite)
 
 
 def sample_file(path: str | Path, keep: int, seed: int = SEED,
-                chunk_bytes: int = CHUNK_BYTES, *, drop_nonfinite: bool = False) -> RenderInput:
+                chunk_bytes: int = memory.SAMPLE_CHUNK_BYTES, *,
+                drop_nonfinite: bool = False) -> RenderInput:
     """About ``keep`` points of ``path``, each kept with probability keep / N (seeded: the
     same sample every time, whatever the camera), read chunk by chunk; the model keeps every
     property of the kept points. ``drop_nonfinite``: sampled records with a NaN/Inf coordinate

@@ -13,7 +13,7 @@ from splatdeform.edit.selection import RegionCounts, Selection, moving_label
 from splatdeform.edit.stream.plan import FIXED, HANDLE, bbox_pass, labels_pass
 from splatdeform.edit.stream.run import check_streamable
 from splatdeform.edit.stream.sample import RenderInput, load_for_render
-from splatdeform.memory import BASE_BYTES, stream_chunk
+from splatdeform.memory import select_chunk, select_preview_budget
 
 
 def stream_select(cfg: EditConfig, base_dir: Path, budget: int, *, preview: bool = False
@@ -23,7 +23,7 @@ def stream_select(cfg: EditConfig, base_dir: Path, budget: int, *, preview: bool
     in_path = Path(base_dir) / cfg.input
     src = check_streamable(cfg, in_path, in_path)
     n = src.n_points
-    chunk = stream_chunk(budget, src.record_bytes, fixed_bytes=BASE_BYTES + n)
+    chunk = select_chunk(budget, n, src.record_bytes)
     lo, hi, _, _ = bbox_pass(src, chunk, quiet=True)
     labels, _, _, _ = labels_pass(src, cfg, Path(base_dir), lo, hi, chunk, quiet=True,
                                   max_handle=0)
@@ -31,6 +31,6 @@ def stream_select(cfg: EditConfig, base_dir: Path, budget: int, *, preview: bool
     counts = RegionCounts(n, fixed, moving, n - fixed - moving, moving_name=moving_label(cfg))
     if not preview:
         return counts, None, None
-    shown = load_for_render(in_path, max(budget - n, budget // 2))
+    shown = load_for_render(in_path, select_preview_budget(budget, n))
     lab = labels if shown.index is None else labels[shown.index]
     return counts, shown, Selection(lab == FIXED, lab == HANDLE, [], [], counts.moving_name)
