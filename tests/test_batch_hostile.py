@@ -26,8 +26,9 @@ from helpers import batch_edit, dead_pid, write_batch
 from helpers import batch_report as report
 
 from data_tools.make_archive import make_scans
+from splatdeform.batch.extract import _host, clean_stale_temps, materialize
 from splatdeform.batch.probe import HEAD_BYTES, check, estimate_memory, probe
-from splatdeform.batch.sources import Scan, _host, clean_stale_temps, materialize
+from splatdeform.batch.sources import Scan
 from splatdeform.cli import main
 from splatdeform.errors import InputError
 from splatdeform.io import load
@@ -267,7 +268,7 @@ def test_clean_stale_temps_only_removes_dead_own_folders(tmp_path: Path) -> None
 
 def hang_in_slow_scans(job):
     """Task for run_local: scans named 'slow' hang while their member is extracted."""
-    from splatdeform.batch.sources import materialize
+    from splatdeform.batch.extract import materialize
     from splatdeform.batch.worker import process_scan
 
     if "slow" in job.scan.name:

@@ -121,9 +121,9 @@ def run_batch(path: str | Path, *, workers: int | None = None, scheduler: Any = 
     ``scan_timeout``: seconds per scan, wins over the config's ``scan_timeout_s``."""
     from ..io.atomic import remove_stale_temps
     from ..memory import worker_budget
+    from .extract import clean_stale_temps
     from .report import write_reports
     from .runner import run_dask, run_local
-    from .sources import clean_stale_temps
     from .worker import _row, read_sidecar
 
     t0 = time.perf_counter()

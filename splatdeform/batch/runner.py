@@ -127,7 +127,7 @@ def run_local(jobs: list[Job], workers: int, on_done: Callable[[Row], None], *,
     """Worker-process execution with at most ``workers`` scans in flight (``fn``: the task, a
     picklable top-level function; ``timeout``: seconds per scan, None for no limit)."""
     from ..errors import ProcessingError
-    from .sources import clean_stale_temps
+    from .extract import clean_stale_temps
 
     ctx = multiprocessing.get_context("spawn")
     pending = deque(jobs)
@@ -256,7 +256,7 @@ def run_isolated(job: Job) -> Row:
     """``process_scan(job)`` in a child process stopped after ``job.timeout_s`` seconds (the
     Dask path: a Dask task is a thread, which cannot be stopped). The clock starts once the
     child has imported. Never raises for the scan's problems."""
-    from .sources import clean_stale_temps
+    from .extract import clean_stale_temps
 
     proc = subprocess.Popen([sys.executable, "-m", "splatdeform.batch.child"],
                             stdin=subprocess.PIPE, stdout=subprocess.PIPE,

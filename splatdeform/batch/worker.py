@@ -56,8 +56,8 @@ def process_scan(job: Job) -> dict[str, Any]:
     from ..io import atomic_write
     from ..memory import MIN_BUDGET
     from ..rbf.defaults import DEFAULT_MAX_CENTERS
+    from .extract import clean_stale_temps, materialize
     from .probe import check, estimate_memory, probe
-    from .sources import clean_stale_temps, materialize
 
     t0 = time.perf_counter()
     if job.problem is not None:
