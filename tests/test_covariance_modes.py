@@ -17,6 +17,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from conftest import egl_renderer
+from fixtures import random_jacobians, random_splats
 
 from splatdeform.deform.gaussians import (
     ANISOTROPY_GROWTH,
@@ -42,26 +43,6 @@ void main() {
     gl_Position = vec4(0.0, 0.0, 0.0, 1.0);
 }
 """
-
-
-def random_splats(n: int, seed: int = 22):
-    rng = np.random.default_rng(seed)
-    scale_log = rng.uniform(-3.0, -1.0, (n, 3))
-    quat = rng.normal(size=(n, 4))
-    quat /= np.linalg.norm(quat, axis=1, keepdims=True)
-    return scale_log, quat
-
-
-def random_jacobians(n: int, seed: int = 23) -> np.ndarray:
-    """Mild (I + 0.1 noise), strong stretches (I + 3 u v^T) and a few folds (det < 0)."""
-    rng = np.random.default_rng(seed)
-    jac = np.eye(3) + 0.1 * rng.normal(size=(n, 3, 3))
-    strong = rng.uniform(size=n) < 0.5
-    u = rng.normal(size=(n, 3))
-    v = rng.normal(size=(n, 3))
-    jac[strong] += 1.5 * np.einsum("ni,nj->nij", u, v)[strong] / 2
-    jac[:8] = np.diag([1.2, 0.9, -0.7])  # folded
-    return jac
 
 
 def shader_covariances(mode: str, sigma: np.ndarray, jac: np.ndarray, shape: np.ndarray
@@ -178,8 +159,10 @@ def test_vertex_stage_renders_each_mode_like_the_cpu(mode):
     rasteriser of the same splats deformed on the CPU by that mode (PSNR >= 35 dB); a strong
     random smooth field, so ``limited`` and ``rotation`` differ from ``jacobian`` there."""
     from conftest import shared_file
+    from fixtures import cut, smooth_basis, to_uint8
     from splat_reference import psnr, reference_render
-    from test_render_splats import SIZE, cut, smooth_basis, to_uint8
+
+    SIZE = (128, 128)   # the render tests' panel
 
     from splatdeform.deform.arrays import displace, jacobians
     from splatdeform.io import load

@@ -25,6 +25,7 @@ import numpy as np
 import pytest
 import yaml
 from conftest import ROOT, shared_file
+from fixtures import bunny_back_curve, cox_de_boor
 from scipy.interpolate import RBFInterpolator
 from scipy.spatial import cKDTree
 
@@ -45,29 +46,6 @@ FIXED_X = (0.6, 3.4)  # bar x in [0, 4]: x < 0.6 or x > 3.4 is fixed
 
 
 # ----------------------------------------------------------------------------- helpers
-
-def cox_de_boor(knots: np.ndarray, degree: int, t: np.ndarray) -> np.ndarray:
-    """Independent B-spline basis (len(t), k) by the Cox-de Boor recursion, right end closed."""
-    k = knots.size - degree - 1
-    t = np.asarray(t, dtype=np.float64)
-    n0 = knots.size - 1
-    basis = np.zeros((t.size, n0))
-    for i in range(n0):
-        basis[:, i] = (knots[i] <= t) & (t < knots[i + 1])
-    last = max(i for i in range(n0) if knots[i] < knots[i + 1])
-    basis[t >= knots[-1], last] = 1.0
-    for p in range(1, degree + 1):
-        nxt = np.zeros((t.size, n0 - p))
-        for i in range(n0 - p):
-            a = knots[i + p] - knots[i]
-            b = knots[i + p + 1] - knots[i + 1]
-            left = (t - knots[i]) / a * basis[:, i] if a > 0 else 0.0
-            right = (knots[i + p + 1] - t) / b * basis[:, i + 1] if b > 0 else 0.0
-            nxt[:, i] = left + right
-        basis = nxt
-    assert basis.shape[1] == k
-    return basis
-
 
 def bar_model() -> sd.PointModel:
     return bumpy_bar(N_BAR, seed=BAR_SEED)
@@ -401,30 +379,6 @@ def _halves(png: Path):
     img = np.asarray(Image.open(png).convert("RGB"), dtype=np.int16)
     w = img.shape[1] // 2
     return img[:, :w], img[:, w:2 * w]
-
-
-def bunny_back_curve(model: sd.PointModel) -> tuple[np.ndarray, np.ndarray]:
-    """Control points (5, 3) along the bunny's back and their bend (moved_to)."""
-    P = model.positions.astype(np.float64)
-    diag = model.diagonal()
-    zc = 0.5 * (P[:, 2].min() + P[:, 2].max())
-    # control points from the model's own points: the highest point near a line along x
-    # through the middle of the back (behind the ears, in front of the tail)
-    cp = []
-    for x in np.linspace(-0.004, 0.036, 5):
-        near = np.flatnonzero((np.abs(P[:, 0] - x) < 0.002) & (np.abs(P[:, 2] - zc) < 0.004))
-        cp.append(P[near[P[near, 1].argmax()]])
-    cp = np.array(cp)
-    # bend: the middle three control points move 5% of the diagonal along the surface normal
-    tree = cKDTree(P)
-    mv = cp.copy()
-    for i in (1, 2, 3):
-        _, nb = tree.query(cp[i], 40)
-        q = P[nb] - P[nb].mean(axis=0)
-        normal = np.linalg.eigh(q.T @ q)[1][:, 0]
-        normal *= np.sign(normal[1])  # outward on the back = upward
-        mv[i] = cp[i] + 0.05 * diag * normal
-    return cp, mv
 
 
 @pytest.fixture(scope="module")

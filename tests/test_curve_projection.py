@@ -17,8 +17,8 @@ import warnings
 import numpy as np
 import pytest
 from conftest import shared_file
+from fixtures import bunny_back_curve, cox_de_boor
 from scipy.spatial import cKDTree
-from test_curve import bunny_back_curve, cox_de_boor
 
 import splatdeform as sd
 from splatdeform.deform.curve import (

@@ -10,13 +10,13 @@ import shutil
 import signal
 import subprocess
 import sys
-import time
 import urllib.request
 from pathlib import Path
 
 import numpy as np
 import pytest
 import yaml
+from fixtures import start_editor
 
 import splatdeform as sd
 from data_tools.synth import bumpy_bar
@@ -287,23 +287,6 @@ def test_gaussian_covariances_follow_deform(tmp_path):
 
 
 # ---- the edit verb in a subprocess -----------------------------------------------------
-def _start_editor(path: Path, *args: str) -> tuple[subprocess.Popen, int, str]:
-    """The running ``edit`` verb, its port and the URL it printed (with its token)."""
-    proc = subprocess.Popen([sys.executable, "-m", "splatdeform.cli", "edit", str(path),
-                             "--port", "0", *args], stdout=subprocess.PIPE,
-                            stderr=subprocess.STDOUT, text=True)
-    deadline = time.time() + 60
-    for line in proc.stdout:
-        if "splatdeform editor: http://" in line:
-            url = line.split("splatdeform editor: ")[1].split()[0]
-            port = int(url.split("http://127.0.0.1:")[1].split("/")[0])
-            return proc, port, url
-        if time.time() > deadline:
-            break
-    proc.kill()
-    raise AssertionError("the editor printed no URL")
-
-
 def _listening(port: int) -> list[str]:
     """Local addresses (hex, /proc/net/tcp*) listening on ``port``."""
     out = []
@@ -320,7 +303,7 @@ def _listening(port: int) -> list[str]:
 
 @pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT])
 def test_edit_verb_serves_on_loopback_and_stops_cleanly(bar_path, sig):
-    proc, port, url = _start_editor(bar_path)
+    proc, port, url = start_editor(bar_path)
     try:
         opener = urllib.request.build_opener(urllib.request.ProxyHandler({}))
         page = opener.open(url, timeout=20).read()
@@ -360,7 +343,7 @@ def test_chromium_shows_the_scene(bar_path):
     from browser import Chromium
     from PIL import Image
 
-    proc, port, url = _start_editor(bar_path)
+    proc, port, url = start_editor(bar_path)
     try:
         with Chromium(size=(1200, 800), timeout=120) as tab:
             tab.open(url)

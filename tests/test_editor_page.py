@@ -484,7 +484,7 @@ def test_page_covariance_modes_match_numpy(page_server, mode):
     """The page's vertex stage (deform.glsl's J from a basis texture, then shaders/covariance.glsl
     as the page compiles it) against splatdeform/deform/gaussians.py (float64), for mild,
     strongly stretching and folded Jacobians; SH follow the polar rotation in every mode."""
-    from test_covariance_modes import random_jacobians, random_splats
+    from fixtures import random_jacobians, random_splats
 
     from splatdeform.deform.gaussians import deform_gaussians, polar_rotation
     from splatdeform.render.gaussian_data import covariances, log_scale_shape

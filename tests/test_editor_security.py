@@ -13,7 +13,8 @@ import urllib.request
 from pathlib import Path
 
 import pytest
-from test_editor import FIXED, HANDLE, N, _cli, _start_editor
+from fixtures import start_editor
+from helpers import run_cli as _cli
 
 import splatdeform as sd
 from data_tools.synth import bumpy_bar
@@ -21,6 +22,10 @@ from splatdeform.editor import EditorController
 from splatdeform.editor.security import SaveFolder, default_save_folder, refusal
 from splatdeform.editor.session import Session
 from splatdeform.errors import InputError
+
+N = 2000   # the bar of tests/test_editor.py, with its fixed and handle boxes
+FIXED = sd.Box((-1.0, -1.0, -1.0), (1.0, 1.0, 1.0))
+HANDLE = sd.Box((3.0, -1.0, -1.0), (5.0, 1.0, 1.0))
 
 
 @pytest.fixture(scope="module")
@@ -46,7 +51,7 @@ def digests(root: Path, skip: Path | None = None) -> dict[str, str]:
 
 @pytest.fixture(scope="module")
 def editor(tree):
-    proc, port, url = _start_editor(tree / "work" / "bar.ply")
+    proc, port, url = start_editor(tree / "work" / "bar.ply")
     yield port, url
     proc.terminate()
     proc.communicate(timeout=30)

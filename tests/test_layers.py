@@ -169,3 +169,16 @@ def test_no_module_above_500_lines_but_the_format_readers() -> None:
             if len(p.read_text().splitlines()) > 500
             and not (p.parent.name == "io" and p.parent.parent == PACKAGE)]
     assert not long, long
+
+
+def test_no_test_module_imports_another() -> None:
+    """Shared test code lives in helpers.py / fixtures.py (and the oracles), never in a test
+    module that another imports (importing one runs its module-level fixtures twice)."""
+    tests = Path(__file__).resolve().parent
+    offenders = []
+    for path in sorted(tests.glob("test_*.py")):
+        for node in ast.walk(ast.parse(path.read_text())):
+            names = ([a.name for a in node.names] if isinstance(node, ast.Import) else
+                     [node.module or ""] if isinstance(node, ast.ImportFrom) else [])
+            offenders += [f"{path.name}: {n}" for n in names if n.startswith("test_")]
+    assert not offenders, offenders

@@ -16,6 +16,7 @@ import json
 import numpy as np
 import pytest
 from conftest import egl_renderer, shared_file
+from fixtures import cut, smooth_basis, to_uint8
 from scipy import ndimage
 from splat_reference import psnr, reference_render
 
@@ -40,33 +41,6 @@ def renderer() -> Renderer:
     r = egl_renderer(SIZE)
     yield r
     r.release()
-
-
-def cut(model: PointModel, n: int) -> PointModel:
-    """The ``n`` splats nearest the median position (a small real scene)."""
-    idx = np.argsort(np.linalg.norm(model.positions - np.median(model.positions, 0), axis=1))[:n]
-    g = model.gaussians
-    rest = None if g.sh_rest is None else g.sh_rest[idx]
-    return PointModel(positions=model.positions[idx], kind="gaussians",
-                      gaussians=Gaussians(g.scale_log[idx], g.rotation[idx], g.opacity[idx],
-                                          g.sh_dc[idx], rest))
-
-
-def smooth_basis(positions: np.ndarray, k: int = 4, seed: int = 0):
-    """Random but smooth b (N, k) float32 and its exact gradient (N, k, 3) float32."""
-    rng = np.random.default_rng(seed)
-    lo, hi = positions.min(axis=0), positions.max(axis=0)
-    scale = float(np.linalg.norm(hi - lo))
-    freq = rng.normal(size=(3, k)) * 3.0
-    arg = ((positions - (lo + hi) / 2) / scale) @ freq + rng.uniform(0, 2 * np.pi, size=k)
-    amp = rng.uniform(0.2, 1.0, size=k)
-    values = amp * np.sin(arg)
-    gradients = (amp * np.cos(arg))[:, :, None] * freq.T[None, :, :] / scale
-    return values.astype(np.float32), gradients.astype(np.float32)
-
-
-def to_uint8(image: np.ndarray) -> np.ndarray:
-    return np.clip(np.rint(image[:, :, :3] * 255), 0, 255).astype(np.uint8)
 
 
 @pytest.mark.parametrize("name, random_sh", [("guitar_3dgs_sh0.ply", False),

@@ -17,8 +17,8 @@ from pathlib import Path
 import psutil
 import pytest
 import yaml
+from fixtures import stream_edit
 from helpers import catches_sigterm
-from test_stream import EDIT
 
 from data_tools.synth import bumpy_bar
 from splatdeform.io import save
@@ -34,7 +34,7 @@ def scene(tmp_path_factory) -> Path:
     """300k surfels: streams under a 100MB budget, in ~50 chunks."""
     folder = tmp_path_factory.mktemp("signals")
     save(bumpy_bar(300_000, seed=4), folder / "bar.ply")
-    (folder / "edit.yaml").write_text(yaml.safe_dump(dict(EDIT, input="bar.ply",
+    (folder / "edit.yaml").write_text(yaml.safe_dump(dict(stream_edit(), input="bar.ply",
                                                           output="out.ply", backend="numpy")))
     return folder
 

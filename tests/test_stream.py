@@ -13,7 +13,8 @@ import laspy
 import numpy as np
 import pytest
 import yaml
-from conftest import ROOT, bar_edit, shared_file
+from conftest import ROOT, shared_file
+from fixtures import assert_same_result, labels_of, stream_edit, vertex
 
 from data_tools.synth import bumpy_bar
 from splatdeform import memory
@@ -23,10 +24,8 @@ from splatdeform.edit.run import run_edit
 from splatdeform.edit.stream import parse_size, run_stream
 from splatdeform.errors import InputError
 from splatdeform.io import save
-from splatdeform.io.ply_format import read_ply
 
-EDIT = bar_edit({"pivot": [0.75, 0.5, 0.5], "rotate": {"axis": [0, 0, 1], "degrees": 35},
-                 "translate": [0, 0.1, 0]}, backend=None)
+EDIT = stream_edit()
 
 
 def write_edit(folder: Path, inp: Path, out: str, **extra) -> Path:
@@ -42,43 +41,6 @@ def bar(tmp_path_factory) -> Path:
     path = tmp_path_factory.mktemp("stream") / "bar.ply"
     save(bumpy_bar(60_000, seed=4), path)
     return path
-
-
-def vertex(path: Path) -> np.ndarray:
-    return read_ply(path).element("vertex").data
-
-
-def labels_of(data: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    x = data["x"].astype(np.float64)
-    u = (x - x.min()) / (x.max() - x.min())
-    return u <= 0.25, u >= 0.75
-
-
-def assert_same_result(mem: Path, streamed: Path, source: Path) -> None:
-    """Same header and properties; F and H positions (regions of the ``source`` input)
-    bit-exact; free points within the backend's tolerance; every other property equal
-    (normals to rounding)."""
-    a, b = vertex(mem), vertex(streamed)
-    assert a.dtype == b.dtype and a.shape == b.shape
-    src_a, src_b = read_ply(mem), read_ply(streamed)
-    assert [(e.name, e.count) for e in src_a.elements] == \
-        [(e.name, e.count) for e in src_b.elements]
-    assert src_a.comments == src_b.comments
-    fixed, handle = labels_of(vertex(source))
-    pos_a = np.stack([a[c] for c in "xyz"], axis=1)
-    pos_b = np.stack([b[c] for c in "xyz"], axis=1)
-    rigid = fixed | handle
-    assert np.array_equal(pos_a[rigid], pos_b[rigid])
-    diag = float(np.linalg.norm(np.ptp(pos_a, axis=0)))
-    assert np.abs(pos_a - pos_b).max() <= 1e-6 * diag
-    for name in a.dtype.names:
-        if name in "xyz":
-            continue
-        if name in ("nx", "ny", "nz", "radius"):
-            assert np.allclose(a[name], b[name], atol=1e-6, rtol=0), name
-            assert np.array_equal(a[name][fixed], b[name][fixed]), name
-        else:
-            assert np.array_equal(a[name], b[name]), name
 
 
 def _kept_global(deformation) -> np.ndarray:

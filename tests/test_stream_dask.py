@@ -15,7 +15,7 @@ import distributed
 import pytest
 import yaml
 from conftest import bar_edit
-from test_stream import assert_same_result
+from fixtures import assert_same_result
 
 from data_tools.synth import bumpy_bar
 from splatdeform.cli import main
