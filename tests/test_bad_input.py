@@ -9,11 +9,11 @@ from __future__ import annotations
 import json
 import os
 import subprocess
-import sys
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
+import helpers
 import numpy as np
 import pytest
 
@@ -173,8 +173,7 @@ def make_case(name: str, tmp_path: Path) -> Path:
 
 
 def run_cli(*args: str, cwd: Path) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "splatdeform.cli", *map(str, args)],
-                          capture_output=True, text=True, cwd=cwd, timeout=120)
+    return helpers.run_cli(*args, cwd=cwd, timeout=120)
 
 
 @pytest.mark.parametrize("case", API_PARAMS)

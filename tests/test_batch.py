@@ -10,6 +10,7 @@ import sys
 import time
 from pathlib import Path
 
+import helpers
 import numpy as np
 import pytest
 import yaml
@@ -52,8 +53,7 @@ def rows(out: Path) -> dict[str, dict]:
 
 
 def run_cli(*args: str | Path) -> subprocess.CompletedProcess:
-    return subprocess.run([PY, "-m", "splatdeform.cli", *map(str, args)], capture_output=True,
-                          text=True, cwd=ROOT, timeout=300)
+    return helpers.run_cli(*args, timeout=300)
 
 
 @pytest.fixture(scope="module")

@@ -11,13 +11,13 @@
 from __future__ import annotations
 
 import subprocess
-import sys
 from pathlib import Path
 
+import helpers
 import numpy as np
 import pytest
 import yaml
-from conftest import ROOT, egl_renderer
+from conftest import egl_renderer
 from PIL import Image
 
 import splatdeform as sd
@@ -28,8 +28,7 @@ from splatdeform.render.compare import render_comparison
 
 
 def run_cli(*args) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "splatdeform.cli", *map(str, args)],
-                          capture_output=True, text=True, cwd=ROOT, timeout=300)
+    return helpers.run_cli(*args, timeout=300)
 
 
 @pytest.fixture(scope="module")

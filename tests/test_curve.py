@@ -17,10 +17,10 @@ from __future__ import annotations
 
 import shutil
 import subprocess
-import sys
 from functools import partial
 from pathlib import Path
 
+import helpers
 import numpy as np
 import pytest
 import yaml
@@ -329,8 +329,7 @@ def test_k8_end_to_end_opencl_and_numpy_agree(bar_scan, tmp_path, parametrizatio
 
 
 def _run(*args, cwd) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "splatdeform.cli", *map(str, args)],
-                          capture_output=True, text=True, cwd=cwd, timeout=180)
+    return helpers.run_cli(*args, cwd=cwd, timeout=180)
 
 
 @pytest.fixture(scope="module")

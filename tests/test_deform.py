@@ -10,11 +10,10 @@ from __future__ import annotations
 
 import dataclasses
 import re
-import subprocess
-import sys
 from functools import partial
 from pathlib import Path
 
+import helpers
 import numpy as np
 import pytest
 import yaml
@@ -441,8 +440,7 @@ def _write_edit(path: Path, translate, degrees, backend="numpy", **extra) -> Pat
 
 
 def _cli(*args, cwd):
-    return subprocess.run([sys.executable, "-m", "splatdeform.cli", "deform", *map(str, args)],
-                          capture_output=True, text=True, cwd=cwd, timeout=300)
+    return helpers.run_cli("deform", *args, cwd=cwd, timeout=300)
 
 
 @pytest.fixture(scope="module")

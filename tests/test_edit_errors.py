@@ -8,9 +8,9 @@ from __future__ import annotations
 
 import copy
 import subprocess
-import sys
 from pathlib import Path
 
+import helpers
 import numpy as np
 import pytest
 import yaml
@@ -124,8 +124,7 @@ def _write(tmp_path: Path, scans: Path, case) -> Path:
 
 
 def _run(*args, cwd) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "splatdeform.cli", *map(str, args)],
-                          capture_output=True, text=True, cwd=cwd, timeout=120)
+    return helpers.run_cli(*args, cwd=cwd, timeout=120)
 
 
 def _assert_one_line_error(res: subprocess.CompletedProcess, needles) -> str:

@@ -9,10 +9,10 @@ import os
 import shutil
 import signal
 import subprocess
-import sys
 import urllib.request
 from pathlib import Path
 
+import helpers
 import numpy as np
 import pytest
 import yaml
@@ -64,8 +64,7 @@ def _digest(path: Path) -> str:
 
 
 def _cli(*args: str, cwd: Path | None = None) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "splatdeform.cli", *args], capture_output=True,
-                          text=True, cwd=cwd, timeout=120)
+    return helpers.run_cli(*args, cwd=cwd or Path.cwd(), timeout=120)
 
 
 # ---- controller --------------------------------------------------------------------------

@@ -9,6 +9,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import helpers
 import numpy as np
 import pytest
 import yaml
@@ -93,8 +94,7 @@ def write_edit(root: Path, name: str, **fit) -> Path:
 
 
 def deform(cfg: Path) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "splatdeform.cli", "deform", str(cfg)],
-                          capture_output=True, text=True, cwd=ROOT, timeout=300)
+    return helpers.run_cli("deform", cfg, timeout=300)
 
 
 def test_not_converged_warns_one_line_and_still_writes(bar_dir):
