@@ -142,7 +142,15 @@ def test_kill_mid_run_then_resume(scans: Path) -> None:
     assert proc.poll() is None, "the batch finished before it could be killed"
     os.killpg(proc.pid, signal.SIGKILL)
     proc.wait()
-    time.sleep(0.5)
+
+    def group_gone() -> bool:   # the killed batch's worker processes too
+        try:
+            os.killpg(proc.pid, 0)
+        except ProcessLookupError:
+            return True
+        return False
+
+    helpers.wait_for(group_gone, 30, "the killed batch's process group to end")
     done = outputs(out)
     assert 1 <= len(done) < 6
     for p in done:   # every output present is complete
