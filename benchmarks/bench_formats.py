@@ -13,7 +13,10 @@ file passes: that figure, ``header only``, is printed too but is no decode). ``-
 everything beside two CPU-busy processes. The decoded arrays: N x 62 float32
 (plus N x 3 float64 positions in our model). SOG's write row is its k-means encode (codebooks and
 the SH palette; ours: at most 4096 palette entries, splat-transform's: up to 65536), a figure of
-its own rather than the "as fast as splat-transform" target.
+its own rather than the "as fast as splat-transform" target; ``--sog-quality`` picks our SH
+encoder (default ``fast`` here: the ``reference`` encoder's palette grows to 65536 entries like
+splat-transform's, and its k-means costs N x 65536 x 45 per iteration). ``convert``: the whole
+scene rotated (``--rotate-euler`` / ``-r``) PLY to PLY, in memory and streamed (64 MB budget).
 """
 
 from __future__ import annotations
@@ -34,7 +37,11 @@ from data_tools import splat_transform  # noqa: E402
 
 FORMATS = [".compressed.ply", ".spz", ".glb", ".splat", ".sog"]
 OURS = ("import warnings, sys; warnings.simplefilter('ignore');"
-        "from splatdeform.io import load, save; save(load(sys.argv[1]), sys.argv[2])")
+        "from splatdeform.io import load, save, sog\n"
+        "with sog.quality(sys.argv[3] if len(sys.argv) > 3 else None):"
+        " save(load(sys.argv[1]), sys.argv[2])")
+CONVERT = [sys.executable, "-m", "splatdeform.cli", "convert"]
+ANGLES = "30,40,50"
 OURS_READ = "import sys; from splatdeform.io import load; load(sys.argv[1])"
 
 
@@ -58,6 +65,7 @@ def main() -> None:
                         help="also time splat-transform's SOG write (-g cpu: over 7 min at 200k "
                              "Gaussians on the development machine); without it, its SOG read "
                              "decodes our .sog")
+    parser.add_argument("--sog-quality", choices=("fast", "reference"), default="fast")
     parser.add_argument("--busy", type=int, default=0,
                         help="run beside this many CPU-busy processes (python 'while 1: pass')")
     args = parser.parse_args()
@@ -89,7 +97,8 @@ def run(args: argparse.Namespace) -> None:
             extra = ["--spz-version", "3"] if ext == ".spz" else []
             ours_out, theirs_out = tmp / f"ours{ext}", tmp / f"theirs{ext}"
             rows = []
-            w_ours = timed([sys.executable, "-c", OURS, str(src), str(ours_out)])
+            w_ours = timed([sys.executable, "-c", OURS, str(src), str(ours_out),
+                            args.sog_quality])
             their_write = ext != ".splat" and (ext != ".sog" or args.their_sog_write)
             w_theirs = timed([*st, *extra, str(src), str(theirs_out)]) if their_write else None
             rows.append(("write", w_ours, w_theirs))
@@ -108,6 +117,17 @@ def run(args: argparse.Namespace) -> None:
                 print(f"| {ext} | {step} | {o}{t} | {ratio} | {om} | {tm} |", flush=True)
             for p in (ours_out, theirs_out):
                 p.unlink(missing_ok=True)
+        out = tmp / "turned.ply"
+        rows = [("convert -r (memory)", timed([*CONVERT, str(src), str(out),
+                                              f"--rotate-euler={ANGLES}"]),
+                 timed([*st, str(src), "-r", ANGLES, str(tmp / "theirs_turned.ply")])),
+                ("convert -r (streamed, 64MB)",
+                 timed([*CONVERT, str(src), str(tmp / "s.ply"), f"--rotate-euler={ANGLES}",
+                        "--memory-budget", "64MB"]), None)]
+        for step, ours, theirs in rows:
+            t = f"{theirs[0]:.2f} | {theirs[0] / ours[0]:.2f}x" if theirs else "n/a | -"
+            print(f"| .ply | {step} | {ours[0]:.2f} | {t} | {ours[1]} | "
+                  f"{theirs[1] if theirs else 'n/a'} |", flush=True)
 
 
 if __name__ == "__main__":

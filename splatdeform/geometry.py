@@ -32,9 +32,15 @@ C2 = (1.0925484305920792, -1.0925484305920792, 0.31539156525252005, -1.092548430
       0.5462742152960396)
 C3 = (-0.5900435899266435, 2.890611442640554, -0.4570457994644658, 0.3731763325901154,
       -0.4570457994644658, 1.445305721320277, -0.5900435899266435)
+C4 = (2.5033429417967046, -1.7701307697799304, 0.9461746957575601, -0.6690465435572892,
+      0.10578554691520431, -0.6690465435572892, 0.47308734787878004, -1.7701307697799304,
+      0.6258357354491761)
 
+#: the highest band renders evaluate (3DGS's degree 3)
 MAX_DEGREE = 3
-REST_COUNTS = {3 * ((d + 1) ** 2 - 1): d for d in range(1, MAX_DEGREE + 1)}  # 9, 24, 45
+#: the highest band a file may hold and a deformation rotates (SPZ v4, 72 f_rest_* values)
+MAX_FILE_DEGREE = 4
+REST_COUNTS = {3 * ((d + 1) ** 2 - 1): d for d in range(1, MAX_FILE_DEGREE + 1)}  # 9 .. 72
 _CHUNK = 32768  # rotations per block (bounds the (M, K, 15) temporary)
 TRIU = np.array([0, 1, 2, 4, 5, 8])  # the upper triangle of a flattened 3x3
 
@@ -104,17 +110,19 @@ def full_from_triu6(c6: np.ndarray) -> np.ndarray:
 
 # -- spherical harmonics ------------------------------------------------------------------
 def sh_degree(n_rest: int) -> int:
-    """SH degree (1, 2 or 3) from the number of ``f_rest_*`` values (9, 24 or 45); 0 for 0."""
+    """SH degree (1 to 4) from the number of ``f_rest_*`` values (9, 24, 45 or 72); 0 for 0."""
     if n_rest == 0:
         return 0
     if n_rest not in REST_COUNTS:
-        raise InputError(f"f_rest_*: expected 9, 24 or 45 values per splat (SH degree 1-3, "
+        raise InputError(f"f_rest_*: expected 9, 24, 45 or 72 values per splat (SH degree 1-4, "
                          f"3 colour channels), got {n_rest}; cannot rotate view-dependent colour")
     return REST_COUNTS[n_rest]
 
 
 def _band_basis(d: np.ndarray, band: int) -> np.ndarray:
-    """Real SH of one band (1..3) at directions (..., 3) float64 -> (..., 2 band + 1)."""
+    """Real SH of one band (1..4) at directions (..., 3) float64 -> (..., 2 band + 1).
+    Band 4 is the reference ``eval_sh``'s, made homogeneous (1 = x^2 + y^2 + z^2 on the unit
+    sphere)."""
     x, y, z = d[..., 0], d[..., 1], d[..., 2]
     if band == 1:
         out = [-C1 * y, C1 * z, -C1 * x]
@@ -122,6 +130,14 @@ def _band_basis(d: np.ndarray, band: int) -> np.ndarray:
         xx, yy, zz = x * x, y * y, z * z
         out = [C2[0] * x * y, C2[1] * y * z, C2[2] * (2 * zz - xx - yy), C2[3] * x * z,
                C2[4] * (xx - yy)]
+    elif band == 4:
+        xx, yy, zz = x * x, y * y, z * z
+        rr = xx + yy + zz
+        out = [C4[0] * x * y * (xx - yy), C4[1] * y * z * (3 * xx - yy),
+               C4[2] * x * y * (7 * zz - rr), C4[3] * y * z * (7 * zz - 3 * rr),
+               C4[4] * (zz * (35 * zz - 30 * rr) + 3 * rr * rr), C4[5] * x * z * (7 * zz - 3 * rr),
+               C4[6] * (xx - yy) * (7 * zz - rr), C4[7] * x * z * (xx - 3 * yy),
+               C4[8] * (xx * (xx - 3 * yy) - yy * (3 * xx - yy))]
     else:
         xx, yy, zz = x * x, y * y, z * z
         out = [C3[0] * y * (3 * xx - yy), C3[1] * x * y * z, C3[2] * y * (4 * zz - xx - yy),
@@ -155,13 +171,14 @@ def _sample_directions(k: int) -> np.ndarray:
 
 # Band 1 is R itself in the (-y, z, -x) order: Y_1(d) = C1 P d, so D_1 = P R P^T.
 _P1 = np.array([[0.0, -1.0, 0.0], [0.0, 0.0, 1.0], [-1.0, 0.0, 0.0]])
-# Bands 2 and 3 from samples: 6 and 8 spiral directions give Y_l(P) conditions 8.0 and 12.1.
-_DIRS = {2: _sample_directions(6), 3: _sample_directions(8)}
+# Bands 2 to 4 from samples: 6, 8 and 16 spiral directions (Y_l(P) of full row rank; band 4
+# least squares over 16 directions, exact to rounding since Y_4(R P) = D_4 Y_4(P) holds exactly).
+_DIRS = {2: _sample_directions(6), 3: _sample_directions(8), 4: _sample_directions(16)}
 _PINV = {b: np.linalg.pinv(_band_basis(p, b).T) for b, p in _DIRS.items()}  # (K, 2b+1)
 
 
 def band_rotations(rot: np.ndarray, degree: int = MAX_DEGREE) -> list[np.ndarray]:
-    """Per-band SH rotation matrices for rotations (M, 3, 3) float64.
+    """Per-band SH rotation matrices for rotations (M, 3, 3) float64 (degree up to 4).
 
     Returns [D_1, ..., D_degree], D_l (M, 2l+1, 2l+1) float64 with Y_l(R d) = D_l(R) Y_l(d).
     """

@@ -327,7 +327,11 @@ def test_playcanvas_compressed_guitar_decodes_onto_its_grid(tmp_path: Path) -> N
     assert model.kind == "gaussians" and model.n_points == n
     np.testing.assert_allclose(h.scale_log, g.scale_log[:n], atol=1e-5)
     np.testing.assert_allclose(h.sh_dc, g.sh_dc[:n], atol=1e-5)
-    np.testing.assert_allclose(h.opacity, g.opacity[:n], atol=1e-4)
+    # byte 255 is alpha 1 (a +inf logit) as the reference decoder reads it; the shared file
+    # was decoded by one that stopped short of 1, so those splats hold its largest logit
+    full = np.isinf(h.opacity)
+    np.testing.assert_allclose(h.opacity[~full], g.opacity[:n][~full], atol=1e-4)
+    assert (h.opacity[full] > 0).all() and (g.opacity[:n][full] >= g.opacity[:n].max() - 1e-4).all()
     unit = g.rotation[:n] / np.linalg.norm(g.rotation[:n], axis=1, keepdims=True)
     np.testing.assert_allclose(np.abs((h.rotation * unit).sum(axis=1)), 1, atol=1e-5)
     for start in range(0, n, 256):

@@ -361,7 +361,7 @@ def test_info_reports_sh_degree_and_format_fields(tmp_path):
     _save_quiet(load(src), tmp_path / "x.compressed.ply")
     _save_quiet(load(src), tmp_path / "x.sog")
     expect = {"x.sog": ("PlayCanvas SOG v2 bundle", "sh_bands"),
-              "x.spz": ("SPZ v3", "version"), "x.glb": ("glTF 2.0", "extensions"),
+              "x.spz": ("SPZ v4", "version"), "x.glb": ("glTF 2.0", "extensions"),
               "x.compressed.ply": ("PlayCanvas compressed", "sh_bands"),
               "scene.ply": ("binary_little_endian", None)}
     for name, (fmt, key) in expect.items():

@@ -18,3 +18,21 @@ def nonfinite_points(path: str | Path, positions: np.ndarray, drop_nonfinite: bo
                           f"at index {int(np.flatnonzero(bad)[0])}); fix the file or load "
                           "with drop_nonfinite=True (CLI: --drop-nonfinite)")
     return bad
+
+
+def infinite_opacity_ok(data: np.ndarray, bad: np.ndarray, names: list[str]) -> np.ndarray:
+    """``bad`` (N,) bool of 3DGS records with a non-finite attribute among ``names``, cleared
+    where the only non-finite value is an opacity logit of +inf or -inf (alpha 1 or 0: valid,
+    read and kept); NaN and every other non-finite attribute stay bad. Only the flagged rows
+    are rechecked."""
+    if "opacity" not in names or not bad.any():
+        return bad
+    rows = np.flatnonzero(bad)
+    part = data[rows]
+    ok = ~np.isnan(part["opacity"])
+    for name in names:
+        if name != "opacity":
+            ok &= np.isfinite(part[name])
+    out = bad.copy()
+    out[rows[ok]] = False
+    return out

@@ -14,22 +14,27 @@ did not change keep their original text. Packed ``rgb``/``rgba`` floats are kept
 
 from __future__ import annotations
 
+import bisect
 import io
 import os
 import re
 import struct
+from collections.abc import Iterator
+from contextlib import contextmanager
+from contextvars import ContextVar
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
 
-from ..errors import FormatError
+from ..errors import FormatError, InputError
 from ..model import PlyElementData, PlyProperty, PlySource, PointModel, classify
 from .checks import nonfinite_points
 from .ply_format import shortest_text
 from .regular import open_regular
 
 ENCODINGS = ("ascii", "binary", "binary_compressed")
+_ENCODING: ContextVar[str | None] = ContextVar("pcd_encoding", default=None)
 TYPE_SIZES = {"I": (1, 2, 4, 8), "U": (1, 2, 4, 8), "F": (4, 8)}
 MAX_HEADER_LINES = 64
 HEAD_BYTES = 2**20   # the header must end within the file's first MiB
@@ -264,22 +269,69 @@ def lzf_decompress(path, data: bytes, size: int) -> bytes:
     return bytes(out)
 
 
+LZF_WINDOW = 8192      # a back reference reaches at most 8192 bytes back (13-bit offset + 1)
+LZF_MAX_MATCH = 264    # and copies at most 264 bytes (3-bit length, 8-bit extension, + 2)
+LZF_MAX_LITERAL = 32   # a literal run holds at most 32 bytes (5-bit count + 1)
+
+
+def _previous_triples(src: np.ndarray) -> np.ndarray:
+    """(n,) int64: for each position i the last j < i whose 3 bytes equal those at i, within
+    the LZF window; -1 where none (and for the last two positions)."""
+    n = len(src)
+    prev = np.full(n, -1, dtype=np.int64)
+    if n < 3:
+        return prev
+    s = src.astype(np.uint32)
+    key = (s[:-2] << 16) | (s[1:-1] << 8) | s[2:]
+    order = np.argsort(key, kind="stable")   # equal keys stay in position order
+    same = key[order[1:]] == key[order[:-1]]
+    prev[order[1:][same]] = order[:-1][same]
+    prev[np.arange(n) - prev > LZF_WINDOW] = -1
+    return prev
+
+
+def _literals(out: list, data: bytes, start: int, stop: int) -> None:
+    for at in range(start, stop, LZF_MAX_LITERAL):
+        run = data[at:min(at + LZF_MAX_LITERAL, stop)]
+        out.append(bytes((len(run) - 1,)))
+        out.append(run)
+
+
 def lzf_compress(data: bytes) -> bytes:
-    """A valid LZF stream of ``data`` made of literal runs only (32 bytes each)."""
+    """``data`` as an LZF stream (liblzf's format, which PCL's binary_compressed uses): greedy
+    back references to the latest earlier occurrence of each 3-byte sequence within 8 KiB,
+    extended as far as they match (up to 264 bytes), literal runs of up to 32 bytes between."""
+    data = bytes(data)
     n = len(data)
-    runs = -(-n // 32)
-    out = np.zeros(n + runs, dtype=np.uint8)
-    src = np.frombuffer(data, dtype=np.uint8)
-    full = n // 32
-    if full:
-        block = out[:full * 33].reshape(full, 33)
-        block[:, 0] = 31
-        block[:, 1:] = src[:full * 32].reshape(full, 32)
-    tail = n - full * 32
-    if tail:
-        out[full * 33] = tail - 1
-        out[full * 33 + 1:] = src[full * 32:]
-    return out.tobytes()
+    prev = _previous_triples(np.frombuffer(data, dtype=np.uint8))
+    candidates = np.flatnonzero(prev >= 0)
+    refs = prev[candidates].tolist()
+    candidates = candidates.tolist()
+    out: list[bytes] = []
+    i = lit = 0
+    c = 0
+    while c < len(candidates):
+        i = candidates[c]
+        ref = refs[c]
+        limit = min(LZF_MAX_MATCH, n - i)
+        length = 3
+        while length + 8 <= limit and data[i + length:i + length + 8] == \
+                data[ref + length:ref + length + 8]:
+            length += 8
+        while length < limit and data[i + length] == data[ref + length]:
+            length += 1
+        _literals(out, data, lit, i)
+        off = i - ref - 1
+        code = length - 2
+        if code < 7:
+            out.append(bytes(((code << 5) | (off >> 8), off & 0xFF)))
+        else:
+            out.append(bytes(((7 << 5) | (off >> 8), code - 7, off & 0xFF)))
+        i += length
+        lit = i
+        c = bisect.bisect_left(candidates, i, c + 1)
+    _literals(out, data, lit, n)
+    return b"".join(out)
 
 
 # ---- reading --------------------------------------------------------------------------------
@@ -403,9 +455,31 @@ def read_model(path: str | Path, *, drop_nonfinite: bool = False) -> PointModel:
 
 # ---- writing --------------------------------------------------------------------------------
 
+@contextmanager
+def data_encoding(name: str | None) -> Iterator[None]:
+    """PCD writes inside the block use the DATA encoding ``name`` (one of :data:`ENCODINGS`;
+    None: the input's own, ``binary`` for a model not read from PCD)."""
+    if name is not None and name not in ENCODINGS:
+        raise InputError(f"pcd encoding: expected one of {', '.join(ENCODINGS)}, got {name!r}")
+    token = _ENCODING.set(name)
+    try:
+        yield
+    finally:
+        _ENCODING.reset(token)
+
+
 def source_for_save(model: PointModel) -> PcdSource:
     """The model's PCD source with its positions (and normals) written in, or a new xyz
-    (+ normals, rgb) source for a model not read from PCD."""
+    (+ normals, rgb) source for a model not read from PCD; in the :func:`data_encoding` in
+    force, else the input's."""
+    source = _source_for_save(model)
+    forced = _ENCODING.get()
+    if forced is not None and forced != source.encoding:
+        source = replace(source, encoding=forced, ascii_text=None)
+    return source
+
+
+def _source_for_save(model: PointModel) -> PcdSource:
     source = model.source if isinstance(model.source, PcdSource) else None
     if source is None:
         names = ["x", "y", "z"]

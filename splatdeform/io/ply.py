@@ -27,6 +27,7 @@ from ..model import (
     classify,
 )
 from . import playcanvas
+from .checks import infinite_opacity_ok
 from .chunks import ChunkFile
 from .ply_format import MAX_HEADER_BYTES, header_text, parse_header, read_ply, write_ply
 
@@ -139,11 +140,12 @@ def _nonfinite_splat_rows(data: np.ndarray) -> np.ndarray | None:
     run = _float_run(data, names)
     if run is not None:  # one pass: a float64 row sum is finite iff every term is
         with np.errstate(invalid="ignore", over="ignore"):
-            return ~np.isfinite(run.sum(axis=1, dtype=np.float64))
+            return infinite_opacity_ok(data, ~np.isfinite(run.sum(axis=1, dtype=np.float64)),
+                                       names)
     bad = np.zeros(data.shape[0], dtype=bool)
     for n in names:
         bad |= ~np.isfinite(data[n])
-    return bad
+    return infinite_opacity_ok(data, bad, names)  # an opacity of +-inf is alpha 1 / 0
 
 
 def _float_run(data: np.ndarray, names: list[str]) -> np.ndarray | None:

@@ -25,6 +25,9 @@ import json
 import math
 import warnings
 import zipfile
+from collections.abc import Iterator
+from contextlib import contextmanager
+from contextvars import ContextVar
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -50,7 +53,14 @@ VERSION = 2
 CODEBOOK = 256
 PALETTE_ROW = 64
 MAX_PALETTE = 65536  # the format's limit (16-bit labels)
-PALETTE_CAP = 4096  # what this writer uses at most: the k-means cost grows with N x entries
+PALETTE_CAP = 4096  # the fast encoder's most entries: the k-means cost grows with N x entries
+#: SH encoders: ``reference`` (the default) sizes the palette as the reference encoder
+#: (splat-transform: 1024 x 2^floor(log2(N / 1024)) entries, at most 65536, so about N / 1.5 to
+#: N / 3 entries; SH error about that encoder's, file about its size, k-means cost ~N^2 / 2);
+#: ``fast``: a power of two near N / 16, at most 4096 (~3x coarser SH, about half the file,
+#: ~10x faster on 7k splats and far more on large scenes)
+QUALITIES = ("reference", "fast")
+_QUALITY: ContextVar[str] = ContextVar("sog_quality", default="reference")
 ALPHA_EPS = 0.5 / 255
 MAX_META = 16 << 20  # bytes of a meta.json (a few codebooks: tens of kilobytes)
 MAX_PIXELS = 1 << 28  # WebP's 16383 x 16383
@@ -66,7 +76,8 @@ DECODED_PER_COEFF = 48
 SEED = 0
 LOSSES = ("positions 16 bits per axis (log-spaced), rotation 8 bits per component, log "
           "scales and colour through 256-entry k-means codebooks, opacity 8 bits, SH rest "
-          "through a k-means palette (at most 4096 entries) of 256 codebook values")
+          "through a k-means palette (the reference encoder's size, or at most 4096 entries with "
+          "sog_quality fast) of 256 codebook values")
 FILES = {"means": ["means_l.webp", "means_u.webp"], "scales": ["scales.webp"],
          "quats": ["quats.webp"], "sh0": ["sh0.webp"],
          "shN": ["shN_centroids.webp", "shN_labels.webp"]}
@@ -292,7 +303,8 @@ def decode(path: str | Path) -> tuple[SplatFields, SogCodes]:
         files.close()
     fields = SplatFields(positions=positions, scale_log=book[scales[:, :3]],
                          rotation=quats_from_codes(quats).astype(np.float32),
-                         opacity=logit(sh0[:, 3].astype(np.float64) / 255, ALPHA_EPS)
+                         opacity=np.where(sh0[:, 3] == 255, np.inf,  # alpha 1: +inf
+                                          logit(sh0[:, 3].astype(np.float64) / 255, ALPHA_EPS))
                          .astype(np.float32),
                          sh_dc=dc_book[sh0[:, :3]], sh_rest=rest)
     return fields, codes
@@ -390,14 +402,33 @@ def _webp(pixels: np.ndarray, width: int, height: int, effort: int) -> bytes:
     return buf.getvalue()
 
 
-def _palette_size(n: int) -> int:
-    """SH palette entries for ``n`` splats: a power of two near n / 16, 64 .. PALETTE_CAP."""
+@contextmanager
+def quality(name: str | None) -> Iterator[None]:
+    """SOG writes inside the block use the SH encoder ``name`` (one of :data:`QUALITIES`;
+    None: the default, ``reference``)."""
+    if name is not None and name not in QUALITIES:
+        raise InputError(f"sog_quality: expected one of {', '.join(QUALITIES)}, got {name!r}")
+    token = _QUALITY.set(name or "reference")
+    try:
+        yield
+    finally:
+        _QUALITY.reset(token)
+
+
+def _palette_size(n: int, mode: str = "fast") -> int:
+    """SH palette entries for ``n`` splats. ``reference``: 1024 x 2^floor(log2(n / 1024)),
+    capped at 64 x 1024 (the reference encoder's rule; below 1024 splats a fraction of 1024);
+    ``fast``: a power of two near n / 16, 64 .. PALETTE_CAP."""
+    if mode == "reference":
+        return int(max(1, min(64, 2.0 ** math.floor(math.log2(max(n, 1) / 1024))) * 1024))
     return int(min(PALETTE_CAP, max(64, 2 ** round(math.log2(max(n, 1) / 16)))))
 
 
 def encode(f: SplatFields, *, keep: SogCodes | None = None, same: np.ndarray | None = None,
-           iterations: int = 10, effort: int = 25) -> dict[str, bytes]:
+           iterations: int = 10, effort: int = 25, sh_quality: str | None = None
+           ) -> dict[str, bytes]:
     """The SOG members (``meta.json`` and the images) of ``f``, splats in their given order.
+    ``sh_quality``: the SH encoder (:data:`QUALITIES`; None: the :func:`quality` in force).
 
     keep/same: the codes of the scene the fields were read from and (N,) bool of the splats
     still holding their decoded values: those splats keep their codes, and the codebook entries
@@ -450,7 +481,7 @@ def encode(f: SplatFields, *, keep: SogCodes | None = None, same: np.ndarray | N
     if k:
         shn, members = _encode_sh(f, keep if reuse and keep.labels is not None and
                                   keep.centroids.shape[1] == k else None, same, iterations,
-                                  width, height, effort)
+                                  width, height, effort, sh_quality or _QUALITY.get())
         meta["shN"] = shn
         out.update(members)
     out["meta.json"] = json.dumps(meta, separators=(",", ":")).encode()
@@ -502,12 +533,12 @@ def nearest_1d(book: np.ndarray, values: np.ndarray) -> np.ndarray:
 
 
 def _encode_sh(f: SplatFields, keep: SogCodes | None, same: np.ndarray | None,
-               iterations: int, width: int, height: int, effort: int
+               iterations: int, width: int, height: int, effort: int, mode: str = "reference"
                ) -> tuple[dict, dict[str, bytes]]:
     n, k = f.count, f.sh_rest.shape[2]
     # (N, K, 3) view: coefficient-major, rgb inside (rows of K*3 values, flattened by block)
     rows = f.sh_rest.transpose(0, 2, 1)
-    palette_n = _palette_size(n)
+    palette_n = _palette_size(n, mode)
     if keep is not None:
         used = np.unique(keep.labels[same])
         palette_n = max(palette_n, min(MAX_PALETTE, len(used) + palette_n // 2))

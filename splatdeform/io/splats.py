@@ -18,8 +18,10 @@ import numpy as np
 from ..errors import FormatError
 from ..model import SH_C0, PlyElementData, PlyProperty, PlySource, PointModel
 
-#: SH rest coefficients per colour channel for each degree
-SH_COEFFS = {0: 0, 1: 3, 2: 8, 3: 15}
+#: SH rest coefficients per colour channel for each degree (4: SPZ v4 and PLY only)
+SH_COEFFS = {0: 0, 1: 3, 2: 8, 3: 15, 4: 24}
+#: the highest SH degree of the formats other than PLY and SPZ v4 (band 4 is dropped, said)
+MAX_WRITE_DEGREE = 3
 #: splats encoded at a time by the quantising writers (bounded float64 temporaries)
 WRITE_BLOCK = 1 << 16
 
@@ -107,8 +109,10 @@ def restore_largest(others: np.ndarray, which: np.ndarray) -> np.ndarray:
     return quat
 
 
-def fields_of(model: PointModel, path: str | Path, fmt: str) -> SplatFields:
-    """The splat fields a write of ``model`` to ``path`` (format name ``fmt``) encodes; raises
+def fields_of(model: PointModel, path: str | Path, fmt: str,
+              max_degree: int = MAX_WRITE_DEGREE) -> SplatFields:
+    """The splat fields a write of ``model`` to ``path`` (format name ``fmt``) encodes, SH
+    above ``max_degree`` left out (the writer's :func:`note_lossy` says so); raises
     FormatError naming the file when the model is not a 3D Gaussian splat scene."""
     g = model.gaussians
     if g is None or g.opacity is None or g.sh_dc is None:
@@ -117,14 +121,18 @@ def fields_of(model: PointModel, path: str | Path, fmt: str) -> SplatFields:
     n = model.n_points
     rest = g.sh_rest if g.sh_rest is not None else np.zeros((n, 0), np.float32)
     if sh_degree_of(rest.shape[1]) is None:
-        raise FormatError(f"{path}: {fmt} holds SH degrees 0-3 (0, 9, 24 or 45 f_rest_* "
-                          f"values); this model has {rest.shape[1]}")
+        raise FormatError(f"{path}: {fmt} holds SH degrees 0-{max_degree} (0, 9, 24, 45 or 72 "
+                          f"f_rest_* values); this model has {rest.shape[1]}")
+    sh = rest.reshape(n, 3, -1)
+    keep = SH_COEFFS[min(sh_degree_of(rest.shape[1]), max_degree)]
+    if sh.shape[2] > keep:
+        sh = sh[:, :, :keep]
     return SplatFields(positions=np.asarray(model.positions, dtype=np.float64),
                        scale_log=np.asarray(g.scale_log, dtype=np.float32),
                        rotation=np.asarray(g.rotation, dtype=np.float32),
                        opacity=np.asarray(g.opacity, dtype=np.float32),
                        sh_dc=np.asarray(g.sh_dc, dtype=np.float32),
-                       sh_rest=rest.reshape(n, 3, -1).astype(np.float32, copy=False))
+                       sh_rest=sh.astype(np.float32, copy=False))
 
 
 def unchanged_rows(model: PointModel, fields: SplatFields) -> np.ndarray | None:
@@ -169,15 +177,23 @@ def dropped_properties(model: PointModel) -> list[str]:
 def note_lossy(path: str | Path, fmt: str, losses: str | None, model: PointModel,
                sh_kept: int | None = None) -> None:
     """Say once for this write which properties the format quantises or drops (``losses``
-    None: a format that keeps float32 values says something only when it drops properties)."""
+    None: a format that keeps float32 values says something only when it drops properties;
+    ``sh_kept``: the f_rest_* values the format holds, default those of degree 3)."""
     dropped = dropped_properties(model)
+    g = model.gaussians
+    if losses is None and g is not None and g.sh_rest is not None and \
+            g.sh_rest.shape[1] > (3 * SH_COEFFS[MAX_WRITE_DEGREE] if sh_kept is None
+                                  else sh_kept):
+        losses = "float32 values kept"
     if losses is None:
         if not dropped:
             return
         losses = "float32 values kept"
     g = model.gaussians
     n_rest = 0 if g is None or g.sh_rest is None else g.sh_rest.shape[1]
-    if sh_kept is not None and n_rest > sh_kept:
+    if sh_kept is None:  # band 4 (72 values) is held by PLY and SPZ v4 only
+        sh_kept = 3 * SH_COEFFS[MAX_WRITE_DEGREE]
+    if n_rest > sh_kept:
         dropped.append(f"f_rest_{sh_kept}..f_rest_{n_rest - 1} (SH above what {fmt} holds)")
     text = f"{path}: {fmt} is lossy: {losses}"
     if dropped:

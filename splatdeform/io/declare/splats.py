@@ -20,7 +20,7 @@ from . import ply
 SPLAT_FLOATS = 14
 #: the model's float64 positions (and normals) beside the decoded table
 MODEL_BYTES = 48
-SH_REST = {0: 0, 1: 9, 2: 24, 3: 45}
+SH_REST = {0: 0, 1: 9, 2: 24, 3: 45, 4: 72}
 
 
 def splat_record(n_rest: int) -> int:
@@ -38,10 +38,17 @@ def _cost(points: int, size: int, n_rest: int, decoded: int) -> FileCost:
 
 def _spz_probe(path: Path, head: bytes, size: int, file: Path | None = None) -> FileCost:
     """The gzip stream's header (inflated from the first bytes) and the reader's checks of its
-    declared size against the compressed size and the machine's memory."""
+    declared size against the compressed size and the machine's memory; v4: its plaintext
+    header (the count; the table is checked by the reader)."""
     from .. import spz
     from ..inflate import Inflater, check_declared
 
+    if spz.is_v4(head):
+        info = spz.parse_header(path, head[:spz.HEADER.size])
+        check_declared(path, f"SPZ data (SPZ header: {info['count']:,} splats)",
+                       spz.stream_size(info), decoded=spz.decoded_size(info))
+        return _cost(info["count"], size, 3 * spz.SH_COEFFS[info["sh_degree"]],
+                     spz.decoded_size(info))
     spz._refuse_plain(path, head[:spz.HEADER.size])
     info = spz.parse_header(path, Inflater(head, path, "SPZ data").read(spz.HEADER.size))
     check_declared(path, f"SPZ data (SPZ header: {info['count']:,} splats)",
@@ -99,7 +106,7 @@ def _compressed_ply_fields(path: Path) -> dict:
     chunk, sh = source.element("chunk"), source.element("sh")
     n_rest = 0 if sh is None else len(sh.properties)
     return {"format": "PlayCanvas compressed PLY", "format_fields": {
-        "chunks": 0 if chunk is None else chunk.count, "sh_bands": {0: 0, 9: 1, 24: 2, 45: 3}
+        "chunks": 0 if chunk is None else chunk.count, "sh_bands": {0: 0, 9: 1, 24: 2, 45: 3, 72: 4}
         .get(n_rest, n_rest)}}
 
 
@@ -111,7 +118,10 @@ def _spz_fields(path: Path) -> dict:
     from .. import spz
 
     h = spz.read_info(path)
-    return {"format": f"SPZ v{h['version']} (gzip)", "format_fields": {
+    packing = "ZSTD streams" if h["version"] == 4 else "gzip"
+    fields = {"extensions": ", ".join(f"{kind:#010x}" for kind, _ in h["extensions"]) or
+              "none"} if h["version"] == 4 else {}
+    return {"format": f"SPZ v{h['version']} ({packing})", "format_fields": {**fields,
         "version": h["version"], "sh_degree": h["sh_degree"],
         "fractional_bits": h["fractional_bits"], "antialiased": h["antialiased"]}}
 
