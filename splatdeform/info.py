@@ -32,6 +32,7 @@ def _describe(model: PointModel) -> dict[str, Any]:
         "bbox_max": hi.tolist(),
         "diagonal": model.diagonal(),
     }
+
     if model.source is not None:
         src = model.source
         info["format"] = getattr(src, "format_name", None) or ("ascii" if src.text else (
@@ -89,6 +90,9 @@ def format_text(info: dict[str, Any]) -> str:
         f"  (diagonal {info['diagonal']:.6g})",
         f"normals:  {info['normals']}",
     ]
+    if "up_axis" in info:   # added by `info` (render's rule): what render, thumbnails and
+        # the editor use unless --up / render.up say otherwise
+        lines.append(f"up:       {info['up_axis']} ({info['up_reason']}; --up/render.up win)")
     if "radius_median" in info:
         lines.append(f"radius:   median {info['radius_median']:.6g}")
     if "sh_degree" in info:

@@ -270,3 +270,42 @@ def test_report_written_when_the_run_is_interrupted(tmp_path: Path, bars, monkey
     rows = report(tmp_path / "out")
     assert len(rows) == 2 and all(r["status"] == "failed" and "not run" in r["error"]
                                   for r in rows.values())
+
+
+# ---- thumbnails that read (issue 35) -------------------------------------------------------------
+OLD_CARD_WIDTH = 540   # px: the report's cards before issue 35
+
+
+def test_thumbnails_twice_as_wide_and_the_splat_tile_fills_its_panels(tmp_path: Path) -> None:
+    import numpy as np
+    from browser import Chromium
+    from conftest import shared_file
+    from PIL import Image
+
+    from splatdeform.batch.report import png_size
+    from splatdeform.render.compare import LABEL_HEIGHT
+
+    scans = tmp_path / "scans"
+    scans.mkdir()
+    shutil.copy(shared_file("splats/tile_3dgs_sh3.ply"), scans / "tile.ply")
+    cfg = write_batch(tmp_path / "b.yaml", scans="scans", output_dir="out", render={})
+    r = run_cli("batch", cfg, "--workers", "1", "--quiet", timeout=300)
+    assert r.returncode == 0, r.stderr
+    (row,) = report(tmp_path / "out").values()
+    assert row["status"] == "ok" and row["png"], row
+    width, height = png_size(row["png"])
+    assert width >= 2 * OLD_CARD_WIDTH and height >= 2 * 256
+    image = np.asarray(Image.open(row["png"]).convert("RGB")).astype(int)[LABEL_HEIGHT:]
+    panel = image.shape[1] // 2
+    for half in (image[:, :panel], image[:, panel:]):
+        drawn = np.abs(half - 255).max(axis=2) > 8
+        ys, xs = np.nonzero(drawn)
+        span_w = (xs.max() - xs.min() + 1) / half.shape[1]
+        span_h = (ys.max() - ys.min() + 1) / half.shape[0]
+        assert max(span_w, span_h) >= 0.5, (span_w, span_h)
+    with Chromium(size=(1800, 1000)) as tab:
+        tab.open((tmp_path / "out" / "index.html").resolve().as_uri())
+        shown = tab.wait("document.querySelector('.card img') && "
+                         "document.querySelector('.card img').complete && "
+                         "document.querySelector('.card img').getBoundingClientRect().width", 60)
+    assert shown >= 2 * OLD_CARD_WIDTH

@@ -836,3 +836,44 @@ def test_saves_from_request_threads_render_every_png(bar_path, tmp_path):
         t.join()
     assert [o["message"].startswith("wrote") for o in out] == [True, True], out
     assert (tmp_path / "o1.png").stat().st_size > 0
+
+
+# ---- the Fit panel's figures (issue 35) ----------------------------------------------------------
+def test_fit_panel_shows_what_deform_prints_and_long_yaml_wraps(bar_path, tmp_path):
+    shutil.copy(bar_path, tmp_path / "bar.ply")
+    bar = sd.load(tmp_path / "bar.ply")
+    many = [int(i) for i in np.flatnonzero(bar.positions[:, 0] > 3.5)[:60]]   # long YAML
+    cfg = {"input": "bar.ply", "output": "bent.ply",
+           "regions": {"units": "model",
+                       "fixed": [{"box": {"min": [-1.0, -1.0, -1.0], "max": [1.2, 1.0, 1.0]}}],
+                       "handle": [{"indices": many},
+                                  {"box": {"min": [3.8, -1.0, -1.0], "max": [5.0, 1.0, 1.0]}}]},
+           "handle": {"transform": {"translate": [0.0, 0.3, 0.0]}},
+           "fit": {"tolerance": 1e-3}}
+    (tmp_path / "long.yaml").write_text(yaml.safe_dump(cfg, sort_keys=False))
+    with _serving(tmp_path / "long.yaml") as srv:
+        with Chromium(size=(1100, 750)) as tab:
+            _open(tab, srv.url())
+            assert tab.eval("document.getElementById('fitfigures').textContent") == ""
+            tab.eval("document.getElementById('fit').click()")
+            text = tab.wait("document.getElementById('fitfigures').textContent", 120)
+            st = tab.eval("sdState()")
+            overflow = tab.eval(
+                "(() => { const p = document.getElementById('panel');"
+                " return Array.from(p.querySelectorAll('#tree .node')).map("
+                "d => d.getBoundingClientRect().right - p.getBoundingClientRect().right); })()")
+            wide = tab.eval("document.getElementById('panel').scrollWidth - "
+                            "document.getElementById('panel').clientWidth")
+    stats, counts = st["fit"]["stats"], st["counts"]
+    lines = text.split("\n")
+    assert lines[0] == f"method {stats['method']} · centers {stats['centers']:,}"
+    assert lines[1].startswith(f"constraints {stats['constraints']:,}")
+    if stats["kept"] != stats["constraints"]:
+        assert f"(kept {stats['kept']:,})" in lines[1]
+    assert lines[2].startswith("boundary error ")
+    shown = float(lines[2].split()[2])
+    assert shown == pytest.approx(stats["residual"], rel=5e-3)
+    assert lines[3].startswith(f"regions: fixed {counts['fixed']:,} · handle "
+                               f"{counts['handle']:,} · free {counts['free']:,}")
+    assert stats["method"] in ("incremental", "exact") and stats["centers"] > 0
+    assert max(overflow) <= 1 and wide <= 1   # the long indices row wraps inside the panel

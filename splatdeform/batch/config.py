@@ -38,6 +38,7 @@ from .sources import Scan, file_kind, find_scans, glob_base, is_glob
 
 PLACEHOLDER_IN = "__batch_input__.ply"
 PLACEHOLDER_OUT = "__batch_output__.ply"
+THUMBNAIL_PANEL = (800, 600)   # one half of a batch thumbnail, pixels (render.size)
 MAX_TIMEOUT_S = 1e7   # seconds (~115 days); larger values overflow the OS wait calls
 
 
@@ -53,14 +54,16 @@ class OverrideCfg(_Strict):
 
 class BatchRenderCfg(_Strict):
     """As ``deform``'s render (the same bounds); the thumbnail is two halves side by side, so
-    the width is at most half the largest image."""
+    the width is at most half the largest image. ``size`` is one half (THUMBNAIL_PANEL by
+    default: before and after 800 x 600 each, 1600 x 618 in all; 512 x 256 until issue 35)."""
 
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
     size: Annotated[list[Annotated[StrictInt, Field(ge=MIN_IMAGE, le=MAX_IMAGE // 2)]],
-                    Field(min_length=2, max_length=2)] = [512, 256]
+                    Field(min_length=2, max_length=2)] = list(THUMBNAIL_PANEL)
     azimuth: float = Field(default=30.0, ge=-1e6, le=1e6)
-    elevation: float = Field(default=20.0, ge=-1e6, le=1e6)
-    fov: float = Field(default=35.0, ge=1, le=179)
+    elevation: float | None = Field(default=None, ge=-1e6, le=1e6)  # None: 20; flat: 40
+    fov: float = Field(default=35.0, ge=1, le=179)   # the lens angle
+    zoom: float = Field(default=1.0, ge=0.01, le=100)   # narrows the view about the target
     up: Literal["+x", "+y", "+z", "-x", "-y", "-z"] | None = None  # None: the file's convention
     roll: float = Field(default=0.0, ge=-360, le=360)
     camera: str | None = None   # a camera file (OUT.camera.json), relative to the batch file

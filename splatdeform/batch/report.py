@@ -91,11 +91,29 @@ def _rel(path: str | None, base: Path) -> str | None:
     return html.escape("./" + quote(rel.encode("utf-8", "surrogateescape")), quote=True)
 
 
+CARD_MIN = 540   # px: the card of a scan without a thumbnail; thumbnails show at their own width
+
+
+def png_size(path: str | None) -> tuple[int, int] | None:
+    """(width, height) of a PNG from its header, or None when it is not a readable PNG."""
+    try:
+        with open(str(path), "rb") as f:
+            head = f.read(24)
+    except (OSError, TypeError, ValueError):
+        return None
+    if len(head) < 24 or head[:8] != b"\x89PNG\r\n\x1a\n" or head[12:16] != b"IHDR":
+        return None
+    w, h = int.from_bytes(head[16:20], "big"), int.from_bytes(head[20:24], "big")
+    return (w, h) if 0 < w <= 65536 and 0 < h <= 65536 else None
+
+
 def _html(output_dir: Path, rows: list[dict[str, Any]], summary: dict[str, Any]) -> str:
     cards = []
     for row in rows:
         png = _rel(row.get("png"), output_dir)
-        img = (f'<img src="{png}" alt="before/after {html.escape(row["scan"])}">'
+        size = png_size(row.get("png")) if png else None
+        dims = f' width="{size[0]}" height="{size[1]}"' if size else ""
+        img = (f'<img src="{png}"{dims} alt="before/after {html.escape(row["scan"])}">'
                if png else '<div class="noimg">no thumbnail</div>')
         t = row.get("timings") or {}
         figures = (f"points {_fmt(row.get('points'), ',')} · "
@@ -124,9 +142,10 @@ def _html(output_dir: Path, rows: list[dict[str, Any]], summary: dict[str, Any])
 body {{ font-family: sans-serif; margin: 1.5em; background: #fafafa; }}
 .grid {{ display: flex; flex-wrap: wrap; gap: 1em; }}
 .card {{ background: white; border: 1px solid #ccc; border-radius: 6px;
-  padding: .6em; width: 540px; }}
+  padding: .6em; width: fit-content; min-width: {CARD_MIN}px; max-width: 100%;
+  box-sizing: border-box; }}
 .card h3 {{ margin: 0 0 .3em 0; font-size: 1em; word-break: break-all; }}
-.card img {{ max-width: 100%; }}
+.card img {{ display: block; max-width: 100%; height: auto; }}
 .failed {{ border-color: #c33; }} .failed .status {{ color: #c33; font-weight: bold; }}
 .skipped .status {{ color: #777; }} .ok .status {{ color: #282; }}
 .err {{ color: #c33; font-family: monospace; font-size: .85em; }}

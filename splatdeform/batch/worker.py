@@ -91,7 +91,7 @@ def process_scan(job: Job) -> dict[str, Any]:
                     r = job.render
                     cfg.render = RenderCfg(output=job.png, size=[2 * r["size"][0], r["size"][1]],
                                            azimuth=r["azimuth"], elevation=r["elevation"],
-                                           fov=r["fov"], up=r.get("up"),
+                                           fov=r["fov"], zoom=r.get("zoom", 1.0), up=r.get("up"),
                                            roll=r.get("roll", 0.0), camera=r.get("camera"),
                                            color=r.get("color"))
                     render_result(result, cfg, job.png, input_path=local,   # atomically

@@ -67,7 +67,8 @@ def edit_view(cfg: EditConfig, up: str | None = None, roll: float | None = None,
 
     opts = cfg.render or RenderCfg()
     return View(size=(opts.size[0] // 2, opts.size[1]), azimuth=opts.azimuth,
-                elevation=opts.elevation, fov=opts.fov).with_options(up, roll, camera_file)
+                elevation=opts.elevation, fov=opts.fov).with_options(up, roll, camera_file,
+                                                                     opts.zoom)
 
 
 def render_result(result: EditResult, cfg: EditConfig, out: str | Path, *,

@@ -18,13 +18,14 @@ import math
 import os
 import stat
 from collections.abc import Iterable
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from splatdeform.errors import InputError
+from splatdeform.render import framing
 
 UP_AXES = ("+x", "+y", "+z", "-x", "-y", "-z")
 # rotation taking the y-up orbit frame to each up axis: columns are the images of x, y, z
@@ -37,6 +38,7 @@ _FRAMES = {
     "-x": ((0, 1, 0), (-1, 0, 0), (0, 0, 1)),
 }
 CAMERA_KEYS = ("position", "target", "up", "fov_y_degrees", "width", "height", "near", "far")
+OPTIONAL_KEYS = ("near", "far")   # a hand-written file may omit them: computed from the model
 
 
 @dataclass(frozen=True)
@@ -45,15 +47,18 @@ class Camera:
 
     position, target: (3,) float64 eye and looked-at point. up: (3,) float64 up direction (not
     parallel to target - position; cameras made by :func:`orbit` store it orthonormal to the
-    viewing direction). fov: vertical field of view in degrees. near, far: clip distances.
+    viewing direction). fov: vertical field of view in degrees. near, far: clip distances
+    (None: computed from the model before drawing, :func:`with_clip`). source: where
+    the camera came from (a camera file's path), for messages.
     """
 
     position: np.ndarray
     target: np.ndarray
     up: np.ndarray
     fov: float = 35.0
-    near: float = 0.01
-    far: float = 100.0
+    near: float | None = 0.01
+    far: float | None = 100.0
+    source: str | None = field(default=None, compare=False)
 
     def eye(self) -> np.ndarray:
         """(3,) float64 eye position."""
@@ -85,6 +90,9 @@ class Camera:
 
     def projection(self, aspect: float) -> np.ndarray:
         """(4, 4) OpenGL perspective projection for width / height ``aspect``."""
+        if self.near is None or self.far is None:
+            raise InputError("camera: near/far: not known yet (computed from the model when a "
+                             "render frames it)")
         f = 1.0 / math.tan(math.radians(self.fov) / 2.0)
         n, fa = self.near, self.far
         m = np.zeros((4, 4))
@@ -100,41 +108,51 @@ class Camera:
 class View:
     """How a render looks at its models, one value for what used to be seven loose arguments.
 
-    size: (W, H) pixels of one panel. azimuth, elevation, fov: degrees of the orbit framing
-    (:func:`orbit`). up: one of :data:`UP_AXES`, or None for the models' convention
-    (:func:`default_up`). roll: degrees about the viewing direction. camera: a :class:`Camera`
-    that replaces the framing (e.g. from a camera file), or None.
+    size: (W, H) pixels of one panel. azimuth, elevation: degrees of the orbit (:func:`orbit`;
+    elevation None: 40 for flat scenes, else 20, see :mod:`.framing`). fov: the lens angle
+    (vertical, degrees); the framing fills the picture whatever the angle. zoom: narrows the
+    view about the target by this factor (2: twice as close-up). up: one of :data:`UP_AXES`,
+    or None for the models' convention (:func:`default_up`). roll: degrees about the viewing
+    direction. camera: a :class:`Camera` that replaces the framing (e.g. from a camera file),
+    or None.
     """
 
     size: tuple[int, int] = (256, 256)
     azimuth: float = 30.0
-    elevation: float = 20.0
+    elevation: float | None = None
     fov: float = 35.0
     up: str | None = None
     roll: float = 0.0
     camera: Camera | None = None
+    zoom: float = 1.0
 
     def framed(self, point_sets: Iterable[np.ndarray], models: Iterable[Any],
                aspect: float) -> Camera:
-        """``camera`` when set, else the framing of the (M_i, 3) ``point_sets`` about ``up``
-        (None: the convention of ``models``) at width / height ``aspect``."""
+        """``camera`` when set (near / far it lacks computed from the points), else the
+        framing of the (M_i, 3) ``point_sets`` about ``up`` (None: the convention of
+        ``models``) at width / height ``aspect``."""
         if self.camera is not None:
-            return self.camera
+            return with_clip(self.camera, point_sets)
         return frame_points(point_sets, replace(self, up=self.up or default_up(models)),
                             aspect=aspect)
 
     def with_options(self, up: str | None = None, roll: float | None = None,
-                     camera_file: str | os.PathLike[str] | None = None) -> View:
+                     camera_file: str | os.PathLike[str] | None = None,
+                     zoom: float | None = None) -> View:
         """This view with the user's camera options: ``up`` (None: the file's convention),
-        ``roll`` degrees (None: 0), and a camera file, which wins: it brings ``camera`` and
-        ``size`` (one panel, W x H). Raises InputError for a bad value or file."""
+        ``roll`` degrees (None: 0), ``zoom`` (None: 1), and a camera file, which wins: it brings
+        ``camera`` and ``size`` (one panel, W x H). Raises InputError for a bad value or file."""
         if up is not None and up not in UP_AXES:
             raise InputError(f"--up/render.up: expected one of {' '.join(UP_AXES)}, got {up!r}")
         roll = 0.0 if roll is None else float(roll)
         if not math.isfinite(roll):
             raise InputError(
                 f"--roll/render.roll: expected a finite number of degrees, got {roll}")
-        view = replace(self, up=up, roll=roll)
+        zoom = 1.0 if zoom is None else float(zoom)
+        if not (math.isfinite(zoom) and 0.01 <= zoom <= 100):
+            raise InputError(f"--zoom/render.zoom: expected a factor between 0.01 and 100, "
+                             f"got {zoom}")
+        view = replace(self, up=up, roll=roll, zoom=zoom)
         if camera_file is not None:
             camera, size = load_camera(camera_file)
             view = replace(view, camera=camera, size=size)
@@ -215,7 +233,7 @@ def frame_bbox(lo: np.ndarray, hi: np.ndarray, view: View = DEFAULT_VIEW, *, asp
         center,
         distance,
         azimuth=view.azimuth,
-        elevation=view.elevation,
+        elevation=20.0 if view.elevation is None else view.elevation,
         fov=fov,
         up=view.up or "+y",
         roll=view.roll,
@@ -226,22 +244,42 @@ def frame_bbox(lo: np.ndarray, hi: np.ndarray, view: View = DEFAULT_VIEW, *, asp
 
 def frame_points(point_sets: Iterable[np.ndarray], view: View = DEFAULT_VIEW, *,
                  aspect: float = 1.0) -> Camera:
-    """Auto-framing on the union of the bounding boxes of (M_i, 3) point arrays (e.g. a model
-    before and after a deformation, so both images share one camera); ``view`` as in
-    :func:`frame_bbox`."""
-    lo, hi = union_bbox(point_sets)
-    return frame_bbox(lo, hi, view, aspect=aspect)
+    """Auto-framing on the robust projected extent of the union of (M_i, 3) point arrays (e.g.
+    a model before and after a deformation, so both images share one camera): see
+    :func:`splatdeform.render.framing.fit_frame`; ``view``'s azimuth, elevation, fov, zoom,
+    up (None: ``+y``) and roll."""
+    pts = framing.stacked(point_sets)
+    up = view.up or "+y"
+    local = pts - (pts.min(axis=0) + pts.max(axis=0)) / 2.0 if len(pts) else pts
+    elevation = view.elevation
+    if elevation is None:   # flat scenes (LiDAR, terrain) are seen obliquely
+        elevation = framing.default_elevation(local, up) if len(pts) else 20.0
+    probe = orbit(np.zeros(3), 1.0, azimuth=view.azimuth, elevation=elevation, fov=view.fov,
+                  up=up, roll=view.roll)
+    position, target, near, far = framing.fit_frame(pts, probe.basis(), float(view.fov),
+                                                    aspect=aspect)
+    return Camera(position, target, probe.up, fov=framing.zoomed_fov(view.fov, view.zoom),
+                  near=near, far=far)
+
+
+def with_clip(camera: Camera, point_sets: Iterable[np.ndarray]) -> Camera:
+    """``camera`` with a missing near / far (None, e.g. a hand-written camera file without
+    them) computed from the points (:func:`~.framing.clip_range`); given values are used as
+    written."""
+    if camera.near is not None and camera.far is not None:
+        return camera
+    computed = framing.clip_range(camera.eye(), camera.basis()[2], camera.target, point_sets)
+    near, far = framing.complete_clip(camera.near, camera.far, computed)
+    return replace(camera, near=near, far=far)
 
 
 def default_up(models: Iterable[Any]) -> str:
-    """The up axis of the models' file convention: ``-y`` for 3D Gaussian splat scenes (3DGS
-    files are stored y-down), ``+z`` for LiDAR (LAS/LAZ are z-up), else ``+y``."""
-    from splatdeform.render.colors import is_lidar
+    """The up axis of the models' file convention (:func:`splatdeform.render.upaxis.up_rule`):
+    ``-y`` for 3D Gaussian splat scenes, ``+z`` for LiDAR and geo-referenced scans, else
+    ``+y``."""
+    from splatdeform.render.upaxis import up_rule
 
-    models = list(models)
-    if any(getattr(m, "gaussians", None) is not None for m in models):
-        return "-y"
-    return "+z" if models and all(is_lidar(m) for m in models) else "+y"
+    return up_rule(models)[0]
 
 
 def gl_bytes(matrix: np.ndarray) -> bytes:
@@ -266,8 +304,8 @@ def camera_dict(camera: Camera, size: tuple[int, int]) -> dict[str, Any]:
         "fov_y_degrees": float(camera.fov),
         "width": int(size[0]),
         "height": int(size[1]),
-        "near": float(camera.near),
-        "far": float(camera.far),
+        **({} if camera.near is None else {"near": float(camera.near)}),
+        **({} if camera.far is None else {"far": float(camera.far)}),
     }
 
 
@@ -307,11 +345,12 @@ def parse_camera(data: Any, where: str) -> tuple[Camera, tuple[int, int]]:
     if not isinstance(data, dict):
         raise InputError(f"{where}: expected a JSON object with keys {', '.join(CAMERA_KEYS)}")
     unknown = sorted(set(data) - set(CAMERA_KEYS))
-    missing = [k for k in CAMERA_KEYS if k not in data]
+    missing = [k for k in CAMERA_KEYS if k not in data and k not in OPTIONAL_KEYS]
     if unknown or missing:
         what = "; ".join(filter(None, [missing and f"missing {', '.join(missing)}",
                                        unknown and f"unknown {', '.join(unknown)}"]))
-        raise InputError(f"{where}: expected the keys {', '.join(CAMERA_KEYS)} ({what})")
+        raise InputError(f"{where}: expected the keys {', '.join(CAMERA_KEYS)} (near and far "
+                         f"may be omitted) ({what})")
     position, target = _vector(data, "position", where), _vector(data, "target", where)
     up = _vector(data, "up", where)
     if np.linalg.norm(target - position) == 0:
@@ -321,8 +360,8 @@ def parse_camera(data: Any, where: str) -> tuple[Camera, tuple[int, int]]:
             np.linalg.norm(up), 1e-300):
         raise InputError(f"{where}: up: expected a direction not parallel to target - position")
     fov = _number(data, "fov_y_degrees", where, 0.0, 180.0)
-    near = _number(data, "near", where, 0.0, math.inf)
-    far = _number(data, "far", where, near, math.inf)
+    near = _number(data, "near", where, 0.0, math.inf) if "near" in data else None
+    far = _number(data, "far", where, near or 0.0, math.inf) if "far" in data else None
     size = []
     for key in ("width", "height"):
         value = data[key]
@@ -330,7 +369,8 @@ def parse_camera(data: Any, where: str) -> tuple[Camera, tuple[int, int]]:
             raise InputError(f"{where}: {key}: expected an integer pixel count in 1..8192, "
                              f"got {value!r}")
         size.append(value)
-    return Camera(position, target, up, fov=fov, near=near, far=far), (size[0], size[1])
+    return (Camera(position, target, up, fov=fov, near=near, far=far, source=where),
+            (size[0], size[1]))
 
 
 MAX_CAMERA_BYTES = 1 << 20  # a camera file is a few hundred bytes

@@ -14,6 +14,7 @@ from splatdeform.model import PointModel
 from splatdeform.render.camera import Camera, View, write_camera
 from splatdeform.render.overlay import Overlay, draw_overlays
 from splatdeform.render.renderer import Renderer, deformation_session
+from splatdeform.render.visibility import check_drawn
 
 LABEL_HEIGHT = 18
 LABEL_COLOR = (20, 20, 20)
@@ -79,9 +80,11 @@ def render_comparison(
         for model, cam in zip(models, cameras, strict=True):
             gpu = renderer.upload(model)
             try:
-                image = renderer.draw(gpu, cam)
+                rgba = renderer.draw_rgba(gpu, cam)
             finally:
                 gpu.release()
+            check_drawn(rgba, cam, [model.positions])
+            image = np.ascontiguousarray(rgba[:, :, :3])
             images.append(draw_overlays(image, cam, list(overlays)) if overlays else image)
     finally:
         renderer.release()
@@ -124,6 +127,8 @@ def render_deformation_comparison(
     ``OUT.camera.json`` when given; returns the composed image."""
     with deformation_session(model, values, gradients, delta_c, view,
                              covariance=covariance) as (renderer, gpu, camera):
-        images = [renderer.draw(gpu, camera, None), renderer.draw(gpu, camera, delta_c)]
+        rgba = [renderer.draw_rgba(gpu, camera, None), renderer.draw_rgba(gpu, camera, delta_c)]
         panel = renderer.size
+    check_drawn(rgba[0], camera, [model.positions])
+    images = [np.ascontiguousarray(im[:, :, :3]) for im in rgba]
     return _compose(images, labels, out_path, camera, panel)

@@ -17,6 +17,7 @@ from splatdeform.io.image import save_gif, save_png
 from splatdeform.model import PointModel
 from splatdeform.render.camera import DEFAULT_VIEW, View, write_camera
 from splatdeform.render.renderer import deformation_session
+from splatdeform.render.visibility import check_drawn
 
 
 def render_frames(
@@ -44,10 +45,11 @@ def render_frames(
     d = np.asarray(delta_c, dtype=np.float64)
     with deformation_session(model, values, gradients, delta_c, view,
                              covariance=covariance) as (renderer, gpu, camera):
-        frames = [
-            renderer.draw(gpu, camera, d * (i / (n_frames - 1))) for i in range(int(n_frames))
-        ]
+        rgba = [renderer.draw_rgba(gpu, camera, d * (i / (n_frames - 1)))
+                for i in range(int(n_frames))]
         panel = renderer.size
+    check_drawn(rgba[0], camera, [model.positions])
+    frames = [np.ascontiguousarray(im[:, :, :3]) for im in rgba]
     if out.suffix.lower() == ".gif":
         save_gif(frames, out, duration_ms=duration_ms)
         write_camera(out, camera, panel)

@@ -39,6 +39,7 @@ from splatdeform.render.packing import upload_basis
 from splatdeform.render.programs import program
 from splatdeform.render.splats import splat_geometry
 from splatdeform.render.targets import Targets
+from splatdeform.render.visibility import check_drawn
 
 BACKGROUND = (255, 255, 255)
 
@@ -238,9 +239,9 @@ def deformation_session(
         renderer.release()
         raise
     try:
-        camera = view.camera if view.camera is not None else view.framed(
+        camera = view.framed(   # a camera file's missing near/far come from the model
             [model.positions, deformed_positions(model, values, delta_c)], [model],
-            renderer.size[0] / renderer.size[1])   # the deformed positions only when framing
+            renderer.size[0] / renderer.size[1])
         yield renderer, gpu, camera
     finally:
         gpu.release()
@@ -259,11 +260,14 @@ def render_image(
     """Render ``model`` (deformed on the GPU by ``delta_c`` (k, 3) when the basis ``values``
     (N, k) / ``gradients`` (N, k, 3) are given) to an (H, W, 3) uint8 image of ``view.size``.
 
-    view: without a camera, frames the union of the bounding boxes before and after the
-    deformation from its azimuth / elevation / fov (degrees) about its ``up`` axis (None: the
-    model's convention, -y for 3DGS scenes, else +y), rolled by ``roll`` degrees.
+    view: without a camera, frames the robust projected extent of the model before and after
+    the deformation from its azimuth / elevation / fov (degrees) and zoom about its ``up`` axis
+    (None: the model's convention, :func:`~splatdeform.render.camera.default_up`), rolled by
+    ``roll`` degrees. Warns when no part of the model is drawn.
     covariance: how Gaussians' covariances deform (``gaussians.covariance``).
     """
     with deformation_session(model, values, gradients, delta_c, view,
                              covariance=covariance) as (renderer, gpu, cam):
-        return renderer.draw(gpu, cam, delta_c)
+        rgba = renderer.draw_rgba(gpu, cam, delta_c)
+        check_drawn(rgba, cam, [model.positions])
+        return np.ascontiguousarray(rgba[:, :, :3])

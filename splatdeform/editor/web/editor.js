@@ -246,6 +246,22 @@ function computeDelta() {
 // ---- the curve: control points (blue), their moved points (orange), the moved curve --------
 const curveGroup = new THREE.Group();
 scene3.add(curveGroup);
+// What `deform` prints after a fit: method, centers, constraints (kept), boundary error
+// (largest |r| over the kept constraints, model units) and the region counts.
+function fitFigures(st) {
+  const f = st.fit && st.fit.stats;
+  if (!f || !('centers' in f)) return '';
+  const n = (v) => (typeof v === 'number' ? v.toLocaleString('en-US') : String(v));
+  const g = (v) => (typeof v === 'number' ? v.toPrecision(3) : String(v));
+  const kept = f.kept !== undefined && f.kept !== null && f.kept !== f.constraints ? ` (kept ${n(f.kept)})` : '';
+  const c = st.counts || {};
+  return `method ${f.method} · centers ${n(f.centers)}\n` +
+    `constraints ${n(f.constraints)}${kept}\n` +
+    `boundary error ${g(f.residual)} (tolerance ${g(f.tolerance)}${f.converged === false ? ', not converged' : ''})\n` +
+    `regions: fixed ${n(c.fixed)} · handle ${n(c.handle)} · free ${n(c.free)}` +
+    (f.seconds !== undefined ? ` · ${g(f.seconds)} s` : '');
+}
+
 function curveDelta() {  // the curve's rows of delta C (k_curve x 3), zeros without a live fit
   const cv = S.state && S.state.curve, k = cv ? cv.control.length : 0, H = S.fit.control ? S.fit.control.length : 0;
   const live = S.state && !S.state.stale && S.fit.basis && S.fit.k === H + k;
@@ -404,6 +420,7 @@ async function applyState(st) {
     (st.problem ? `\n⚠ ${st.problem}` : '');
   $('fitinfo').textContent = !st.fit ? 'no fit yet: mark fixed and handle regions, then Fit'
     : st.stale ? 'fit is stale (regions changed): Fit again' : `fit current · k = ${st.fit.k} · drag the handle gizmo`;
+  $('fitfigures').textContent = fitFigures(st);
   $('undo').disabled = !st.can_undo; $('redo').disabled = !st.can_redo;
   const sel = $('active-handle');
   sel.innerHTML = '';
