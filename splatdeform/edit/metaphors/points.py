@@ -1,0 +1,191 @@
+"""``points:`` control-point pairs (rubber-sheeting) from the config: the pairs in model units,
+the edit's precomputation with them, its delta_c, its report and ``--residuals`` CSV.
+
+Pairs are constraints at arbitrary positions, not model points, so they are not a moving-region
+kind of :data:`splatdeform.edit.metaphors.KINDS`: they add 3 columns after every handle and
+curve (:mod:`splatdeform.deform.points`), and :mod:`splatdeform.edit.run` calls
+:func:`precompute` / :func:`control_displacement` here when the edit has ``points:``.
+
+Pairs files: CSV or TXT (comma, semicolon, tab or blank separated), a header line naming the
+columns (``x, y, z, X, Y, Z`` unless ``points.columns`` names them), ``#`` comments; at most
+:data:`MAX_PAIRS_BYTES`. Coordinates follow ``regions.units`` (model units: the file's CRS, as
+the loader reads LAS/LAZ with its scale and offset applied).
+"""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from splatdeform.deform.points import Pairs, PointsFit, outside_hull, pair_errors, prepare_points
+from splatdeform.edit import units as u
+from splatdeform.edit.config import EditConfig, PairsFileCfg
+from splatdeform.errors import ConfigError
+from splatdeform.model import PointModel
+
+MAX_PAIRS_BYTES = 64 * 2**20  # a pairs file
+DEFAULT_COLUMNS = ("x", "y", "z", "X", "Y", "Z")
+
+
+def read_pairs_file(path: Path, columns: list[str] | None, key: str) -> tuple[np.ndarray, list]:
+    """(n, 6) float64 rows [x, y, z, X, Y, Z] of a pairs file and their labels (file line)."""
+    from splatdeform.io.regular import read_regular
+
+    raw = read_regular(path, max_bytes=MAX_PAIRS_BYTES, what="pairs file")
+    try:
+        text = raw.decode("utf-8-sig")
+    except UnicodeDecodeError:
+        raise ConfigError(f"{path}: {key}: not a UTF-8 text file") from None
+    lines = [(i + 1, ln.strip()) for i, ln in enumerate(text.splitlines())]
+    lines = [(i, ln) for i, ln in lines if ln and not ln.startswith("#")]
+    if not lines:
+        raise ConfigError(f"{path}: {key}: no header line (expected the columns "
+                          f"{', '.join(columns or DEFAULT_COLUMNS)})")
+
+    def split(line: str) -> list[str]:
+        for sep in (",", ";", "\t"):
+            if sep in line:
+                return [v.strip().strip('"') for v in line.split(sep)]
+        return re.split(r"\s+", line)
+
+    header = split(lines[0][1])
+    wanted = list(columns or DEFAULT_COLUMNS)
+    missing = [c for c in wanted if c not in header]
+    if missing:
+        raise ConfigError(f"{path}: {key}: the header {header} lacks the column(s) "
+                          f"{', '.join(missing)}; name them with points.columns "
+                          "[x, y, z, X, Y, Z]")
+    where = [header.index(c) for c in wanted]
+    rows, labels = [], []
+    for line_no, line in lines[1:]:
+        fields = split(line)
+        try:
+            values = [float(fields[j]) for j in where]
+        except (IndexError, ValueError):
+            raise ConfigError(f"{path}: line {line_no}: expected numbers in the columns "
+                              f"{', '.join(wanted)}, got {line[:80]!r}") from None
+        rows.append(values)
+        labels.append(f"{path.name} line {line_no}")
+    if not rows:
+        raise ConfigError(f"{path}: {key}: no pairs after the header")
+    return np.asarray(rows, dtype=np.float64), labels
+
+
+def load_pairs(value, columns: list[str] | None, key: str, units: str, model: PointModel,
+               base_dir: Path | None) -> Pairs:
+    """A pairs entry (inline list or {file}) in model units (``regions.units``)."""
+    if isinstance(value, PairsFileCfg):
+        path = Path(base_dir or ".") / value.file
+        rows, labels = read_pairs_file(path, columns, key)
+    else:
+        rows = np.asarray(value, dtype=np.float64).reshape(-1, 6)
+        labels = [f"{key}[{i}]" for i in range(rows.shape[0])]
+    frame = u.Frame.of(model)
+    if units == "relative":
+        src = frame.origin + rows[:, :3] * frame.extent
+        dst = frame.origin + rows[:, 3:] * frame.extent
+    else:
+        src, dst = rows[:, :3].copy(), rows[:, 3:].copy()
+    return Pairs(src, dst, labels, key)
+
+
+def pairs_of(cfg: EditConfig, model: PointModel, base_dir: Path | None
+             ) -> tuple[Pairs, Pairs | None]:
+    """(the pairs, the check pairs or None) of ``cfg.points`` in model units."""
+    p = cfg.points
+    pairs = load_pairs(p.pairs, p.columns, "points.pairs", cfg.regions.units, model, base_dir)
+    check = None if p.check_pairs is None else load_pairs(
+        p.check_pairs, p.columns, "points.check_pairs", cfg.regions.units, model, base_dir)
+    return pairs, check
+
+
+@dataclass
+class PointsReport:
+    """Per pair: the residual (n, 3) (field(source) - target), per check pair its error,
+    the points outside the pairs' convex hull, the largest pair displacement."""
+
+    fit: PointsFit
+    residuals: np.ndarray
+    check: Pairs | None
+    check_errors: np.ndarray | None
+    outside: int
+    points: int
+
+    def lines(self) -> list[str]:
+        res = np.linalg.norm(self.residuals, axis=1)
+        s = float(np.linalg.norm(self.fit.pairs.displacements, axis=1).max())
+        out = [f"pairs {self.fit.pairs.n:,} (smoothing {self.fit.smoothing:g}): residual max "
+               f"{res.max():.3g}, RMS {np.sqrt(np.mean(res * res)):.3g} model units "
+               f"({res.max() / max(s, 1e-300):.2e} of the largest pair displacement "
+               f"{s:.4g}; tolerance {self.fit.tolerance:g})"]
+        if self.check is not None:
+            err = np.linalg.norm(self.check_errors, axis=1)
+            out.append(f"check pairs {self.check.n:,}: error max {err.max():.3g}, RMS "
+                       f"{np.sqrt(np.mean(err * err)):.3g} model units")
+        out.append(f"{self.outside:,} of {self.points:,} points outside the pairs' convex "
+                   "hull (moved by the fitted affine part's continuation)")
+        return out
+
+    def write_csv(self, path: str | Path) -> Path:
+        """One row per pair and check pair: kind, label, source, target, residual vector and
+        its length (model units)."""
+        from splatdeform.io.atomic import atomic_write
+
+        rows = ["kind,row,x,y,z,X,Y,Z,dx,dy,dz,error"]
+        sets = [("pair", self.fit.pairs, self.residuals)]
+        if self.check is not None:
+            sets.append(("check", self.check, self.check_errors))
+        for kind, pairs, err in sets:
+            for i in range(pairs.n):
+                values = [*pairs.sources[i], *pairs.targets[i], *err[i],
+                          np.linalg.norm(err[i])]
+                label = pairs.rows[i].replace(",", " ").replace('"', "'")
+                rows.append(f"{kind},{label}," + ",".join(repr(float(v)) for v in values))
+        with atomic_write(path) as fh:
+            fh.write(("\n".join(rows) + "\n").encode())
+        return Path(path)
+
+
+def precompute(cfg: EditConfig, model: PointModel, base_dir: Path):
+    """The deformation of a ``points:`` edit (pairs plus any fixed regions, handles, curve)
+    and its :class:`PointsFit`."""
+    from splatdeform.edit import plain
+
+    pairs, _ = pairs_of(cfg, model, base_dir)
+    fixed = plain.fixed_mask(cfg, model, base_dir) if cfg.regions.fixed else \
+        np.zeros(model.n_points, dtype=bool)
+    return prepare_points(model, fixed, plain.metaphors(cfg, model, base_dir), pairs,
+                          fit_fn=plain.fit_fn(cfg, model), basis_fn=plain.basis_fn(cfg),
+                          smoothing=cfg.points.smoothing, tolerance=cfg.points.tolerance,
+                          continuity=cfg.boundary.continuity, neighbors=cfg.boundary.neighbors)
+
+
+def control_displacement(cfg: EditConfig, model: PointModel, deformation, fit: PointsFit):
+    """delta_c (k, 3) of every handle and curve (their configured poses) then g I for the
+    pairs, and the handle matrices (as :func:`splatdeform.edit.plain.control_displacement`)."""
+    from splatdeform.edit.metaphors import Context, entries
+
+    ctx = Context.of(cfg, model, None)
+    parts, matrices = [], []
+    for (kind, key, entry), group in zip(entries(cfg), deformation.groups, strict=False):
+        part, matrix = kind.delta(key, entry, group, deformation, ctx)
+        parts.append(part)
+        if matrix is not None:
+            matrices.append(matrix)
+    parts.append(fit.delta())
+    delta = np.vstack(parts)
+    if cfg.handle is not None:
+        return delta, matrices[0]
+    return delta, matrices or None
+
+
+def report(cfg: EditConfig, model: PointModel, base_dir: Path, deformation, fit: PointsFit,
+           delta_c: np.ndarray) -> PointsReport:
+    """Residuals at the pairs, errors at the check pairs, points outside the hull."""
+    _, check = pairs_of(cfg, model, base_dir)
+    check_err = None if check is None else pair_errors(deformation, check, delta_c)
+    return PointsReport(fit, pair_errors(deformation, fit.pairs, delta_c), check, check_err,
+                        outside_hull(fit.pairs.sources, model.positions), model.n_points)

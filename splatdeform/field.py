@@ -1,0 +1,340 @@
+"""A fitted deformation as a file (``deform --save-field FIELD.npz``) and its use on any model
+(``splatdeform apply FIELD.npz MODEL -o OUT``, ``sd.Field.load(path)``).
+
+The file is an ``.npz`` (no pickles), kilobytes, independent of the model's size:
+
+- ``centers`` (n, 3) normalised, ``weights`` (4 + n, k): rows [1, x, y, z, phi_j];
+  ``norm_center`` (3,), ``norm_scale`` (): model -> normalised coordinates;
+- ``delta_c`` (k, 3): the applied control displacement (the field is d(x) = b(x) delta_c);
+- ``frames`` (h, 4, 4) / ``inverses`` (h, 4, 4) / ``matrices`` (h, 4, 4): each handle's affine
+  frame (rows 0..3 of ``frames`` hold C (4, 3) in columns 0..2) and its 4x4 transform;
+- ``meta``: JSON: format, version, the regions' selectors in model units (relative units
+  resolved: boxes and planes carry their frame), each handle's name, columns and selectors,
+  the basis backend and the splat settings (``gaussians``), and for ``indices`` selectors
+  (which do not transfer) the point count and a digest of the saved model's positions;
+  ``fixed_idx`` / ``handle_idx_<j>`` then hold the indices.
+
+Why not the ``--reuse`` cache's format: the cache holds the per-point basis of one model (size
+grows with the model) keyed by the edit; a field holds only what re-evaluates on any model.
+Both are ``.npz`` without pickles written atomically.
+
+Apply (:meth:`Field.apply`): fixed points are copied bit for bit, handle points get their 4x4
+transform exactly, every other point (the free region, and a curve band, which is not a
+selector) moves by the field; normals, splat axes, covariances and SH follow as in ``deform``
+(:func:`splatdeform.deform.apply`), so a field applied to a copy of its model gives the bytes
+``deform`` wrote.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import importlib
+import json
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from splatdeform.errors import InputError
+from splatdeform.model import PointModel
+from splatdeform.rbf.result import Normalization, RbfFit
+
+FORMAT = "splatdeform-field"
+VERSION = 1
+MAX_FIELD_BYTES = 512 * 2**20  # a field file (12 floats per center and column: far below)
+_SELECTOR_MODULES = "splatdeform.edit.selectors."
+
+
+def _encode(value: Any) -> Any:
+    """A plain selector (a frozen dataclass, nested ones too) as JSON data."""
+    if dataclasses.is_dataclass(value) and not isinstance(value, type):
+        cls = type(value)
+        out = {"__selector__": f"{cls.__module__}:{cls.__qualname__}"}
+        out.update({f.name: _encode(getattr(value, f.name)) for f in dataclasses.fields(value)})
+        return out
+    if isinstance(value, (list, tuple)):
+        return [_encode(v) for v in value]
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    if isinstance(value, (np.floating, np.integer)):
+        return value.item()
+    if isinstance(value, Path):
+        return str(value)
+    return value
+
+
+def _decode(value: Any, path: Path) -> Any:
+    if isinstance(value, dict) and "__selector__" in value:
+        module, _, name = str(value["__selector__"]).partition(":")
+        if not module.startswith(_SELECTOR_MODULES):
+            raise InputError(f"{path}: unknown selector {value['__selector__']!r}")
+        cls = getattr(importlib.import_module(module), name, None)
+        if cls is None or not dataclasses.is_dataclass(cls):
+            raise InputError(f"{path}: unknown selector {value['__selector__']!r}")
+        fields = {f.name for f in dataclasses.fields(cls)}
+        args = {k: _decode(v, path) for k, v in value.items() if k in fields}
+        return cls(**{k: tuple(v) if isinstance(v, list) and k not in ("selectors",) else v
+                      for k, v in args.items()})
+    if isinstance(value, list):
+        return [_decode(v, path) for v in value]
+    return value
+
+
+def _has_indices(selectors: list) -> bool:
+    from splatdeform.edit.selectors import Indices, leaves
+
+    return any(isinstance(leaf, Indices) for s in selectors for leaf in leaves(s))
+
+
+def positions_digest(positions: np.ndarray) -> str:
+    return hashlib.sha256(np.ascontiguousarray(positions, dtype=np.float64).tobytes()
+                          ).hexdigest()
+
+
+class Field:
+    """A saved deformation: ``field(points)`` -> displaced points (M, 3) (the smooth field
+    x + d(x), numpy float64, regions not applied), ``field.jacobian(points)`` -> (M, 3, 3),
+    ``field.apply(model)`` -> the deformed model as ``deform`` makes it."""
+
+    def __init__(self, fit: RbfFit, delta_c: np.ndarray, meta: dict, arrays: dict,
+                 path: Path | None = None) -> None:
+        self.fit, self.delta_c, self.meta, self.arrays = fit, delta_c, meta, arrays
+        self.path = path
+
+    # --- as a function of space
+    def __call__(self, points: np.ndarray) -> np.ndarray:
+        from splatdeform.basis import compute_basis
+
+        p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+        b = compute_basis(p, self.fit, gradients=False, backend="numpy").values
+        return p + b.astype(np.float64) @ self.delta_c
+
+    def jacobian(self, points: np.ndarray) -> np.ndarray:
+        """(M, 3, 3): I + sum_k delta_c_k (outer) grad b_k at points (M, 3)."""
+        from splatdeform.basis import compute_basis
+
+        p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+        g = compute_basis(p, self.fit, gradients=True, backend="numpy").gradients
+        return np.eye(3) + np.einsum("kc,mkd->mcd", self.delta_c, g.astype(np.float64))
+
+    # --- the file
+    def save(self, path: str | Path) -> Path:
+        from splatdeform.io.atomic import atomic_write
+
+        arrays = {"centers": self.fit.centers, "weights": self.fit.weights,
+                  "norm_center": self.fit.normalization.center,
+                  "norm_scale": np.float64(self.fit.normalization.scale),
+                  "delta_c": self.delta_c, "meta": np.array(json.dumps(self.meta)),
+                  **self.arrays}
+        with atomic_write(path) as fh:
+            np.savez(fh, **arrays)
+        return Path(path)
+
+    @staticmethod
+    def load(path: str | Path) -> Field:
+        """Read a field file; InputError (one line naming it) for anything else."""
+        import io
+        import zipfile
+
+        from splatdeform.io.regular import read_regular
+
+        path = Path(path)
+        raw = read_regular(path, max_bytes=MAX_FIELD_BYTES, what="field file")
+        try:
+            with np.load(io.BytesIO(raw), allow_pickle=False) as z:
+                data = {k: z[k] for k in z.files}
+            meta = json.loads(str(data.pop("meta")))
+        except (OSError, ValueError, KeyError, zipfile.BadZipFile) as exc:
+            raise InputError(f"{path}: not a field file written by deform --save-field "
+                             f"({exc})") from None
+        if not isinstance(meta, dict) or meta.get("format") != FORMAT:
+            raise InputError(f"{path}: not a field file written by deform --save-field")
+        if meta.get("version") != VERSION:
+            raise InputError(f"{path}: field version {meta.get('version')}; this splatdeform "
+                             f"reads version {VERSION}")
+        try:
+            centers, weights = data.pop("centers"), data.pop("weights")
+            delta = data.pop("delta_c")
+            norm = Normalization(data.pop("norm_center").astype(np.float64),
+                                 float(data.pop("norm_scale")))
+        except KeyError as exc:
+            raise InputError(f"{path}: field file lacks {exc}") from None
+        if weights.shape != (4 + centers.shape[0], delta.shape[0]) or delta.shape[1:] != (3,):
+            raise InputError(f"{path}: inconsistent field arrays (weights {weights.shape}, "
+                             f"centers {centers.shape}, delta_c {delta.shape})")
+        fit = RbfFit(centers=centers, weights=weights, normalization=norm,
+                     residuals=np.zeros((1, weights.shape[1])), converged=True,
+                     tolerance=0.0, method=str(meta.get("method", "exact")))
+        return Field(fit, delta, meta, data, path)
+
+    # --- on a model
+    def _regions(self, model: PointModel) -> tuple[np.ndarray, list[np.ndarray]]:
+        """(fixed (N,) bool, one (N,) bool per handle) re-evaluated on ``model``."""
+        from splatdeform.edit.selectors import select
+
+        name = self.path or "field"
+        n = model.n_points
+        if not self.meta.get("transferable", True):
+            same = n == self.meta.get("n_points") and \
+                positions_digest(model.positions) == self.meta.get("digest")
+            if not same:
+                raise InputError(f"{name}: its regions use indices selectors, which do not "
+                                 "transfer to another model; apply it to the model it was saved "
+                                 "from, or use box/sphere/plane/property selectors")
+
+        def mask(selectors: list, stored: str) -> np.ndarray:
+            if stored in self.arrays:
+                m = np.zeros(n, dtype=bool)
+                m[self.arrays[stored]] = True
+                return m
+            return select(model, _decode(selectors, Path(str(name))), "model") if selectors \
+                else np.zeros(n, dtype=bool)
+
+        fixed = mask(self.meta["fixed"], "fixed_idx")
+        handles = [mask(h["selectors"], f"handle_idx_{j}")
+                   for j, h in enumerate(self.meta["handles"])]
+        return fixed, handles
+
+    def deformation(self, model: PointModel, backend: str | None = None):
+        """The :class:`~splatdeform.deform.Deformation` of this field on ``model``."""
+        from splatdeform.basis import compute_basis
+        from splatdeform.deform.deformation import Deformation
+        from splatdeform.deform.handle import AffineFrame
+        from splatdeform.deform.regions import Group
+
+        fixed, handles = self._regions(model)
+        handles = [h & ~fixed for h in handles]  # fixed wins where they overlap on MODEL
+        n, k = model.n_points, self.delta_c.shape[0]
+        moving = np.zeros(n, dtype=bool)
+        for h in handles:
+            moving |= h
+        moving_idx = np.flatnonzero(moving)
+        lookup = np.full(n, -1, dtype=np.int64)
+        lookup[moving_idx] = np.arange(moving_idx.size)
+        coords = np.zeros((moving_idx.size, k))
+        grads = np.zeros((moving_idx.size, k, 3))
+        groups = []
+        for j, (h, info) in enumerate(zip(handles, self.meta["handles"], strict=True)):
+            frame = AffineFrame(self.arrays["frames"][j][:4, :3].copy(),
+                                self.arrays["inverses"][j].copy())
+            idx = np.flatnonzero(h)
+            rows = lookup[idx]
+            a, b = info["columns"]
+            coords[rows, a:b] = frame.coordinates(model.positions[idx])
+            grads[rows, a:b] = frame.coordinate_gradients()
+            groups.append(Group(info["name"], (a, b), rows, frame))
+        free_idx = np.flatnonzero(~(fixed | moving))
+        basis = compute_basis(model.positions[free_idx], self.fit, gradients=True,
+                              backend=backend or self.meta.get("backend", "auto"))
+        empty = np.empty(0, dtype=np.int64)
+        return Deformation(n_points=n, fixed=fixed, moving=moving, free_idx=free_idx,
+                           moving_idx=moving_idx, moving_coords=coords, moving_gradients=grads,
+                           constraint_idx=empty, constraint_points=np.empty((0, 3)),
+                           constraint_rhs=np.empty((0, k)), control_points=np.zeros((k, 3)),
+                           fit=self.fit, basis=basis, groups=groups)
+
+    def apply(self, model: PointModel, backend: str | None = None) -> PointModel:
+        """The deformed copy of ``model`` (as ``deform`` makes it; see the module)."""
+        from splatdeform import deform as df
+
+        deformation = self.deformation(model, backend)
+        matrices = list(self.arrays["matrices"]) if self.meta["handles"] else None
+        return df.apply(deformation, model, self.delta_c, moving_matrix=matrices,
+                        covariance=self.meta.get("gaussians", {}).get("covariance", "jacobian"))
+
+
+def field_of_edit(result, cfg, base_dir: Path) -> Field:
+    """The field of an in-memory edit result (``deform --save-field``)."""
+    from splatdeform.basis import resolve_backend
+    from splatdeform.edit.metaphors import Context
+    from splatdeform.edit.metaphors.handle import entries as handle_entries
+
+    model, deformation = result.model, result.deformation
+    if model is None:
+        raise InputError("--save-field: the edit streamed; save a field from an in-memory run "
+                         "(raise --memory-budget)")
+    ctx = Context.of(cfg, model, base_dir)
+
+    def plain(selector_cfgs: list) -> list:
+        return [s.to_selector().in_units(ctx.units, ctx.frame) for s in selector_cfgs]
+
+    fixed_sel = plain(cfg.regions.fixed)
+    handles, arrays = [], {}
+    hgroups = deformation.handle_groups()
+    entries = handle_entries(cfg)
+    frames, inverses = [], []
+    for j, ((_key, entry), group) in enumerate(zip(entries, hgroups, strict=True)):
+        sels = plain(entry[1])
+        handles.append({"name": group.name, "columns": list(group.columns),
+                        "selectors": _encode(sels)})
+        frame = np.zeros((4, 4))
+        frame[:4, :3] = group.frame.control_points
+        frames.append(frame)
+        inverses.append(group.frame.inverse)
+        if _has_indices(sels):
+            arrays[f"handle_idx_{j}"] = deformation.moving_idx[group.rows]
+    matrix = result.matrix
+    matrices = [] if matrix is None else [matrix] if isinstance(matrix, np.ndarray) and \
+        matrix.shape == (4, 4) else list(matrix)
+    arrays["frames"] = np.array(frames).reshape(-1, 4, 4)
+    arrays["inverses"] = np.array(inverses).reshape(-1, 4, 4)
+    arrays["matrices"] = np.array(matrices, dtype=np.float64).reshape(-1, 4, 4)
+    transferable = not (_has_indices(fixed_sel) or any(f"handle_idx_{j}" in arrays
+                                                       for j in range(len(handles))))
+    if _has_indices(fixed_sel):
+        arrays["fixed_idx"] = np.flatnonzero(deformation.fixed)
+    meta = {"format": FORMAT, "version": VERSION, "fixed": _encode(fixed_sel),
+            "handles": handles, "backend": resolve_backend(cfg.backend, cfg.device),
+            "gaussians": cfg.gaussians.model_dump(), "method": deformation.fit.method,
+            "transferable": transferable, "input": str(cfg.input)}
+    if not transferable:
+        meta.update(n_points=model.n_points, digest=positions_digest(model.positions))
+    return Field(deformation.fit, np.asarray(result.delta_c, dtype=np.float64), meta, arrays)
+
+
+def apply_file(field_path: str | Path, model_path: str | Path, out: str | Path, *,
+               backend: str | None = None, budget: int | None = None) -> tuple[Path, bool]:
+    """``splatdeform apply``: (the output, streamed). In memory when the model's in-memory
+    estimate fits the budget (:func:`splatdeform.memory.choose`), else streamed in chunks
+    (binary PLY, LAS/LAZ: :func:`splatdeform.io.open_chunks`); ``budget`` None: half the RAM.
+    Refused (one line) when the output is an input, when a field with ``indices`` selectors
+    would stream (its indices are global)."""
+    from splatdeform.io import STREAMABLE, SUPPORTED, extension_of, load, open_chunks, save
+    from splatdeform.io.atomic import check_io_paths
+    from splatdeform.memory import choose, deform_peak, file_cost
+
+    out = Path(out)
+    check_io_paths([("field", Path(field_path)), ("model", Path(model_path))],
+                   [("-o/--output", out)])
+    if extension_of(out) not in SUPPORTED:
+        raise InputError(f"{out}: unknown output extension {extension_of(out) or '(none)'!r}; "
+                         f"expected one of {', '.join(SUPPORTED)}")
+    field = Field.load(field_path)
+    cost = file_cost(model_path)
+    same_format = extension_of(out) == extension_of(Path(model_path))
+    streamable = extension_of(Path(model_path)) in STREAMABLE and same_format and \
+        bool(field.meta.get("transferable", True))
+    choice = choose(deform_peak(cost, max_centers=0), budget, streamable=streamable,
+                    name=model_path, why_not="it cannot stream (format, output format or "
+                    "indices selectors)")
+    if choice.mode == "refuse":
+        raise InputError(choice.message)
+    if choice.mode == "memory":
+        save(field.apply(load(model_path), backend), out)
+        return out, False
+    from splatdeform.edit.stream.run import _Writer
+    from splatdeform.io.atomic import atomic_path
+    from splatdeform.memory import stream_chunk
+
+    src = open_chunks(model_path)
+    chunk = stream_chunk(choice.budget, src.record_bytes,
+                         int(getattr(cost, "reader_bytes", 0)) + 160 * 2**20)
+    with atomic_path(out) as tmp:
+        writer = _Writer(src, tmp)
+        for a in range(0, src.n_points, chunk):
+            part = field.apply(src.read(a, min(a + chunk, src.n_points)), backend)
+            rows, props = src.encode(part)
+            writer.write(rows, props)
+        writer.close()
+    return out, True
