@@ -1,6 +1,18 @@
-"""Needles of deformed 3D Gaussian splats per ``gaussians.covariance`` mode (issue 22).
+"""Needles of deformed 3D Gaussian splats per ``gaussians.covariance`` mode (issue 22), and
+the PSNR of the result against a subdivided reference (issue 37, ``--psnr``).
 
     python benchmarks/bench_needles.py [--scenes guitar,tile,bar] [--images docs/images]
+    python benchmarks/bench_needles.py --psnr guitar:75,gbar:90 [--images docs/images]
+
+``--psnr``: the reference subdivides every splat into 8 children (offsets +-0.6 sigma along its
+principal axes, child sigma 0.8x: the second moments match; same opacity, colour and SH), each
+deformed at its own centre in ``jacobian`` mode (fixed children stay, handle children get the
+handle's matrix). Rendered at 800x800 from the camera framing the default result, front
+(azimuth 0) and side (azimuth 90), elevation 0: PSNR over the whole image and masked to the
+pixels that differ from the background in either image. The floor is the rest-state PSNR of
+the subdivided scene against the original. Rows: ``limited`` + ``split: auto`` (the edit
+default), ``limited`` unsplit, ``jacobian`` unsplit and split. ``gbar`` is
+``data_tools.synth.gaussian_bar`` (20,000 splats).
 
 A needle is a splat whose anisotropy (largest / smallest axis) grew by more than 4x. Each scene
 (the shared guitar and SH-3 tile, and a generated bar of round splats) gets one fit (fixed: the
@@ -155,13 +167,132 @@ def write_modes(model: PointModel, deformation, delta_c: np.ndarray, path: Path)
     save_png(side_by_side(images, labels), path)
 
 
+def subdivided(model: PointModel) -> tuple[PointModel, np.ndarray]:
+    """Every splat as 8 children at (+-0.6, +-0.6, +-0.6) sigma, sigma 0.8x; (8N,) parents."""
+    from splatdeform.deform.split import take
+    from splatdeform.geometry import quaternion_to_matrix
+
+    n = model.n_points
+    parent = np.repeat(np.arange(n), 8)
+    out = take(model, parent)
+    corners = np.array(np.meshgrid(*[[-0.6, 0.6]] * 3, indexing="ij")).reshape(3, -1).T
+    g = model.gaussians
+    local = corners[None] * np.exp(g.scale_log.astype(np.float64))[:, None, :]
+    rot = quaternion_to_matrix(g.rotation)
+    out.positions = (model.positions[:, None, :] + np.einsum("pij,pnj->pni", rot, local)
+                     ).reshape(-1, 3)
+    out.gaussians.scale_log = (out.gaussians.scale_log + np.float32(np.log(0.8)))
+    return out, parent
+
+
+def reference(model: PointModel, deformation, delta_c, matrix) -> tuple[PointModel, PointModel]:
+    """(rest, deformed) subdivided reference (see the module docstring)."""
+    from splatdeform.deform import arrays as ap
+    from splatdeform.deform.gaussians import deform_gaussians
+    from splatdeform.deform.handle import apply_affine
+    from splatdeform.deform.split import basis_field
+
+    rest, parent = subdivided(model)
+    out = rest.copy()
+    jac = np.broadcast_to(np.eye(3), (rest.n_points, 3, 3)).copy()
+    label = np.zeros(model.n_points, np.int8)
+    label[deformation.free_idx], label[deformation.moving_idx] = 1, 2
+    lab = label[parent]
+    free, mov = np.flatnonzero(lab == 1), np.flatnonzero(lab == 2)
+    field = basis_field(deformation.fit, delta_c)
+    out.positions[free], jac[free] = field(rest.positions[free], True)
+    out.positions[mov] = apply_affine(matrix, rest.positions[mov])
+    row = np.full(model.n_points, -1)
+    row[deformation.moving_idx] = np.arange(deformation.moving_idx.size)
+    jac[mov] = ap.jacobians(np.ascontiguousarray(deformation.moving_gradients[row[parent[mov]]]),
+                            np.asarray(delta_c, np.float64))
+    g, gi = out.gaussians, rest.gaussians
+    new = deform_gaussians(gi.scale_log, gi.rotation, gi.sh_rest, jac, "jacobian")
+    g.scale_log, g.rotation = new.scale_log, new.rotation
+    if new.sh_rest is not None:
+        g.sh_rest = new.sh_rest
+    return rest, out
+
+
+def psnr(a: np.ndarray, b: np.ndarray, background: np.ndarray) -> tuple[float, float]:
+    """Whole-image and masked PSNR (dB) of uint8 images (H, W, 3)."""
+    d = (a.astype(np.float64) - b.astype(np.float64)) ** 2
+    mask = (a != background).any(axis=2) | (b != background).any(axis=2)
+
+    def db(mse: float) -> float:
+        return float("inf") if mse == 0 else 10 * np.log10(255.0 ** 2 / mse)
+    return db(d.mean()), db(d[mask].mean() if mask.any() else 0.0)
+
+
+def measure_psnr(name: str, degrees: float, images: Path | None) -> list[str]:
+    from splatdeform.render import View, render_image
+
+    if name == "gbar":
+        from data_tools.synth import gaussian_bar
+        model = gaussian_bar(20000)
+    else:
+        model = scene(name)
+    cfg = parse_edit(edit_config(model, degrees, 0.0), "bench")
+    deformation = precompute(cfg, model, ROOT)
+    delta_c, matrix = plain.control_displacement(cfg, model, deformation)
+    results, lines = {}, []
+    for mode, split in (("limited", "auto"), ("limited", "off"), ("jacobian", "off"),
+                        ("jacobian", "auto")):
+        stats: dict = {}
+        t0 = time.perf_counter()
+        results[(mode, split)] = df.apply(deformation, model, delta_c, moving_matrix=matrix,
+                                          covariance=mode, stats=stats, split=split)
+        moved = model.n_points - int(np.count_nonzero(deformation.fixed))
+        lines.append(f"{name} {degrees:g} deg {mode}/{split}: {results[(mode, split)].n_points:,} "
+                     f"splats, split {stats.get('split_splats', 0):,} -> "
+                     f"{stats.get('split_children', 0):,} children, capped "
+                     f"{stats.get('split_capped', 0):,}, growth "
+                     f"{(results[(mode, split)].n_points - model.n_points) / moved:.1%} of "
+                     f"{moved:,} moved, apply {time.perf_counter() - t0:.2f} s")
+    rest, ref = reference(model, deformation, delta_c, matrix)
+    default = results[("limited", "auto")]
+    panels = []
+    for azimuth in (0.0, 90.0):
+        cam = View(size=(800, 800), azimuth=azimuth, elevation=0.0).framed(
+            [default.positions], [default], 1.0)
+        view = View(size=(800, 800), camera=cam)
+        ref_img = render_image(ref, view)
+        bg = ref_img[0, 0]  # the background colour (the corner is empty)
+        floor = psnr(render_image(rest, view), render_image(model, view), bg)
+        lines.append(f"  azimuth {azimuth:g}: floor {floor[0]:.2f} dB (masked {floor[1]:.2f})")
+        for key, out in results.items():
+            img = render_image(out, view)
+            p = psnr(img, ref_img, bg)
+            lines.append(f"    {key[0]:<9}split {key[1]:<5} {p[0]:.2f} dB (masked {p[1]:.2f}); "
+                         f"below floor {floor[0] - p[0]:.2f} dB")
+            if azimuth == 0.0 and key in (("limited", "off"), ("limited", "auto")):
+                panels.append((img, f"limited, split {key[1]}"))
+        if azimuth == 0.0:
+            panels.append((ref_img, "reference (8x subdivided, jacobian)"))
+    if images is not None:
+        from splatdeform.io.image import save_png
+        from splatdeform.render.compare import side_by_side
+
+        small = [(im[::4, ::4], label) for im, label in panels]
+        save_png(side_by_side([p[0] for p in small], [p[1] for p in small]),
+                 images / f"split_{name}_{degrees:g}.png")
+    return lines
+
+
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--scenes", default="guitar,tile,bar")
     ap.add_argument("--images", type=Path, help="write the README images into this folder")
+    ap.add_argument("--psnr", help="scene:degrees,... (guitar, tile, bar, gbar): issue 37")
     args = ap.parse_args(argv)
     if args.images is not None:
         args.images.mkdir(parents=True, exist_ok=True)
+    if args.psnr:
+        for item in args.psnr.split(","):
+            name, degrees = item.split(":")
+            for line in measure_psnr(name, float(degrees), args.images):
+                print(line, flush=True)
+        return
     print(f"{'scene':<8}{'splats':>8}  {'edit':<20}{'mode':<10}{'needles':>9}{'of round':>10}"
           f"{'refused':>9}{'max growth':>12}{'apply s':>9}")
     for name in args.scenes.split(","):

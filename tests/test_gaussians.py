@@ -279,7 +279,7 @@ def _edit(tmp_path, src, degrees: float):
         "boundary": {"continuity": 1, "neighbors": 10},
         "fit": {"tolerance": 1e-3, "max_centers": 2000},
         "backend": "auto",
-        "gaussians": {"covariance": "jacobian"},
+        "gaussians": {"covariance": "jacobian", "split": "off"},  # per-row J (split: test_split)
     }, "test edit")
     return run_edit(cfg, tmp_path)
 

@@ -74,8 +74,8 @@ def handle_matrices(deformation: Deformation, moving_matrix
 
 
 def apply(deformation: Deformation, model: PointModel, delta_c: np.ndarray, *,
-          moving_matrix=None, covariance: str = "jacobian", stats: dict | None = None
-          ) -> PointModel:
+          moving_matrix=None, covariance: str = "jacobian", stats: dict | None = None,
+          split: str = "off") -> PointModel:
     """The deformed copy of ``model`` for control displacements delta_c (k, 3).
 
     Positions, normals (cof(J) n), tangent axes (J u), radius-only surfels (area-preserving
@@ -84,20 +84,27 @@ def apply(deformation: Deformation, model: PointModel, delta_c: np.ndarray, *,
     move by their coordinates, m . delta_c). covariance: how 3DGS covariances deform
     (:data:`splatdeform.deform.gaussians.COVARIANCE_MODES`); ``stats``, when given, receives
     ``refused_splats`` (splats whose covariance the ``rotation`` mode kept, det J <= 0).
+    split: ``auto`` replaces free-region splats one Gaussian cannot follow by children
+    appended after the originals (:mod:`splatdeform.deform.split`; ``stats`` then receives
+    split_splats, split_children, split_capped); ``off`` (default) keeps the point count.
     """
     if model.n_points != deformation.n_points:
         raise InputError(f"model: expected {deformation.n_points} points, got "
                          f"{model.n_points}")
     delta = np.asarray(delta_c, dtype=np.float64)
+    if split != "off":
+        from splatdeform.deform.split import check_mode
+
+        check_mode(split)
     with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
-        out = _apply(deformation, model, delta, moving_matrix, covariance, stats)
+        out = _apply(deformation, model, delta, moving_matrix, covariance, stats, split)
     check_finite(model, out)
     return out
 
 
 def _apply(deformation: Deformation, model: PointModel, delta: np.ndarray,
-           moving_matrix: np.ndarray | None, covariance: str, stats: dict | None
-           ) -> PointModel:
+           moving_matrix: np.ndarray | None, covariance: str, stats: dict | None,
+           split: str = "off") -> PointModel:
     out = model.copy()
     free = deformation.free_idx
     values = deformation.basis.values.astype(np.float64, copy=False)
@@ -112,10 +119,18 @@ def _apply(deformation: Deformation, model: PointModel, delta: np.ndarray,
         if deformation.basis.gradients is None:
             raise InputError("deformation: basis has no gradients; normals/axes need them")
         grads = deformation.basis.gradients.astype(np.float64, copy=False)
-        _transform_attributes(model, out, free, ap.jacobians(grads, delta), covariance, stats)
+        jac_free = ap.jacobians(grads, delta)
+        _transform_attributes(model, out, free, jac_free, covariance, stats)
         _transform_attributes(model, out, mov,
                               ap.jacobians(np.ascontiguousarray(deformation.moving_gradients),
                                            delta), covariance, stats)
+        if split == "auto" and model.gaussians is not None:  # issue 37
+            from splatdeform.deform.split import basis_field, split_splats
+
+            out = split_splats(model, out, free, jac_free, basis_field(deformation.fit, delta),
+                               moved=int(model.n_points - np.count_nonzero(deformation.fixed)),
+                               covariance=covariance, transform=_transform_attributes,
+                               stats=stats)
     return out
 
 
@@ -159,6 +174,8 @@ def check_finite(model: PointModel, out: PointModel) -> None:
     for what, before, after, fields, default in checks:
         limit = _stored_limit(model, fields, default)
         rows_in = np.isfinite(before).reshape(before.shape[0], -1).all(axis=1)
+        # split children (gaussians.split) come after the originals, from finite parents only
+        rows_in = np.concatenate([rows_in, np.ones(after.shape[0] - rows_in.size, bool)])
         with np.errstate(invalid="ignore"):
             ok = np.isfinite(after) & (np.abs(after) <= limit)
         ok = ok.reshape(after.shape[0], -1).all(axis=1)

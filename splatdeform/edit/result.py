@@ -90,6 +90,13 @@ def format_report(result: EditResult) -> str:
     if s.get("refused_splats"):
         lines.append(f"gaussians.covariance rotation: {s['refused_splats']:,} splats folded "
                      "(det J <= 0) kept their covariance")
+    if s.get("split_splats") or s.get("split_capped"):
+        lines.append(f"gaussians.split: {s.get('split_splats', 0):,} splats split, "
+                     f"{s.get('split_children', 0):,} children written"
+                     + (f" ({s['split_capped']:,} more kept whole by the growth cap)"
+                        if s.get("split_capped") else ""))
+    if s.get("split_note"):
+        lines.append(str(s["split_note"]))
     for stage in ("load", "rings", "fit", "basis", "apply", "save", "render"):
         if stage in result.timings:
             lines.append(f"{stage:<7}{result.timings[stage]:9.3f} s")
