@@ -57,9 +57,17 @@ import os
 import sys
 import time
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-from .config import Batch, BatchConfig, Job, load_batch
+from ..lazy import lazy_exports
+
+if TYPE_CHECKING:  # pragma: no cover
+    from .config import Batch, BatchConfig, Job, load_batch
+
+# The config models (pydantic) are imported on first use: the CLI registers this verb's parser
+# for every run, and only ``batch`` itself reads a batch file.
+__getattr__ = lazy_exports(__name__, {"Batch": "config", "BatchConfig": "config",
+                                      "Job": "config", "load_batch": "config"})
 
 __all__ = ["Batch", "BatchConfig", "Job", "load_batch", "run_batch", "register"]
 
@@ -121,6 +129,7 @@ def run_batch(path: str | Path, *, workers: int | None = None, scheduler: Any = 
     ``scan_timeout``: seconds per scan, wins over the config's ``scan_timeout_s``."""
     from ..io.atomic import remove_stale_temps
     from ..memory import worker_budget
+    from .config import load_batch
     from .extract import clean_stale_temps
     from .report import write_reports
     from .runner import run_dask, run_local
