@@ -20,6 +20,8 @@ from .errors import InputError, SplatdeformError, error_line, one_line
 from .verbs import (
     _show_warning,
     _warn,
+    cmd_apply,
+    cmd_convert,
     cmd_deform,
     cmd_edit,
     cmd_info,
@@ -53,12 +55,17 @@ def _add_camera_args(p: argparse.ArgumentParser) -> None:
 
     p.add_argument("--up", choices=UP_AXES, metavar="AXIS",
                    help="up axis, one of +x +y +z -x -y -z; write --up=-y (default: the file's "
-                        "convention: -y for 3DGS scenes, else +y)")
+                        "convention: -y for 3DGS scenes, +z for LiDAR and geo-referenced scans "
+                        "(`info` prints it), else +y)")
     p.add_argument("--roll", type=float, default=None, metavar="DEGREES",
                    help="turn the camera about its viewing direction")
     p.add_argument("--camera", metavar="CAMERA.json",
                    help="a camera file (the OUT.camera.json every render writes); wins over "
-                        "azimuth/elevation/fov/size")
+                        "azimuth/elevation/fov/size/zoom; near/far may be omitted (computed "
+                        "from the model)")
+    p.add_argument("--zoom", type=float, default=None, metavar="F",
+                   help="narrow the view about the target F times (config render.zoom; "
+                        "default 1: the model fills the picture)")
 
 
 def _add_budget_args(p: argparse.ArgumentParser, what: str) -> None:
@@ -97,6 +104,13 @@ def build_parser() -> argparse.ArgumentParser:
                    help="reuse/store the precomputed deformation in OUTPUT.deform.npz: a new "
                         "transform with the same regions skips fitting and the basis")
     p.add_argument("--reuse-file", help="like --reuse, with this file")
+    p.add_argument("--save-field", metavar="FIELD.npz",
+                   help="also write the fitted deformation (for `apply` on other models)")
+    p.add_argument("--residuals", metavar="CSV",
+                   help="points: edits: write each pair's residual and each check pair's error")
+    p.add_argument("--spz-version", type=int, choices=(3, 4),
+                   help="SPZ version of a .spz output (default 4; 3 for older readers; config "
+                        "save.spz_version)")
     p.add_argument("--render", help="also write a before/after PNG (or GIF with --frames)")
     p.add_argument("--frames", type=_frames, default=0,
                    help="render N frames of the handle moving from identity to the target")
@@ -125,8 +139,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("-o", "--output", required=True, help="output PNG")
     p.add_argument("--size", default="1200x600", help="image size WxH (default 1200x600)")
     p.add_argument("--azimuth", type=float, default=30.0)
-    p.add_argument("--elevation", type=float, default=20.0)
-    p.add_argument("--fov", type=float, default=35.0)
+    p.add_argument("--elevation", type=float, default=None,
+                   help="degrees above the horizon (default 20; 40 for flat scenes such as "
+                        "LiDAR tiles and terrain)")
+    p.add_argument("--fov", type=float, default=35.0,
+                   help="the lens angle, vertical degrees (default 35); the framing fills the "
+                        "picture whatever the angle: --zoom narrows the view")
     p.add_argument("--labels", help="comma-separated labels (default: the file names)")
     p.add_argument("--drop-nonfinite", action="store_true")
     _add_budget_args(p, "render a view-independent sample of a model bigger than SIZE")
@@ -160,6 +178,46 @@ def build_parser() -> argparse.ArgumentParser:
                    help="page (default, the only one): the editor's WebGL2 page, deforming on "
                         "the browser's GPU; viser: retired (answers with one line)")
     p.set_defaults(func=cmd_edit)
+
+    p = sub.add_parser("apply", help="apply a field saved by deform --save-field to a model")
+    p.add_argument("field", metavar="FIELD.npz")
+    p.add_argument("model", metavar="MODEL")
+    p.add_argument("-o", "--output", required=True, help="the deformed model")
+    p.add_argument("--backend", choices=BACKENDS, help="basis backend (default: the field's)")
+    p.add_argument("--memory-budget", metavar="SIZE",
+                   help="a cap: over it, binary PLY and LAS/LAZ stream in chunks (e.g. 1GB)")
+    p.set_defaults(func=cmd_apply)
+
+    p = sub.add_parser(
+        "convert", help="any format to any format, with an optional whole-scene similarity",
+        description="Convert IN to OUT (formats by extension). --rotate-euler, --scale and "
+                    "--translate take PlayCanvas splat-transform's convention (-r, -s, -t; "
+                    "measured with 3.7.0): the same numbers give the same scene in both tools. "
+                    "Euler angles in degrees about the fixed axes x, then y, then z, in "
+                    "splat-transform's frame (the file's turned 180 degrees about z); applied "
+                    "as rotate, scale, translate. Positions, normals, splat axes, scales, "
+                    "rotations and SH follow exactly; nothing else changes.")
+    p.add_argument("input", metavar="IN")
+    p.add_argument("output", metavar="OUT")
+    p.add_argument("--rotate-euler", metavar="X,Y,Z",
+                   help="rotate by Euler angles in degrees (splat-transform -r X,Y,Z)")
+    p.add_argument("--scale", metavar="S", help="scale uniformly by S > 0 (splat-transform -s)")
+    p.add_argument("--translate", metavar="X,Y,Z",
+                   help="translate by X,Y,Z (splat-transform -t X,Y,Z)")
+    p.add_argument("--memory-budget", metavar="SIZE",
+                   help="a cap: over it, binary PLY and LAS/LAZ converted to the same format "
+                        "stream in chunks, others are refused (e.g. 512MB; default half the "
+                        "RAM)")
+    p.add_argument("--drop-nonfinite", action="store_true",
+                   help="drop points with NaN/Inf coordinates instead of failing")
+    p.add_argument("--sog-quality", choices=("reference", "fast"),
+                   help="SOG SH encoder: reference (default; the SH error and size of "
+                        "splat-transform's) or fast (a smaller palette: ~3x the SH error, "
+                        "about half the file, many times faster on large scenes)")
+    p.add_argument("--pcd-data", choices=("ascii", "binary", "binary_compressed"),
+                   help="PCD DATA encoding of OUT (default: the input's; binary for a "
+                        "non-PCD input)")
+    p.set_defaults(func=cmd_convert)
 
     from .batch import register as register_batch
 

@@ -18,8 +18,41 @@ def cmd_info(args: argparse.Namespace) -> int:
 
     model = load(args.model, drop_nonfinite=args.drop_nonfinite)
     info = describe(model)
+    from .render.upaxis import up_rule  # the up axis render would use (no GL context)
+
+    info["up_axis"], info["up_reason"] = up_rule([model])
     info.update(format_fields(args.model))
     print(to_json(info) if args.json else format_text(info))
+    return 0
+
+
+def cmd_apply(args: argparse.Namespace) -> int:
+    """``apply FIELD.npz MODEL -o OUT`` (:func:`splatdeform.field.apply_file`)."""
+    from .field import apply_file
+    from .memory import budget_bytes
+
+    out, streamed = apply_file(args.field, args.model, args.output, backend=args.backend,
+                               budget=budget_bytes(args.memory_budget))
+    print(f"wrote {out}" + (" (streamed within the memory budget)" if streamed else ""))
+    return 0
+
+
+def cmd_convert(args: argparse.Namespace) -> int:
+    from .convert import convert, parse_scale, parse_triple, similarity
+    from .io.pcd import data_encoding
+    from .io.sog import quality
+    from .memory import budget_bytes
+
+    _check_budget_alone(args, None)
+    sim = similarity(
+        parse_triple(args.rotate_euler, "--rotate-euler") if args.rotate_euler else None,
+        parse_scale(args.scale) if args.scale is not None else None,
+        parse_triple(args.translate, "--translate") if args.translate else None)
+    with quality(args.sog_quality), data_encoding(args.pcd_data):
+        mode = convert(args.input, args.output, sim, budget=budget_bytes(args.memory_budget),
+                       drop_nonfinite=args.drop_nonfinite, log=_warn)
+    print(f"wrote {args.output}" + (" (streamed within the memory budget)"
+                                    if mode == "stream" else ""))
     return 0
 
 
@@ -44,6 +77,8 @@ def cmd_deform(args: argparse.Namespace) -> int:
     cfg = load_edit(args.config)
     if args.backend:
         cfg.backend = args.backend
+    if args.spz_version:
+        cfg.save.spz_version = args.spz_version
     if args.device:
         cfg.device = args.device
     base = Path(args.config).resolve().parent
@@ -66,7 +101,8 @@ def cmd_deform(args: argparse.Namespace) -> int:
                      render=render_out, render_label="--render" if args.render else
                      "render.output", frames=args.frames, up=args.up, roll=args.roll,
                      camera=args.camera)
-    view = plan.view
+    view = _with_zoom(plan.view, args.zoom)
+    _check_field_outputs(args, cfg, base, plan)
     try:
         result = run_edit(plan, log=None if args.quiet else print, warn=_warn)
     except InputError as exc:
@@ -80,11 +116,43 @@ def cmd_deform(args: argparse.Namespace) -> int:
         budget = _budget(args.memory_budget, cfg.memory_budget)
         image = render_result(result, cfg, render_out, frames=args.frames, view=view,
                               budget=budget, color=args.color, input_path=base / cfg.input)
+    points = getattr(result, "points", None)   # a points: edit's pair residuals
+    if args.save_field:
+        from splatdeform.field import field_of_edit
+
+        field_of_edit(result, cfg, base).save(args.save_field)
+    if args.residuals and points is not None:
+        points.write_csv(args.residuals)
     if not args.quiet:   # --quiet: no progress lines, no summary (warnings still on stderr)
         print(format_report(result))
+        if points is not None:
+            print("\n".join(points.lines()))
+        for flag, path in (("field", args.save_field), ("residuals", args.residuals)):
+            if path:
+                print(f"wrote {flag} {path}")
         if render_out:
             print(f"rendered {image}")
     return 0
+
+
+def _check_field_outputs(args: argparse.Namespace, cfg, base, plan) -> None:
+    """--save-field / --residuals: never an input or another output; --residuals only for a
+    points: edit; both need the in-memory run."""
+    from .io.atomic import check_io_paths
+
+    if args.residuals and cfg.points is None:
+        raise InputError("--residuals: only for an edit with points: (control-point pairs)")
+    named = [(k, v) for k, v in (("--save-field", args.save_field),
+                                 ("--residuals", args.residuals)) if v]
+    if not named:
+        return
+    if plan.streamed:
+        raise InputError(f"{named[0][0]}: the edit streams; it needs the in-memory run (raise "
+                         "--memory-budget)")
+    from splatdeform.edit.config import input_paths
+
+    check_io_paths([("edit config", args.config), *input_paths(cfg, base)],
+                   [("output", plan.output), *named])
 
 
 def _check_workers(args: argparse.Namespace) -> None:
@@ -166,7 +234,7 @@ def cmd_select(args: argparse.Namespace) -> int:
             args.camera = args.camera or (str(base / opts.camera) if opts.camera else None)
         view = _edit_view(cfg, args)
         overlays, legend = curve_overlays(cfg, model, base)
-        color = args.color or (opts.color if opts else None) or "region"
+        color = args.color or "region"   # a preview shows the regions unless --color says
         if color == "region":
             shown = preview_model(model, sel)
             label = (f"fixed (blue) / {counts.moving_name} (orange) / free (grey)"
@@ -210,7 +278,14 @@ def _edit_view(cfg, args: argparse.Namespace):
     camera file wins over azimuth/elevation/fov/size and brings the panel size)."""
     from splatdeform.edit.images import edit_view
 
-    return edit_view(cfg, args.up, args.roll, args.camera)
+    return _with_zoom(edit_view(cfg, args.up, args.roll, args.camera), args.zoom)
+
+
+def _with_zoom(view, zoom: float | None):
+    """``view`` with --zoom (None: as it is; it wins over render.zoom)."""
+    if view is None or zoom is None:
+        return view
+    return view.with_options(view.up, view.roll, None, zoom)
 
 
 def cmd_render(args: argparse.Namespace) -> int:
@@ -219,7 +294,7 @@ def cmd_render(args: argparse.Namespace) -> int:
 
     size = _size(args.size)
     for name in ("azimuth", "elevation", "fov"):
-        if not math.isfinite(getattr(args, name)):
+        if getattr(args, name) is not None and not math.isfinite(getattr(args, name)):
             raise InputError(f"--{name}: expected a finite number, got {getattr(args, name)}")
     if not 1 <= args.fov <= 179:
         raise InputError(f"--fov: expected degrees between 1 and 179, got {args.fov}")
@@ -238,7 +313,7 @@ def cmd_render(args: argparse.Namespace) -> int:
     from .render.camera import View
 
     view = View(azimuth=args.azimuth, elevation=args.elevation,
-                fov=args.fov).with_options(args.up, args.roll, args.camera)
+                fov=args.fov).with_options(args.up, args.roll, args.camera, args.zoom)
     inputs = _render_inputs(args.models, _budget(args.memory_budget), args.drop_nonfinite,
                             explicit=args.memory_budget is not None)
     models = [_colored(r.model, args.color, view.up, [i.model for i in inputs])

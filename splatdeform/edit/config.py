@@ -11,20 +11,19 @@ from pathlib import Path
 from typing import Annotated, Any, Literal
 
 import numpy as np
-import yaml
 from pydantic import BaseModel, Field, ValidationError, field_validator, model_validator
 
 from splatdeform.basis.names import BACKENDS
+from splatdeform.edit.points_cfg import PairsFileCfg, PointsCfg
 from splatdeform.edit.schema import (
-    MAX_INT_DIGITS,
     MAX_VALUE,
-    LongInt,
     Number,
     Strict,
     Vec3,
     shown,
 )
 from splatdeform.edit.selectors import SelectorCfg
+from splatdeform.edit.yaml_read import read_yaml
 from splatdeform.errors import ConfigError
 from splatdeform.rbf.defaults import (
     DEFAULT_MAX_CENTERS,
@@ -41,8 +40,16 @@ _Strict = Strict  # the root of the edit config's models (key paths come from th
 
 class RegionsCfg(_Strict):
     units: Literal["model", "relative"] = "model"
-    fixed: list[SelectorCfg] = Field(min_length=1)
+    fixed: list[SelectorCfg] = Field(default_factory=list)  # required but for points: alone
     handle: list[SelectorCfg] | None = None
+
+    @field_validator("fixed")
+    @classmethod
+    def _given_not_empty(cls, v: list) -> list:   # only when given: absent is points: alone
+        if not v:
+            raise ValueError("an empty list selects no point; give at least one selector, or "
+                             "leave the key out (a points: edit alone)")
+        return v
 
 
 MAX_DEGREES = 1e6  # a rotation angle beyond this is a typo or an attack, not an edit
@@ -209,10 +216,19 @@ class FitCfg(_Strict):
     on_not_converged: Literal["warn", "error"] = "warn"
 
 
+class SaveCfg(_Strict):
+    """``save:``: options of the writers that quantise or encode (``io.options.writing``)."""
+
+    spz_version: Literal[3, 4] | None = None   # .spz: 4 by default, 3 for older readers
+    sog_quality: Literal["reference", "fast"] | None = None   # SOG SH encoder (reference)
+    pcd_data: Literal["ascii", "binary", "binary_compressed"] | None = None   # input's own
+
+
 class GaussiansCfg(_Strict):
     """``gaussians:``: how 3D Gaussian splats' covariances deform (README "covariance modes")."""
 
     covariance: Literal["jacobian", "rotation", "limited"] = "limited"  # DEFAULT_COVARIANCE
+    split: Literal["auto", "off"] = "off"  # deform.split: opt-in for now
 
 
 class RenderCfg(_Strict):
@@ -220,8 +236,9 @@ class RenderCfg(_Strict):
     size: Annotated[list[Annotated[int, Field(ge=MIN_IMAGE, le=MAX_IMAGE)]],
                     Field(min_length=2, max_length=2)] = [1200, 600]
     azimuth: float = 30.0
-    elevation: float = 20.0
-    fov: float = Field(default=35.0, ge=1, le=179)
+    elevation: float | None = None   # None: 20, or 40 for flat scenes (LiDAR, terrain)
+    fov: float = Field(default=35.0, ge=1, le=179)   # the lens angle
+    zoom: float = Field(default=1.0, ge=0.01, le=100)   # narrows the view about the target
     frames: int = Field(default=0, ge=0, le=MAX_FRAMES)
     up: Literal["+x", "+y", "+z", "-x", "-y", "-z"] | None = None  # None: the file's convention
     roll: float = Field(default=0.0, ge=-360, le=360)
@@ -249,10 +266,11 @@ def check_render_output(output: str, frames: int) -> None:
 class EditConfig(_Strict):
     input: str
     output: str
-    regions: RegionsCfg
+    regions: RegionsCfg = RegionsCfg()  # fixed: required unless a points: edit alone
     handle: HandleCfg | None = None
     handles: list[HandleEntryCfg] | None = Field(default=None, min_length=1, max_length=32)
     curve: CurveCfg | None = None
+    points: PointsCfg | None = None
     boundary: BoundaryCfg = BoundaryCfg()
     fit: FitCfg = FitCfg()
     normals: Literal["keep", "estimate"] = "keep"
@@ -260,6 +278,7 @@ class EditConfig(_Strict):
     device: str | None = None
     render: RenderCfg | None = None
     gaussians: GaussiansCfg = GaussiansCfg()
+    save: SaveCfg = SaveCfg()
     memory_budget: str | int | None = None  # e.g. 2GB; deform streams above it (stream/)
 
     @model_validator(mode="after")
@@ -270,8 +289,12 @@ class EditConfig(_Strict):
         if self.handle is not None and self.curve is not None:
             raise ValueError("expected one of handle, curve (use handles: to combine handles "
                              "with a curve)")
-        if self.handle is None and self.handles is None and self.curve is None:
-            raise ValueError("expected one of handle, handles, curve")
+        if self.handle is None and self.handles is None and self.curve is None \
+                and self.points is None:
+            raise ValueError("expected one of handle, handles, curve, points")
+        if not self.regions.fixed and (self.handle or self.handles or self.curve):
+            raise ValueError("regions.fixed: required with a handle or curve (optional only "
+                             "for a points: edit alone)")
         if self.handle is not None and not self.regions.handle:
             raise ValueError("regions.handle: required with a handle edit")
         if self.curve is not None and self.regions.handle:
@@ -292,6 +315,11 @@ def input_paths(cfg: EditConfig, base_dir: str | Path) -> list[tuple[str, Path]]
         groups.append((f"handles[{i}].region", getattr(h, "region", None) or []))
     from splatdeform.edit.selectors import leaves
 
+    points = getattr(cfg, "points", None)
+    for key in ("pairs", "check_pairs"):
+        value = getattr(points, key, None)
+        if isinstance(value, PairsFileCfg):
+            found.append((f"points.{key}.file", base_dir / value.file))
     for key, selectors in groups:
         for j, sel in enumerate(selectors):
             plain = sel.to_selector()
@@ -363,103 +391,6 @@ def format_validation_error(source: str, exc: ValidationError, prefix: str = "",
                             roots: tuple[type[BaseModel], ...] = ()) -> str:
     """One line for the first (most specific) validation error."""
     return str(validation_error(source, exc, prefix, roots))
-
-
-MAX_CONFIG_BYTES = 2 * 2**20  # a config file (edit or batch); larger data goes in files
-MAX_CONFIG_NODES = 1_000_000  # values in the parsed config, aliases counted where they expand
-_SafeLoader = getattr(yaml, "CSafeLoader", yaml.SafeLoader)  # libyaml: the same YAML, 10x faster
-
-
-class _Loader(_SafeLoader):  # type: ignore[misc,valid-type]
-    """The safe loader, with integers too long to be a config number kept as :class:`LongInt`
-    (refused by the key that holds it) instead of converted (Python raises ValueError past
-    4,300 digits)."""
-
-
-def _construct_int(loader: Any, node: yaml.ScalarNode) -> int | LongInt:
-    text = str(node.value).replace("_", "").lstrip("+-")
-    digits = len(text) - (2 if text[:2].lower() in ("0x", "0o", "0b") else 0)
-    if digits > MAX_INT_DIGITS:
-        return LongInt(digits)
-    return yaml.SafeLoader.construct_yaml_int(loader, node)
-
-
-_Loader.add_constructor("tag:yaml.org,2002:int", _construct_int)
-
-
-def _expanded_size(data: Any, limit: int) -> int:
-    """How many values ``data`` holds with every alias expanded (a shared list counts once per
-    use); stops counting past ``limit``. Linear in the distinct nodes (memoised by id)."""
-    memo: dict[int, int] = {}
-
-    def size(obj: Any) -> int:
-        if not isinstance(obj, dict | list):
-            return 1
-        key = id(obj)
-        if key in memo:
-            return memo[key]
-        memo[key] = limit + 1  # a node reached again while it is counted: a cycle
-        children = obj.items() if isinstance(obj, dict) else ((None, v) for v in obj)
-        total = 1
-        for k, v in children:
-            total += size(k) + size(v) if k is not None else size(v)
-            if total > limit:
-                break
-        memo[key] = min(total, limit + 1)
-        return memo[key]
-
-    return size(data)
-
-
-def _read_text(path: Path) -> str:
-    with open(path, "rb") as f:
-        raw = f.read(MAX_CONFIG_BYTES + 1)
-    if len(raw) > MAX_CONFIG_BYTES:
-        raise ConfigError(f"{path}: the config is larger than {MAX_CONFIG_BYTES >> 20} MB; keep "
-                          "long data in files (e.g. indices: {file: picked.txt})")
-    nul = raw.find(b"\0")
-    if nul >= 0:
-        raise ConfigError(f"{path}: contains a NUL byte at offset {nul}; expected a YAML text "
-                          "file")
-    return raw.decode("utf-8")
-
-
-def read_yaml(path: str | Path) -> dict[str, Any]:
-    """Parse a YAML mapping; ConfigError naming the file for missing/invalid files. The file is
-    read with a size cap (:data:`MAX_CONFIG_BYTES`) and the parsed values are counted with
-    aliases expanded (:data:`MAX_CONFIG_NODES`) before anything validates them."""
-    path = Path(path)
-    if "\x00" in str(path):
-        raise ConfigError(f"{str(path)!r}: a path must not contain a NUL byte")
-    if not path.is_file():
-        what = "is not a regular file" if path.exists() else "config file not found"
-        raise ConfigError(f"{path}: {what}")
-    try:
-        data = yaml.load(_read_text(path), Loader=_Loader)  # noqa: S506 (a safe loader)
-    except OSError as exc:
-        raise ConfigError(f"{path}: cannot read it ({exc.strerror or exc})") from None
-    except RecursionError:
-        raise ConfigError(f"{path}: invalid YAML: nested too deeply") from None
-    except yaml.YAMLError as exc:
-        mark = getattr(exc, "problem_mark", None)
-        where = f" line {mark.line + 1}" if mark is not None else ""
-        problem = " ".join(str(getattr(exc, "problem", None) or exc).split())
-        if "nesting depth" in problem:  # libyaml's words for what PyYAML hits as recursion
-            problem = "nested too deeply"
-        raise ConfigError(f"{path}:{where} invalid YAML: {problem}") from exc
-    except UnicodeDecodeError as exc:
-        raise ConfigError(f"{path}: not a text file") from exc
-    if not isinstance(data, dict):
-        raise ConfigError(f"{path}: expected a YAML mapping of config keys at the top level")
-    try:
-        n = _expanded_size(data, MAX_CONFIG_NODES)
-    except RecursionError:
-        raise ConfigError(f"{path}: invalid YAML: nested too deeply") from None
-    if n > MAX_CONFIG_NODES:
-        raise ConfigError(f"{path}: the config holds more than {MAX_CONFIG_NODES:,} values "
-                          "(counting where aliases repeat them); keep long data in files "
-                          "(e.g. indices: {file: picked.txt})")
-    return data
 
 
 def parse_edit(data: dict[str, Any], source: str, prefix: str = "") -> EditConfig:

@@ -20,6 +20,7 @@ from splatdeform.edit.result import EditResult, edit_stats, format_report  # noq
 from splatdeform.edit.stream import StreamOptions, run_stream
 from splatdeform.errors import InputError, ProcessingError
 from splatdeform.io import load, save
+from splatdeform.io.options import writing
 from splatdeform.model import MAX_COORDINATE, PointModel
 from splatdeform.rbf import RbfFit
 
@@ -118,11 +119,22 @@ def run_edit(config: EditPlan | EditConfig | dict | str | Path,
                          reuse=reuse, drop_nonfinite=drop_nonfinite, stream=stream, warn=warn)
     cfg, base_dir, in_path, reuse = plan.cfg, plan.base_dir, plan.input, plan.reuse
     drop_nonfinite = plan.drop_nonfinite
+    if cfg.points is not None and (plan.streamed or reuse is not None):
+        from splatdeform.errors import ConfigError
+
+        raise ConfigError("points: a control-point edit runs in memory, without --reuse (raise "
+                          "--memory-budget; `apply` streams its saved field)")
     if plan.streamed:
         return run_stream(plan, log=log, check_fit=lambda fit: check_converged(fit, cfg, warn))
     timings: dict[str, float] = {}
     model = prepare_model(cfg, base_dir, timings, drop_nonfinite)
-    deformation = None
+    deformation, points_fit = None, None
+    if cfg.points is not None:
+        from splatdeform.edit.metaphors import points as pts
+
+        deformation, points_fit = pts.precompute(cfg, model, base_dir)
+        timings.update(deformation.timings)
+        check_converged(deformation.fit, cfg, warn)
     if reuse is not None:
         from splatdeform.edit.cache import edit_key, load_deformation
 
@@ -138,25 +150,33 @@ def run_edit(config: EditPlan | EditConfig | dict | str | Path,
             from splatdeform.edit.cache import save_deformation
 
             save_deformation(reuse, key, deformation)
-    else:
+    elif points_fit is None:  # reused (a points: edit was fitted above)
         timings.update({"rings": 0.0, "fit": 0.0, "basis": 0.0})
         check_converged(deformation.fit, cfg, warn)
     if log:
         from splatdeform.edit.selection import counts_of_deformation, format_counts, moving_label
 
         log(format_counts(counts_of_deformation(deformation, moving_label(cfg))))
-    delta_c, matrix = plain.control_displacement(cfg, model, deformation)
+    if points_fit is not None:
+        delta_c, matrix = pts.control_displacement(cfg, model, deformation, points_fit)
+    else:
+        delta_c, matrix = plain.control_displacement(cfg, model, deformation)
     t0 = time.perf_counter()
     applied: dict = {}
     deformed = df.apply(deformation, model, delta_c, moving_matrix=matrix,  # checks finiteness
-                        covariance=cfg.gaussians.covariance, stats=applied)
+                        covariance=cfg.gaussians.covariance, stats=applied,
+                        split=cfg.gaussians.split)
     timings["apply"] = time.perf_counter() - t0
     stats = edit_stats(deformation, delta_c, points=model.n_points,
                        free_points=deformation.free_idx.size, diagonal=model.diagonal(),
-                       refused_splats=int(applied.get("refused_splats", 0)))
+                       refused_splats=int(applied.get("refused_splats", 0)),
+                       **{k: int(v) for k, v in applied.items() if k.startswith("split_")})
     result = EditResult(model, deformed, deformation, delta_c, matrix, None, stats, timings)
+    if points_fit is not None:  # the pairs' residuals (``deform`` prints, --residuals writes)
+        result.points = pts.report(cfg, model, base_dir, deformation, points_fit, delta_c)
     if plan.output is not None:
         t0 = time.perf_counter()
-        result.output = save(deformed, plan.output)
+        with writing(**cfg.save.model_dump()):   # save: spz_version, sog_quality, pcd_data
+            result.output = save(deformed, plan.output)
         timings["save"] = time.perf_counter() - t0
     return result

@@ -62,7 +62,9 @@ def edit_yaml(settings: EditConfig, *, input_path: Path, output_path: Path, conf
     if s.device is not None:
         data["device"] = s.device
     if gaussians or "gaussians" in s.model_fields_set:
-        data["gaussians"] = s.gaussians.model_dump()
+        data["gaussians"] = {"covariance": s.gaussians.covariance}
+        if s.gaussians.split != "off":   # written only when asked for (opt-in)
+            data["gaussians"]["split"] = s.gaussians.split
     if s.render is not None:
         render = s.render.model_dump()
         if s.render.output is not None:
