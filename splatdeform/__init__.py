@@ -34,10 +34,11 @@ _LAZY = {
     "load": "io", "save": "io", "PointModel": "model",
     "Box": "edit.selectors", "Indices": "edit.selectors", "Plane": "edit.selectors",
     "Property": "edit.selectors", "Sphere": "edit.selectors", "select": "edit.selectors",
-    "run_edit": "edit", "load_edit": "edit",
+    "run_edit": "edit", "load_edit": "edit", "Field": "field", "convert": "convert",
 }
 
 if TYPE_CHECKING:  # pragma: no cover
+    from .convert import convert
     from .deform import (
         Deformation,
         apply,
@@ -52,6 +53,7 @@ if TYPE_CHECKING:  # pragma: no cover
     )
     from .edit import load_edit, run_edit
     from .edit.selectors import Box, Indices, Plane, Property, Sphere, select
+    from .field import Field
     from .io import load, save
     from .model import PointModel
 
@@ -60,9 +62,10 @@ __getattr__ = lazy_exports(__name__, _LAZY)
 
 
 __all__ = [
-    "Box", "ConfigError", "Deformation", "FormatError", "Indices", "InputError", "Plane",
+    "Box", "ConfigError", "Deformation", "Field", "FormatError", "Indices", "InputError", "Plane",
     "PointModel", "ProcessingError", "Property", "Sphere", "SplatdeformError", "apply",
-    "compose_transform", "delta_for", "delta_for_transform", "estimate_normals", "full_basis",
+    "compose_transform", "convert", "delta_for", "delta_for_transform", "estimate_normals",
+    "full_basis",
     "load", "load_edit", "prepare_handle", "prepare_handles", "prepare_metaphors", "run_edit",
     "save", "select",
 ]
