@@ -33,6 +33,7 @@ ROOT = Path(__file__).resolve().parents[1]
 PACKAGE = ROOT / "splatdeform"
 SPLAT_KEYS = [ext for ext, fmt in FORMATS.items() if fmt.lossy or fmt.module == "gltf"]
 POINT_KEYS = [ext for ext in FORMATS if ext not in SPLAT_KEYS]
+READ_ONLY = {".ksplat"}
 NEEDS = {".xyz": "open3d", ".xyzn": "open3d", ".pts": "open3d", ".laz": "lazrs"}
 
 
@@ -59,6 +60,8 @@ def test_every_declared_extension_saves_loads_and_probes_its_count(ext, models, 
     if ext in NEEDS:
         pytest.importorskip(NEEDS[ext])
     model = models["splats" if ext in SPLAT_KEYS else "points"]
+    if ext in READ_ONLY:   # made by the reader's test from its own library's files
+        pytest.skip(f"{ext} is read only")
     path = _save(model, _path(tmp_path, ext))
     loaded = sd.load(path)
     assert loaded.n_points == model.n_points
@@ -69,7 +72,8 @@ def test_every_declared_extension_saves_loads_and_probes_its_count(ext, models, 
 
 
 def test_table_is_merged_from_the_declarations_in_the_documented_order():
-    assert tuple(FORMATS) == (".ply", ".compressed.ply", ".splat", ".spz", ".sog", "meta.json",
+    assert tuple(FORMATS) == (".ply", ".compressed.ply", ".splat", ".ksplat", ".spz", ".sog",
+                              "meta.json",
                               ".glb", ".gltf", ".pcd", ".xyz", ".xyzn", ".pts", ".las", ".laz")
     assert sd.io.LIDAR_EXTENSIONS == (".las", ".laz")
     assert set(sd.io.COSTED) == set(FORMATS) - {".xyz", ".xyzn", ".pts"}

@@ -27,8 +27,8 @@ CHUNK_BOUNDS = tuple(f"{m}_{a}" for m in ("min", "max") for a in "xyz") + tuple(
     f"{m}_scale_{a}" for m in ("min", "max") for a in "xyz")
 CHUNK_COLORS = tuple(f"{m}_{c}" for m in ("min", "max") for c in "rgb")
 SPLATS_PER_CHUNK = 256
-# an 8-bit opacity of 0 has no finite logit: clamp to half a quantisation step; 255 is alpha 1,
-# a logit of +inf (as the reference decoder, splat-transform, reads it)
+# an 8-bit opacity of 0 is alpha 0, a logit of -inf, and 255 is alpha 1, +inf (as the reference
+# decoder, splat-transform, reads them); the clamp only keeps the other bytes' logit finite
 OPACITY_EPS = 0.5 / 255
 SH_RANGE = 8.0  # SH rest codes cover [-4, 4) in 256 bins
 SCALE_CLAMP = 20.0  # log scales are clamped to +-20 before the chunk ranges are taken
@@ -135,7 +135,8 @@ def decompress(source: PlySource, path: str | Path) -> PlySource:
         out["sh_dc"][:, i] = (value - 0.5) / SH_C0
     raw_alpha = _unorm(packed["packed_color"], 0, 8)
     alpha = np.clip(raw_alpha, OPACITY_EPS, 1 - OPACITY_EPS)
-    out["opacity"][:, 0] = np.where(raw_alpha >= 1.0, np.inf, -np.log(1 / alpha - 1))
+    out["opacity"][:, 0] = np.where(raw_alpha >= 1.0, np.inf,
+                                    np.where(raw_alpha <= 0.0, -np.inf, -np.log(1 / alpha - 1)))
     del raw_alpha
     out["rotation"][:] = _rotations(packed["packed_rotation"])
     del packed, owner, alpha

@@ -303,8 +303,9 @@ def decode(path: str | Path) -> tuple[SplatFields, SogCodes]:
         files.close()
     fields = SplatFields(positions=positions, scale_log=book[scales[:, :3]],
                          rotation=quats_from_codes(quats).astype(np.float32),
-                         opacity=np.where(sh0[:, 3] == 255, np.inf,  # alpha 1: +inf
-                                          logit(sh0[:, 3].astype(np.float64) / 255, ALPHA_EPS))
+                         opacity=np.select(  # alpha 1: +inf, alpha 0: -inf
+                             [sh0[:, 3] == 255, sh0[:, 3] == 0], [np.inf, -np.inf],
+                             logit(sh0[:, 3].astype(np.float64) / 255, ALPHA_EPS))
                          .astype(np.float32),
                          sh_dc=dc_book[sh0[:, :3]], sh_rest=rest)
     return fields, codes

@@ -1,11 +1,12 @@
-"""The 3D Gaussian splat formats: PlayCanvas's compressed PLY, ``.splat``, SPZ, SOG (a bundle or
-a folder's ``meta.json``) and glTF ``KHR_gaussian_splatting`` (``.glb``/``.gltf``).
+"""The 3D Gaussian splat formats: PlayCanvas's compressed PLY, ``.splat``, ``.ksplat`` (read
+only), SPZ, SOG (a bundle or a folder's ``meta.json``) and glTF ``KHR_gaussian_splatting``
+(``.glb``/``.gltf``).
 
 Each probe reads only a header, through the one opener, with the reader's own checks, and counts
 the splats that header declares (SPZ: the gzip stream's 16-byte header; SOG: meta.json's count;
 glTF: the POSITION accessors' counts; compressed PLY: the vertex element's count; ``.splat``:
-the size over its 32-byte record), so a small file that declares many splats gets an estimate
-from what it declares and an explicit memory budget caps it.
+the size over its 32-byte record; ``.ksplat``: its main header's count), so a small file that
+declares many splats gets an estimate from what it declares and an explicit memory budget caps it.
 """
 
 from __future__ import annotations
@@ -99,6 +100,29 @@ def _splat_probe(path: Path, head: bytes, size: int, file: Path | None = None) -
     return FileCost(points, size, 96, 3 * size + 96 * points)
 
 
+def _ksplat_probe(path: Path, head: bytes, size: int, file: Path | None = None) -> FileCost:
+    """The main header's splat count (checked against the size by the reader's parser) and the
+    SH degree of the first section header when the head holds it; the whole file is read,
+    then decoded to float32."""
+    from .. import ksplat
+
+    info = ksplat.parse_main(path, head, size)
+    first = ksplat.HEADER_BYTES + ksplat.SECTION_BYTES
+    degree = ksplat.SECTION.unpack_from(head, ksplat.HEADER_BYTES)[-1] \
+        if len(head) >= first else 3
+    n_rest = SH_REST.get(degree, SH_REST[3])
+    return _cost(info["count"], size, n_rest,
+                 size + info["count"] * 4 * (SPLAT_FLOATS + n_rest) * 2)
+
+
+def _ksplat_fields(path: Path) -> dict:
+    from .. import ksplat
+
+    h = ksplat.read_info(path)
+    return {"format": f".ksplat v{h['version']} (GaussianSplats3D, read only)", "format_fields": {
+        "compression_level": h["level"], "sections": h["sections"], "sh_degree": h["sh_degree"]}}
+
+
 def _compressed_ply_fields(path: Path) -> dict:
     from .. import ply as ply_module
 
@@ -156,6 +180,7 @@ FORMATS = {
     ".compressed.ply": Format("ply", writer="playcanvas", probe=_compressed_ply_probe,
                               fields=_compressed_ply_fields, lossy=True),
     ".splat": Format("splat", probe=_splat_probe, fields=_splat_fields, lossy=True),
+    ".ksplat": Format("ksplat", probe=_ksplat_probe, fields=_ksplat_fields, lossy=True),
     ".spz": Format("spz", probe=_spz_probe, fields=_spz_fields, lossy=True),
     ".sog": Format("sog", **_SOG),
     SOG_META: Format("sog", "folder", **_SOG),
