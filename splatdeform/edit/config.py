@@ -402,5 +402,31 @@ def parse_edit(data: dict[str, Any], source: str, prefix: str = "") -> EditConfi
 
 
 def load_edit(path: str | Path) -> EditConfig:
-    """Read and validate an edit config file."""
+    """Read and validate an edit config file.
+
+    Parameters
+    ----------
+    path : str or Path
+        The edit YAML (see the edit config reference).
+
+    Returns
+    -------
+    EditConfig
+        The validated config; errors are one ConfigError line naming the file and key path.
+
+    Examples
+    --------
+    >>> from pathlib import Path
+    >>> import splatdeform as sd
+    >>> _ = Path("bend.yaml").write_text('''
+    ... input: bar.ply
+    ... output: bar_bent.ply
+    ... regions: {units: relative, fixed: [{box: {min: [0, 0, 0], max: [0.25, 1, 1]}}],
+    ...           handle: [{box: {min: [0.75, 0, 0], max: [1, 1, 1]}}]}
+    ... handle: {transform: {rotate: {axis: [0, 0, 1], degrees: 35}}}
+    ... ''')
+    >>> cfg = sd.load_edit("bend.yaml")
+    >>> cfg.regions.units, cfg.handle.transform.rotate.degrees, cfg.fit.method
+    ('relative', 35.0, 'auto')
+    """
     return parse_edit(read_yaml(path), str(path))

@@ -101,6 +101,23 @@ def run_edit(config: EditPlan | EditConfig | dict | str | Path,
              stream: StreamOptions | None = None) -> EditResult:
     """Run one edit.
 
+    Examples
+    --------
+    >>> import splatdeform as sd
+    >>> from data_tools.synth import bumpy_bar
+    >>> _ = sd.save(bumpy_bar(3000), "bar.ply")
+    >>> edit = {"input": "bar.ply", "output": "bar_bent.ply",
+    ...         "regions": {"units": "relative",
+    ...                     "fixed": [{"box": {"min": [0, 0, 0], "max": [0.25, 1, 1]}}],
+    ...                     "handle": [{"box": {"min": [0.75, 0, 0], "max": [1, 1, 1]}}]},
+    ...         "handle": {"transform": {"rotate": {"axis": [0, 0, 1], "degrees": 35}}},
+    ...         "backend": "numpy"}
+    >>> result = sd.run_edit(edit, base_dir=".", log=lambda line: None)
+    >>> result.stats["points"], result.stats["converged"]
+    (3000, True)
+    >>> sd.load("bar_bent.ply").n_points
+    3000
+
     ``config``: an :class:`~splatdeform.edit.plan.EditPlan` (the CLI's and batch's: paths
     checked, stream-or-not decided; the planning arguments below are then not used), or what
     :func:`~splatdeform.edit.plan.plan_edit` plans from: an edit file's path (its relative

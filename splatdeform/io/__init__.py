@@ -130,8 +130,31 @@ def _extension(path: Path, what: str) -> str:
 def load(path: str | Path, *, drop_nonfinite: bool = False) -> PointModel:
     """Load a model file (any extension of :data:`FORMATS`).
 
-    drop_nonfinite: drop vertices with NaN/Inf coordinates (and the faces using them) instead of
-    raising. Raises InputError/FormatError with one line naming the file.
+    Parameters
+    ----------
+    path : str or Path
+        The model file; its extension picks the reader.
+    drop_nonfinite : bool
+        Drop vertices with NaN/Inf coordinates (and the faces using them) instead of raising.
+
+    Returns
+    -------
+    PointModel
+        Positions, normals, colours, faces, Gaussians and every other property the file holds.
+
+    Raises
+    ------
+    InputError, FormatError
+        One line naming the file.
+
+    Examples
+    --------
+    >>> import splatdeform as sd
+    >>> from data_tools.synth import bumpy_bar
+    >>> path = sd.save(bumpy_bar(2000), "bar.ply")
+    >>> model = sd.load("bar.ply")
+    >>> model.n_points, model.positions.shape
+    (2000, (2000, 3))
     """
     path = Path(path)
     if not path.exists():
@@ -157,7 +180,31 @@ def load(path: str | Path, *, drop_nonfinite: bool = False) -> PointModel:
 
 def save(model: PointModel, path: str | Path, *, text: bool | None = None) -> Path:
     """Save atomically; the format follows the extension (PLY keeps the input's encoding unless
-    ``text`` is given). Refuses to overwrite ``model.path``. Returns the written path."""
+    ``text`` is given). Refuses to overwrite ``model.path``.
+
+    Parameters
+    ----------
+    model : PointModel
+        The model to write.
+    path : str or Path
+        The output file; its extension picks the writer (``.ply``, ``.las``, ``.spz``, ...).
+    text : bool, optional
+        PLY only: ascii (True) or binary (False); default: the input's encoding.
+
+    Returns
+    -------
+    Path
+        The written path.
+
+    Examples
+    --------
+    >>> import splatdeform as sd
+    >>> from data_tools.synth import sphere
+    >>> sd.save(sphere(500), "ball.ply").name
+    'ball.ply'
+    >>> sd.load("ball.ply").n_points
+    500
+    """
     path = check_output_path(path, model.path)
     ext = _extension(path, "output")
     source = FORMATS.get(_source_format(model) or "")
