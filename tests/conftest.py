@@ -69,3 +69,16 @@ def egl_renderer(size: tuple[int, int]):
     except DeviceError as exc:
         pytest.fail(f"OpenGL via EGL is required for rendering tests: {exc}")
     return Renderer(size)
+
+
+@pytest.fixture(scope="session")
+def oracle() -> list[str]:
+    """The splat-transform argv prefix (the splat formats' independent oracle, pinned, installed
+    by ``make oracle``); fails (never skips) when it is not installed."""
+    from data_tools import splat_transform
+
+    try:
+        splat_transform.install()
+        return splat_transform.command()
+    except splat_transform.OracleMissing as exc:
+        pytest.fail(f"the splat-transform oracle is required: {exc}")

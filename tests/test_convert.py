@@ -18,15 +18,6 @@ from splatdeform.io import load, save
 from splatdeform.io.splats import LossyWriteWarning
 
 
-@pytest.fixture(scope="module")
-def oracle():
-    try:
-        splat_transform.install()
-        return splat_transform.command()
-    except splat_transform.OracleMissing as exc:
-        pytest.fail(f"the splat-transform oracle is required: {exc}")
-
-
 def _quiet(argv: list[str]) -> int:
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", LossyWriteWarning)

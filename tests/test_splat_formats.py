@@ -46,16 +46,6 @@ SAME = dict(pos=1e-5, scale=1e-5, rot=1e-6, alpha=1e-5, dc=1e-5, rest=1e-5)
 ORACLE_TOL = {".splat": {**SAME, "rot": 1.2e-4}}
 
 
-@pytest.fixture(scope="module")
-def oracle():
-    """The splat-transform argv prefix; fails (never skips) when it is not installed."""
-    try:
-        splat_transform.install()
-        return splat_transform.command()
-    except splat_transform.OracleMissing as exc:
-        pytest.fail(f"the splat-transform oracle is required: {exc}")
-
-
 def _their_decode(src: Path, out: Path):
     splat_transform.run("-w", "-q", "-g", "cpu", str(src), str(out))
     return fields(load(out))

@@ -24,15 +24,6 @@ SAME = dict(pos=1e-5, scale=1e-5, rot=1e-6, alpha=1e-5, dc=1e-5, rest=1e-5)
 SCENES = [("splats/guitar_3dgs_sh0.ply", 0), ("splats/tile_3dgs_sh3.ply", 3)]
 
 
-@pytest.fixture(scope="module")
-def oracle():
-    try:
-        splat_transform.install()
-        return splat_transform.command()
-    except splat_transform.OracleMissing as exc:
-        pytest.fail(f"the splat-transform oracle is required: {exc}")
-
-
 def _as_stored(f):
     """splat-transform keeps SPZ as stored (PLY axes); turn its decode into the RUB reading."""
     f.positions = f.positions * np.array([1, -1, -1])
