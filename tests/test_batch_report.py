@@ -293,6 +293,7 @@ def test_thumbnails_twice_as_wide_and_the_splat_tile_fills_its_panels(tmp_path: 
     assert r.returncode == 0, r.stderr
     (row,) = report(tmp_path / "out").values()
     assert row["status"] == "ok" and row["png"], row
+    assert row["closeup"] is None   # most of the tile moves: the whole view shows it as large
     width, height = png_size(row["png"])
     assert width >= 2 * OLD_CARD_WIDTH and height >= 2 * 256
     image = np.asarray(Image.open(row["png"]).convert("RGB")).astype(int)[LABEL_HEIGHT:]
@@ -309,3 +310,83 @@ def test_thumbnails_twice_as_wide_and_the_splat_tile_fills_its_panels(tmp_path: 
                          "document.querySelector('.card img').complete && "
                          "document.querySelector('.card img').getBoundingClientRect().width", 60)
     assert shown >= 2 * OLD_CARD_WIDTH
+
+
+TIP_EDIT = {"regions": {"units": "relative",
+                        "fixed": [{"box": {"min": [0, 0, 0], "max": [0.7, 1, 1]}}],
+                        "handle": [{"box": {"min": [0.9, 0, 0], "max": [1, 1, 1]}}]},
+            "handle": {"transform": {"translate": [0, 0.5, 0]}},
+            "fit": {"tolerance": 1e-3, "max_centers": 200}, "backend": "numpy"}
+
+
+def _ndc(camera_file: Path, points):
+    """(M, 2) normalised device coordinates of (M, 3) ``points`` through a camera file, and
+    their depths in front of the eye."""
+    import numpy as np
+
+    from splatdeform.render.camera import load_camera
+
+    camera, (w, h) = load_camera(camera_file)
+    homo = np.c_[points, np.ones(len(points))]
+    clip = homo @ (camera.projection(w / h) @ camera.view()).T
+    return clip[:, :2] / clip[:, 3:4], clip[:, 3]
+
+
+@pytest.mark.parametrize("budget", [None, 64], ids=["memory", "streamed"])
+def test_the_changed_part_gets_its_own_close_up_in_the_report(tmp_path: Path, budget) -> None:
+    """A 5-long bar whose last tenth is lifted (the last 30 % moves): the card shows the whole
+    model and a close-up framed on the points that moved, which fill at least half its panels;
+    every moved point (before and after) projects inside the close-up's camera. In memory and
+    streamed (a 64 MB per-worker budget: the thumbnails drawn from the two files)."""
+    import numpy as np
+    from PIL import Image
+
+    import splatdeform as sd
+    from data_tools.synth import bumpy_bar
+    from splatdeform.batch.config import load_batch
+    from splatdeform.batch.report import png_size
+    from splatdeform.render.camera import camera_sidecar
+    from splatdeform.render.compare import LABEL_HEIGHT
+    from splatdeform.render.framing import moved_mask
+
+    (tmp_path / "scans").mkdir()
+    sd.save(bumpy_bar(4000, length=5.0, radius=0.4, seed=3), tmp_path / "scans" / "bar.ply")
+    cfg = write_batch(tmp_path / "b.yaml", TIP_EDIT, scans="scans", output_dir="out",
+                      render={"size": [400, 300]},
+                      **({} if budget is None else {"memory_per_worker_mb": budget}))
+    r = run_cli("batch", cfg, "--workers", "1", "--quiet", timeout=300)
+    assert r.returncode == 0, r.stderr
+    out = tmp_path / "out"
+    (row,) = report(out).values()
+    assert row["status"] == "ok" and row["closeup"] == str(out / "bar.changed.png"), row
+    assert ("save" in row["timings"]) is (budget is None)   # a streamed run has no save stage
+    assert png_size(row["closeup"]) == png_size(row["png"]) == (800, 300 + LABEL_HEIGHT)
+    before = sd.load(tmp_path / "scans" / "bar.ply").positions
+    after = sd.load(row["output"]).positions
+    moved = moved_mask(before, after)
+    assert 0.2 < moved.mean() < 0.45   # the free region and the handle, not the fixed part
+    spans = {}
+    for name, png in (("whole", row["png"]), ("closeup", row["closeup"])):
+        ndc, depth = _ndc(camera_sidecar(png), np.concatenate([before[moved], after[moved]]))
+        assert (depth > 0).all() and (np.abs(ndc) <= 1.0).all(), (name, np.abs(ndc).max())
+        spans[name] = float(np.max(ndc.max(axis=0) - ndc.min(axis=0)) / 2.0)
+    assert spans["closeup"] >= 0.8 and spans["closeup"] > 1.5 * spans["whole"], spans
+    image = np.asarray(Image.open(row["closeup"]).convert("RGB")).astype(int)[LABEL_HEIGHT:]
+    halves = np.array_split(image, 2, axis=1)
+    for half in halves:   # the drawn pixels of the changed part span half the panel or more
+        ys, xs = np.nonzero(np.abs(half - 255).max(axis=2) > 8)
+        assert max((np.ptp(xs) + 1) / half.shape[1], (np.ptp(ys) + 1) / half.shape[0]) >= 0.5
+    assert np.abs(halves[0] - halves[1]).mean() > 5   # before and after differ visibly
+    page = (out / "index.html").read_text()
+    assert page.index('src="./bar.png"') < page.index('src="./bar.changed.png"')
+    assert 'width="800" height="318"' in page and "changed part" in page
+    assert "closeup" in (out / "report.csv").read_text().splitlines()[0].split(",")
+    # a rerun skips the scan (the close-up is there); closeup: false asks for none
+    r = run_cli("batch", cfg, "--workers", "1", "--quiet", timeout=300)
+    assert r.returncode == 0, r.stderr
+    assert report(out)[row["scan"]]["status"] == "skipped"
+    assert moved_mask(before, before) is None   # nothing moved: no close-up
+    off = write_batch(tmp_path / "c.yaml", TIP_EDIT, scans="scans", output_dir="out2",
+                      render={"size": [400, 300], "closeup": False})
+    (job,) = load_batch(off).jobs
+    assert job.png and job.closeup is None

@@ -55,7 +55,10 @@ class OverrideCfg(_Strict):
 class BatchRenderCfg(_Strict):
     """As ``deform``'s render (the same bounds); the thumbnail is two halves side by side, so
     the width is at most half the largest image. ``size`` is one half (THUMBNAIL_PANEL by
-    default: before and after 800 x 600 each, 1600 x 618 in all; 512 x 256 until issue 35)."""
+    default: before and after 800 x 600 each, 1600 x 618 in all; 512 x 256 until issue 35).
+    ``closeup`` (default true): a second before/after of the same size, ``<stem>.changed.png``,
+    framed on the points that moved (the handle and the free region as they visibly move; see
+    :func:`splatdeform.render.compare.closeup_camera`), shown under the whole-model one."""
 
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
     size: Annotated[list[Annotated[StrictInt, Field(ge=MIN_IMAGE, le=MAX_IMAGE // 2)]],
@@ -69,6 +72,7 @@ class BatchRenderCfg(_Strict):
     camera: str | None = None   # a camera file (OUT.camera.json), relative to the batch file
     # None: the file's colours, else elevation for LiDAR (splatdeform.render.colors)
     color: Literal["rgb", "elevation", "intensity", "classification"] | None = None
+    closeup: bool = True   # also <stem>.changed.png, framed on the points that moved
 
 
 class BatchConfig(_Strict):
@@ -106,6 +110,15 @@ class Job:
     @property
     def sidecar(self) -> str:
         return self.output + ".json"
+
+    @property
+    def closeup(self) -> str | None:
+        """The close-up thumbnail's path (``<stem>.changed.png`` beside the thumbnail), or None
+        without a thumbnail or with ``render.closeup: false``."""
+        if not self.png or not self.render or not self.render.get("closeup", True):
+            return None
+        png = Path(self.png)
+        return str(png.with_name(f"{png.stem}.changed.png"))
 
 
 @dataclass
@@ -281,6 +294,9 @@ def _check_paths(src: str, output_dir: Path, inputs: list[tuple[str, Path]],
 
                 outputs += [(f"{job.scan.name}: thumbnail", Path(job.png)),
                             (f"{job.scan.name}: thumbnail camera", camera_sidecar(job.png))]
+            if job.closeup:
+                outputs += [(f"{job.scan.name}: close-up thumbnail", Path(job.closeup)),
+                            (f"{job.scan.name}: close-up camera", camera_sidecar(job.closeup))]
     for what, out in outputs:
         try:
             mode = out.stat().st_mode

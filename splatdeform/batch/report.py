@@ -1,4 +1,5 @@
-"""report.json, report.csv and index.html (before/after thumbnails with each scan's figures)."""
+"""report.json, report.csv and index.html (before/after thumbnails, the whole model and the
+changed part's close-up, with each scan's figures)."""
 
 from __future__ import annotations
 
@@ -16,7 +17,7 @@ from ..io import atomic_write
 COLUMNS = ("scan", "status", "points", "constraints", "kept", "method", "centers", "residual",
            "constraint_error",
            "constraint_error_rel", "converged", "seconds", "load", "rings", "fit", "basis",
-           "apply", "save", "render", "output", "png", "error")
+           "apply", "save", "render", "output", "png", "closeup", "error")
 
 
 def printable(text: Any) -> str:
@@ -107,14 +108,31 @@ def png_size(path: str | None) -> tuple[int, int] | None:
     return (w, h) if 0 < w <= 65536 and 0 < h <= 65536 else None
 
 
+def _img(path: str | None, output_dir: Path, alt: str) -> str | None:
+    """An ``<img>`` of the PNG ``path`` shown at its own size (a relative link), or None."""
+    src = _rel(path, output_dir)
+    if src is None:
+        return None
+    size = png_size(path)
+    dims = f' width="{size[0]}" height="{size[1]}"' if size else ""
+    return f'<img src="{src}"{dims} alt="{html.escape(alt, quote=True)}">'
+
+
+THUMBNAILS_NOTE = ("Thumbnails: the whole model before and after; under it, when the edit "
+                   "changed only a small part of it, a close-up of that part (the points that "
+                   "moved) from the same direction.")
+CLOSEUP_NOTE = ("changed part: the points that moved (handle and free region), framed alone "
+                "from the same direction; nearer geometry cut away")
+
+
 def _html(output_dir: Path, rows: list[dict[str, Any]], summary: dict[str, Any]) -> str:
     cards = []
     for row in rows:
-        png = _rel(row.get("png"), output_dir)
-        size = png_size(row.get("png")) if png else None
-        dims = f' width="{size[0]}" height="{size[1]}"' if size else ""
-        img = (f'<img src="{png}"{dims} alt="before/after {html.escape(row["scan"])}">'
-               if png else '<div class="noimg">no thumbnail</div>')
+        img = _img(row.get("png"), output_dir, f"before/after {row['scan']}") \
+            or '<div class="noimg">no thumbnail</div>'
+        close = _img(row.get("closeup"), output_dir, f"changed part before/after {row['scan']}")
+        if close is not None:
+            img += f'<div class="sub">{html.escape(CLOSEUP_NOTE)}</div>{close}'
         t = row.get("timings") or {}
         figures = (f"points {_fmt(row.get('points'), ',')} · "
                    f"centers {_fmt(row.get('centers'), 'd')}"
@@ -151,11 +169,13 @@ body {{ font-family: sans-serif; margin: 1.5em; background: #fafafa; }}
 .err {{ color: #c33; font-family: monospace; font-size: .85em; }}
 .unconverged {{ border-color: #d80; }} .warn {{ color: #b60; font-size: .85em; }}
 .fig {{ font-size: .85em; color: #333; }} .noimg {{ color: #999; padding: 2em; }}
+.sub {{ font-size: .8em; color: #555; margin: .4em 0 .2em 0; }}
 </style></head><body>
 <h1>splatdeform batch: {html.escape(str(summary.get('batch')))}</h1>
 <p>{html.escape(head)} · {_fmt(summary.get('seconds'), '.1f')} s · config hash per scan in
 <code>&lt;output&gt;.json</code> · <a href="report.csv">report.csv</a> ·
 <a href="report.json">report.json</a></p>
+<p class="sub">{html.escape(THUMBNAILS_NOTE)}</p>
 <div class="grid">
 {chr(10).join(cards)}
 </div></body></html>

@@ -2,7 +2,8 @@
 
 ``process_scan(job) -> row`` never raises for a problem with the scan itself: it returns a row
 with status "failed" and a one-line message, so one broken scan cannot stop the others.
-Outputs are written atomically: the model, then the thumbnail, then the sidecar
+Outputs are written atomically: the model, then the thumbnails (the whole model, then the
+changed part's close-up: :mod:`.thumbnails`), then the sidecar
 ``<output>.json`` holding the config hash. Only a sidecar with the right hash makes a rerun skip
 the scan, so a run killed at any moment is redone where it was incomplete.
 """
@@ -36,14 +37,18 @@ def read_sidecar(job: Job) -> dict[str, Any] | None:
         return None
     if not Path(job.output).is_file() or (job.png and not Path(job.png).is_file()):
         return None
+    row = data.get("row")
+    shown = row.get("closeup") if isinstance(row, dict) else None
+    if shown and (shown != job.closeup or not Path(shown).is_file()):
+        return None   # the close-up the report shows is gone: redo the scan
     return data
 
 
 def _row(job: Job, status: str, **extra: Any) -> dict[str, Any]:
     return {"scan": job.scan.name, "status": status, "output": job.output, "png": job.png,
-            "points": None, "centers": None, "residual": None, "constraint_error": None,
-            "constraint_error_rel": None, "converged": None, "timings": {}, "seconds": None,
-            "error": "", **extra}
+            "closeup": None, "points": None, "centers": None, "residual": None,
+            "constraint_error": None, "constraint_error_rel": None, "converged": None,
+            "timings": {}, "seconds": None, "error": "", **extra}
 
 
 def process_scan(job: Job) -> dict[str, Any]:
@@ -64,6 +69,7 @@ def process_scan(job: Job) -> dict[str, Any]:
         return _row(job, "failed", seconds=0.0, error=job.problem)
     clean_stale_temps()   # on a Dask node this is the only place that sees its temp folder
     warning = ""
+    closeup: str | None = None
     local: Path | None = None
 
     def vet(head: bytes, size: int) -> None:
@@ -86,7 +92,7 @@ def process_scan(job: Job) -> dict[str, Any]:
                                         stream=scan_options(job, cfg)))
             if job.png and job.render:
                 try:
-                    from splatdeform.edit.images import render_result
+                    from .thumbnails import render_thumbnails
 
                     r = job.render
                     cfg.render = RenderCfg(output=job.png, size=[2 * r["size"][0], r["size"][1]],
@@ -94,8 +100,9 @@ def process_scan(job: Job) -> dict[str, Any]:
                                            fov=r["fov"], zoom=r.get("zoom", 1.0), up=r.get("up"),
                                            roll=r.get("roll", 0.0), camera=r.get("camera"),
                                            color=r.get("color"))
-                    render_result(result, cfg, job.png, input_path=local,   # atomically
-                                  budget=int(job.memory_budget) if job.memory_budget else None)
+                    closeup = render_thumbnails(   # atomically; the close-up when it adds
+                        result, cfg, job.png, job.closeup, input_path=local,
+                        budget=int(job.memory_budget) if job.memory_budget else None)
                 except Exception as exc:  # a thumbnail must not fail the scan
                     warning = f"thumbnail not rendered: {error_line(exc, limit=ROW_CHARS)}"
     except SplatdeformError as exc:
@@ -118,7 +125,8 @@ def process_scan(job: Job) -> dict[str, Any]:
                constraint_error_rel=s["constraint_error_rel"], converged=s["converged"],
                timings={k: round(v, 4) for k, v in result.timings.items()},
                seconds=time.perf_counter() - t0, error=warning,
-               png=job.png if (job.png and not warning) else None)
+               png=job.png if (job.png and not warning) else None,
+               closeup=None if warning else closeup)
     sidecar = {"config_hash": job.config_hash, "scan": job.scan.name, "row": row}
     with atomic_write(job.sidecar) as f:
         f.write(json.dumps(sidecar, indent=1).encode())

@@ -56,8 +56,9 @@ def to_yaml_dict(ed: EditorController, *, output: str | Path | None = None,
         return {"region": [sl.to_yaml(x, ed.base_dir) for x in h.selectors],
                 "matrix": [[float(v) for v in row] for row in h.matrix]}
 
-    one = ed.curve is None and len(ed.handles) == 1
-    return edit_yaml(
+    one = ed.curve is None and len(ed.handles) == 1 and (ed.points is None
+                                                          or bool(ed.live_handles()))
+    data = edit_yaml(
         ed.settings, input_path=ed.model_path, output_path=out.resolve(),
         config_dir=cdir, base_dir=ed.base_dir, units=ed.units,
         fixed=[sl.to_yaml(x, ed.base_dir) for x in ed.fixed],
@@ -65,6 +66,41 @@ def to_yaml_dict(ed: EditorController, *, output: str | Path | None = None,
         handles=None if one else [pose(h) for h in ed.live_handles()],
         curve=None if ed.curve is None else ed.curve.to_yaml(),
         gaussians=ed.model.gaussians is not None)  # the mode the saved splats used
+    if ed.points is not None:
+        data["points"] = points_yaml(ed, cdir)
+        if not ed.fixed:   # pairs alone: no fixed region (an explicit [] is refused)
+            data["regions"].pop("fixed", None)
+    render = data.get("render")
+    if isinstance(render, dict) and render.get("camera"):   # relative to the written YAML
+        from splatdeform.edit.writer import relative_path
+
+        render["camera"] = relative_path((ed.base_dir / render["camera"]).resolve(), cdir)
+    return data
+
+
+def points_yaml(ed: EditorController, config_dir: Path) -> dict[str, Any]:
+    """The ``points:`` mapping as loaded (pairs in ``regions.units``, which the editor keeps),
+    pairs files rewritten relative to ``config_dir`` (absolute when outside it)."""
+    from splatdeform.edit.writer import relative_path
+
+    data = ed.points.model_dump(exclude_none=True)
+    for key in ("pairs", "check_pairs"):
+        entry = data.get(key)
+        if isinstance(entry, dict) and "file" in entry:
+            entry["file"] = relative_path((ed.base_dir / entry["file"]).resolve(), config_dir)
+    return data
+
+
+def precompute(cfg, model: PointModel, base_dir: Path) -> tuple[df.Deformation, Any]:
+    """Rings, fit and basis of the edit as ``deform`` computes them, and the pairs'
+    :class:`~splatdeform.deform.points.PointsFit` of a ``points:`` edit (else None)."""
+    if cfg.points is not None:
+        from splatdeform.edit.metaphors import points as pts
+
+        return pts.precompute(cfg, model, base_dir)
+    from splatdeform.edit.run import precompute as plain_precompute
+
+    return plain_precompute(cfg, model, base_dir), None
 
 
 def default_paths(ed: EditorController) -> tuple[Path, Path, Path]:
@@ -93,7 +129,12 @@ def deformed_model(ed: EditorController) -> PointModel:
                             " fit again before saving")
     ed.check_poses()
     cfg = ed.to_config()
-    delta_c, matrix = control_displacement(cfg, ed.model, ed.deformation)
+    if cfg.points is not None:
+        from splatdeform.edit.metaphors.points import control_displacement as points_delta
+
+        delta_c, matrix = points_delta(cfg, ed.model, ed.deformation, ed.points_fit)
+    else:
+        delta_c, matrix = control_displacement(cfg, ed.model, ed.deformation)
     deformed = df.apply(ed.deformation, ed.model, delta_c, moving_matrix=matrix,
                         covariance=cfg.gaussians.covariance)
     if not np.isfinite(deformed.positions).all():
@@ -106,14 +147,11 @@ def save(ed: EditorController, model_path: str | Path | None = None,
          config_path: str | Path | None = None, image_path: str | Path | None = None, *,
          image: bool = True, image_size: tuple[int, int] | None = None) -> SaveResult:
     """Write the deformed model (atomic, never over the input), the edit YAML that
-    reproduces it through ``splatdeform deform``, and (``image``) a before/after PNG through
-    the project's renderer, ``image_size`` (width, height) pixels for both panels, as
-    ``deform --render`` (default: ``render.size`` of the loaded YAML, else its default
-    1200 x 600; the view from ``render``'s azimuth, elevation, fov, up and roll). Defaults:
+    reproduces it through ``splatdeform deform``, and (``image``) the before/after PNG that
+    ``deform --render`` writes for that YAML (:func:`render_image`: the same view, colours
+    and renderer, pixel for pixel); ``image_size`` (width, height) pixels for both panels
+    replaces ``render.size`` (default: the loaded YAML's, else 1200 x 600). Defaults:
     :func:`default_paths`."""
-    r = ed.settings.render
-    if image_size is None:
-        image_size = tuple(r.size) if r is not None else (1200, 600)
     from ..io import atomic_write
 
     d_model, d_yaml, d_png = default_paths(ed)
@@ -125,6 +163,7 @@ def save(ed: EditorController, model_path: str | Path | None = None,
     check_output_path(ypath, *inputs, out)
     if ypath.suffix.lower() not in (".yaml", ".yml"):
         raise InputError(f"{ypath}: expected a .yaml edit file name")
+    view = None
     if image:
         from ..render.camera import camera_sidecar
 
@@ -132,6 +171,7 @@ def save(ed: EditorController, model_path: str | Path | None = None,
         if png.suffix.lower() != ".png":
             raise InputError(f"{png}: expected a .png image file name")
         check_output_path(camera_sidecar(png), *inputs, out, ypath, png)
+        view = image_view(ed, image_size)   # a bad camera file fails before any write
     deformed = deformed_model(ed)
     text = yaml_text(to_yaml_dict(ed, output=out, config_dir=ypath.resolve().parent),
                      "splatdeform edit written by the editor; reproduce with:\n"
@@ -139,12 +179,48 @@ def save(ed: EditorController, model_path: str | Path | None = None,
     written = save_model(deformed, out)
     with atomic_write(ypath) as stream:
         stream.write(text.encode())
-    if image:
-        from ..render import View, render_comparison
-
-        panel = (max(image_size[0] // 2, 1), image_size[1])
-        view = View(size=panel) if r is None else View(
-            size=panel, azimuth=r.azimuth, elevation=r.elevation, fov=r.fov, up=r.up,
-            roll=r.roll)
-        render_comparison(ed.model, deformed, png, view, labels=("before", "after"))
+    if view is not None:
+        render_image(ed, png, view)
     return SaveResult(written, ypath, png if image else None)
+
+
+def image_view(ed: EditorController, image_size: tuple[int, int] | None = None):
+    """The view of Save's PNG: ``deform --render``'s for the editor's YAML
+    (:func:`splatdeform.edit.images.edit_view`: ``render``'s size, azimuth, elevation, fov,
+    zoom, up, roll and camera file, relative to the config's folder); ``image_size`` (both
+    panels) replaces the size unless a camera file brings its own."""
+    from dataclasses import replace
+
+    from splatdeform.edit.images import edit_view
+
+    cfg = ed.settings
+    r = cfg.render
+    camera = str(ed.base_dir / r.camera) if r is not None and r.camera else None
+    view = edit_view(cfg, r.up if r else None, r.roll if r else None, camera)
+    if image_size is not None and view.camera is None:
+        view = replace(view, size=(max(int(image_size[0]) // 2, 1), int(image_size[1])))
+    return view
+
+
+def render_image(ed: EditorController, png: Path, view) -> None:
+    """The before/after PNG (and its camera file) of ``ed``'s current fit and pose as
+    ``deform --render`` draws it: ``render.color``'s colours, the basis deformed on the GPU
+    by the control displacement, ``gaussians.covariance``. One image: ``render.frames`` (an
+    animation) is ``deform``'s alone."""
+    from splatdeform.edit.plain import control_displacement
+    from splatdeform.render.camera import default_up
+    from splatdeform.render.colors import colored
+    from splatdeform.render.compare import render_deformation_comparison
+
+    cfg = ed.to_config()
+    if cfg.points is not None:   # the control displacement deformed_model applies
+        from splatdeform.edit.metaphors.points import control_displacement as points_delta
+
+        delta_c, _ = points_delta(cfg, ed.model, ed.deformation, ed.points_fit)
+    else:
+        delta_c, _ = control_displacement(cfg, ed.model, ed.deformation)
+    color = cfg.render.color if cfg.render is not None else None
+    model = colored(ed.model, color, view.up or default_up([ed.model]))
+    values, gradients = df.full_basis(ed.deformation)
+    render_deformation_comparison(model, values, gradients, delta_c, png, view,
+                                  covariance=cfg.gaussians.covariance)

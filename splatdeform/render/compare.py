@@ -1,19 +1,23 @@
-"""Before/after images side by side, same camera, labelled (Pillow's default font)."""
+"""Before/after images side by side, same camera, labelled (Pillow's default font); on request
+a second before/after framed on the edit's changed part (:func:`closeup_camera`)."""
 
 from __future__ import annotations
 
 import os
-from collections.abc import Sequence
+import warnings
+from collections.abc import Iterable, Sequence
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
 from splatdeform.errors import InputError
 from splatdeform.io.image import save_png
 from splatdeform.model import PointModel
-from splatdeform.render.camera import Camera, View, write_camera
+from splatdeform.render import framing
+from splatdeform.render.camera import Camera, View, default_up, orbit, write_camera
 from splatdeform.render.overlay import Overlay, draw_overlays
-from splatdeform.render.renderer import Renderer, deformation_session
+from splatdeform.render.renderer import Renderer, deformation_session, deformed_positions
 from splatdeform.render.visibility import check_drawn
 
 LABEL_HEIGHT = 18
@@ -54,6 +58,7 @@ def render_comparison(
     *,
     labels: Sequence[str] = ("before", "after"),
     overlays: Sequence[Overlay] = (),
+    closeup: str | os.PathLike[str] | None = None,
 ) -> np.ndarray:
     """Render two CPU-side models side by side, or ``before`` alone when ``after`` is None.
     ``view.size`` is one panel (W, H). One camera frames both when they are one scene before
@@ -62,7 +67,9 @@ def render_comparison(
     :func:`splatdeform.render.camera.orbit`; ``view.camera`` replaces the framing (both
     panels). ``overlays`` (model coordinates, framed too) are drawn over every panel. Writes a
     PNG to ``out_path`` (atomically) and the first panel's camera to ``OUT.camera.json`` when
-    given; returns the composed (H', W', 3) uint8 image."""
+    given; returns the composed (H', W', 3) uint8 image. ``closeup``: a second PNG (and its
+    camera file) of the same scene framed on the points that moved (:func:`closeup_camera`),
+    written only when ``after`` is the same scene and something moved."""
     models = [before] if after is None else [before, after]
     renderer = Renderer(view.size)
     try:
@@ -76,19 +83,91 @@ def render_comparison(
             cameras = [framed(models)] * len(models)
         else:
             cameras = [framed([m]) for m in models]
-        images = []
+        close = None
+        if closeup is not None and after is not None and same_scene(before, after):
+            close = closeup_camera(view, before.positions, after.positions, models, aspect,
+                                   cameras[0])
+        images, close_images = [], []
         for model, cam in zip(models, cameras, strict=True):
             gpu = renderer.upload(model)
             try:
                 rgba = renderer.draw_rgba(gpu, cam)
+                near = None if close is None else renderer.draw_rgba(gpu, close)
             finally:
                 gpu.release()
             check_drawn(rgba, cam, [model.positions])
             image = np.ascontiguousarray(rgba[:, :, :3])
             images.append(draw_overlays(image, cam, list(overlays)) if overlays else image)
+            if near is not None:
+                close_images.append(np.ascontiguousarray(near[:, :, :3]))
     finally:
         renderer.release()
+    if close is not None:
+        _compose(close_images, closeup_labels(labels), closeup, close, renderer.size)
     return _compose(images, list(labels)[: len(images)], out_path, cameras[0], renderer.size)
+
+
+CLOSEUP_LABEL = "changed part"
+
+
+def closeup_labels(labels: Sequence[str]) -> list[str]:
+    """The close-up's panel labels: ``labels`` followed by ": changed part"."""
+    return [f"{label}: {CLOSEUP_LABEL}" for label in list(labels)[:2]]
+
+
+CLOSEUP_GAIN = 1.3   # a close-up only when it shows the changed part 1.3 times larger
+
+
+def closeup_camera(view: View, before: np.ndarray, after: np.ndarray, models: Iterable[Any],
+                   aspect: float, whole_camera: Camera | None = None) -> Camera | None:
+    """The camera of an edit's changed part: the points that moved
+    (:func:`~splatdeform.render.framing.moved_mask` of the (N, 3) ``before`` / ``after``
+    positions), before and after together, framed as the whole model is
+    (:func:`~splatdeform.render.framing.fit_frame`: robust projected extent) from the same
+    direction: ``view``'s orbit with the elevation the whole scene gets (flat scenes 40
+    degrees), or its camera's direction and lens. ``zoom`` is left out (the close-up fills its
+    panel). The near plane sits just in front of the changed part, so nearer geometry is cut
+    away rather than hiding it; far reaches the back of the whole model. None when nothing
+    moved (or the point counts differ), or when the whole model's ``whole_camera`` already
+    shows the changed part nearly as large (less than :data:`CLOSEUP_GAIN` times smaller)."""
+    mask = framing.moved_mask(before, after)
+    if mask is None:
+        return None
+    whole = [np.asarray(before), np.asarray(after)]
+    if view.camera is not None:
+        basis, fov, up_vector = view.camera.basis(), float(view.camera.fov), view.camera.up
+    else:
+        up = view.up or default_up(models)
+        elevation = view.elevation
+        if elevation is None:
+            elevation = framing.default_elevation(framing.stacked(whole), up)
+        probe = orbit(np.zeros(3), 1.0, azimuth=view.azimuth, elevation=elevation,
+                      fov=view.fov, up=up, roll=view.roll)
+        basis, fov, up_vector = probe.basis(), float(view.fov), probe.up
+    changed = framing.stacked([whole[0][mask], whole[1][mask]])
+    with warnings.catch_warnings():   # the whole model's framing reports its outliers
+        warnings.simplefilter("ignore", framing.FramingNote)
+        position, target, near, far = framing.fit_frame(changed, basis, fov, aspect=aspect)
+    _, back = framing.clip_range(position, basis[2], target, whole)
+    camera = Camera(position, target, np.asarray(up_vector, np.float64), fov=fov, near=near,
+                    far=max(far, back))
+    if whole_camera is not None and whole_camera.near is not None and whole_camera.far \
+            is not None and _span(camera, changed, aspect) < CLOSEUP_GAIN * _span(
+                whole_camera, changed, aspect):
+        return None
+    return camera
+
+
+def _span(camera: Camera, points: np.ndarray, aspect: float) -> float:
+    """How much of the picture the (M, 3) ``points`` in front of ``camera`` span: the larger
+    of their width and height as fractions of the panel's (0 when none is in front)."""
+    homo = np.c_[points, np.ones(len(points))]
+    clip = homo @ (camera.projection(aspect) @ camera.view()).T
+    front = clip[:, 3] > 0
+    if not front.any():
+        return 0.0
+    ndc = clip[front, :2] / clip[front, 3:4]
+    return float(np.max(ndc.max(axis=0) - ndc.min(axis=0)) / 2.0)
 
 
 def _compose(images: list[np.ndarray], labels: Sequence[str],
@@ -120,15 +199,29 @@ def render_deformation_comparison(
     *,
     labels: Sequence[str] = ("before", "after"),
     covariance: str = "jacobian",
+    closeup: str | os.PathLike[str] | None = None,
 ) -> np.ndarray:
     """Before (delta C = 0) and after (``delta_c`` (k, 3)) from ONE upload of the basis
     ``values`` (N, k) / ``gradients`` (N, k, 3): the shader deforms, the CPU only frames
     (``view`` as in :func:`render_comparison`). Writes a PNG to ``out_path`` and its
-    ``OUT.camera.json`` when given; returns the composed image."""
+    ``OUT.camera.json`` when given; returns the composed image. ``closeup``: a second PNG (and
+    its camera file) framed on the points that moved (:func:`closeup_camera`), from the same
+    upload; not written when nothing moved."""
     with deformation_session(model, values, gradients, delta_c, view,
                              covariance=covariance) as (renderer, gpu, camera):
         rgba = [renderer.draw_rgba(gpu, camera, None), renderer.draw_rgba(gpu, camera, delta_c)]
         panel = renderer.size
+        close, close_rgba = None, []
+        if closeup is not None:
+            close = closeup_camera(view, model.positions,
+                                   deformed_positions(model, values, delta_c), [model],
+                                   panel[0] / panel[1], camera)
+        if close is not None:
+            close_rgba = [renderer.draw_rgba(gpu, close, None),
+                          renderer.draw_rgba(gpu, close, delta_c)]
     check_drawn(rgba[0], camera, [model.positions])
+    if close is not None:
+        _compose([np.ascontiguousarray(im[:, :, :3]) for im in close_rgba],
+                 closeup_labels(labels), closeup, close, panel)
     images = [np.ascontiguousarray(im[:, :, :3]) for im in rgba]
     return _compose(images, labels, out_path, camera, panel)

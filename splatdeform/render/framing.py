@@ -12,6 +12,10 @@ both horizontal extents (airborne LiDAR, terrain) gets :data:`FLAT_ELEVATION` de
 elevation by default instead of :data:`DEFAULT_ELEVATION`. ``zoom`` F narrows the field of view
 about the target by F (the camera stays where the lens angle ``fov`` put it): the written camera
 holds the narrowed angle, so a camera file re-renders the zoomed image.
+
+The changed part of an edit (:func:`moved_mask`): the points whose displacement is at least
+:data:`CHANGED_SHARE` of the largest one (the handle and the free region as they visibly move;
+the fixed region and the fit's residual wobble stay out). Batch reports frame a close-up on it.
 """
 
 from __future__ import annotations
@@ -30,6 +34,8 @@ FLAT_RATIO = 0.2         # up extent / smaller horizontal extent below this: a f
 FLAT_ELEVATION = 40.0    # degrees: the default elevation of flat scenes
 DEFAULT_ELEVATION = 20.0
 MAX_SAMPLE = 400_000     # points framed (a regular stride over larger sets)
+CHANGED_SHARE = 0.05     # a point moved when its displacement is 5 % of the largest or more
+STILL = 1e-9             # largest displacement / model diagonal below this: nothing moved
 
 
 class FramingNote(UserWarning):
@@ -156,6 +162,27 @@ def _outside(x: np.ndarray, y: np.ndarray, z: np.ndarray, fit: tuple[float, floa
         seen = (depth > 0) & (np.abs(x - cx) <= tx * depth * 1.0001) & (
             np.abs(y - cy) <= ty * depth * 1.0001)
     return int((~seen).sum())
+
+
+def moved_mask(before: np.ndarray, after: np.ndarray) -> np.ndarray | None:
+    """(N,) bool: the points of (N, 3) ``before`` whose displacement to (N, 3) ``after`` is at
+    least :data:`CHANGED_SHARE` of the largest displacement; None when the shapes differ or
+    nothing moved (the largest displacement below :data:`STILL` of the model's diagonal, or
+    no finite one)."""
+    before, after = np.asarray(before, np.float64), np.asarray(after, np.float64)
+    if before.shape != after.shape or before.ndim != 2 or before.shape[0] == 0:
+        return None
+    with np.errstate(invalid="ignore", over="ignore"):
+        moved = np.linalg.norm(after - before, axis=1)
+    finite = np.isfinite(moved) & np.all(np.isfinite(before), axis=1)
+    if not finite.any():
+        return None
+    largest = float(moved[finite].max())
+    pts = before[finite]
+    diagonal = float(np.linalg.norm(pts.max(axis=0) - pts.min(axis=0)))
+    if largest == 0.0 or largest <= STILL * diagonal:
+        return None
+    return finite & (moved >= CHANGED_SHARE * largest)
 
 
 def clip_range(eye: np.ndarray, forward: np.ndarray, target: np.ndarray,
