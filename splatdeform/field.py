@@ -95,7 +95,52 @@ def positions_digest(positions: np.ndarray) -> str:
 class Field:
     """A saved deformation: ``field(points)`` -> displaced points (M, 3) (the smooth field
     x + d(x), numpy float64, regions not applied), ``field.jacobian(points)`` -> (M, 3, 3),
-    ``field.apply(model)`` -> the deformed model as ``deform`` makes it."""
+    ``field.apply(model)`` -> the deformed model as ``deform`` makes it.
+
+    Made by ``splatdeform deform EDIT.yaml --save-field FIELD.npz`` (or
+    :func:`field_of_edit`); read with :meth:`Field.load`.
+
+    Parameters
+    ----------
+    fit : RbfFit
+        The fitted RBF (centers, weights, normalisation).
+    delta_c : ndarray, shape (k, 3)
+        The applied control displacement: the field is d(x) = b(x) delta_c.
+    meta : dict
+        The regions' selectors, each handle's name and columns, backend and splat settings
+        (see the module docstring).
+    arrays : dict of ndarray
+        ``frames``, ``inverses``, ``matrices`` and any stored indices.
+    path : Path, optional
+        The file it was loaded from (named in errors).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> import splatdeform as sd
+    >>> from pathlib import Path
+    >>> from splatdeform.edit.config import parse_edit
+    >>> from splatdeform.field import Field, field_of_edit
+    >>> from data_tools.synth import bumpy_bar
+    >>> _ = sd.save(bumpy_bar(2000), "bar.ply")
+    >>> edit = parse_edit({
+    ...     "input": "bar.ply", "output": "bar_bent.ply", "backend": "numpy",
+    ...     "regions": {"fixed": [{"box": {"min": [-1, -1, -1], "max": [1, 1, 1]}}],
+    ...                 "handle": [{"box": {"min": [3, -1, -1], "max": [5, 1, 1]}}]},
+    ...     "handle": {"transform": {"translate": [0, 0.5, 0]}}}, "edit")
+    >>> result = sd.run_edit(edit, base_dir=".", log=lambda line: None)
+    >>> field_of_edit(result, edit, Path(".")).save("lift.npz").name
+    'lift.npz'
+    >>> field = Field.load("lift.npz")
+    >>> field(np.array([[0.0, 0.0, 0.0], [4.0, 0.0, 0.0]])).round(2)   # x + d(x)
+    array([[0. , 0. , 0. ],
+           [4. , 0.5, 0. ]])
+    >>> other = bumpy_bar(3000, seed=1)              # another scan of the same part
+    >>> moved = field.apply(other)
+    >>> handle = other.positions[:, 0] >= 3
+    >>> np.allclose(moved.positions[handle], other.positions[handle] + [0, 0.5, 0])
+    True
+    """
 
     def __init__(self, fit: RbfFit, delta_c: np.ndarray, meta: dict, arrays: dict,
                  path: Path | None = None) -> None:

@@ -209,8 +209,18 @@ def cmd_select(args: argparse.Namespace) -> int:
 
     budget = _budget(args.memory_budget, cfg.memory_budget)
     streamed = should_stream(cfg, base / cfg.input, budget) and not args.drop_nonfinite
+    pairs = None   # a points: edit's (pairs, check pairs), drawn by -o; never fitted
     try:
-        if streamed:   # bigger than the budget: regions streamed, a sampled preview
+        if streamed and cfg.points is not None:
+            raise InputError("points: a control-point edit selects in memory (raise "
+                             "--memory-budget)")
+        if cfg.points is not None:
+            from splatdeform.edit.metaphors import points as pts
+
+            model = prepare_model(cfg, base, {}, args.drop_nonfinite)
+            sel, *pairs = pts.select(cfg, model, base)
+            counts = sel.counts()
+        elif streamed:   # bigger than the budget: regions streamed, a sampled preview
             from splatdeform.edit.stream.select import stream_select
 
             counts, sample, sel = stream_select(cfg, base, budget,
@@ -224,6 +234,9 @@ def cmd_select(args: argparse.Namespace) -> int:
         raise exc.in_file(args.config) from None
     print(format_counts(counts) + ("  (streamed within the memory budget; rings: see "
                                    "deform)" if streamed else ""))
+    if pairs is not None:
+        print(f"pairs {pairs[0].n:,}" + ("" if pairs[1] is None else
+                                        f", check pairs {pairs[1].n:,}") + " (not fitted)")
     if args.output is not None:
         from .render import render_comparison
 
@@ -234,6 +247,13 @@ def cmd_select(args: argparse.Namespace) -> int:
             args.camera = args.camera or (str(base / opts.camera) if opts.camera else None)
         view = _edit_view(cfg, args)
         overlays, legend = curve_overlays(cfg, model, base)
+        if pairs is not None:
+            from .render.pairs import pair_overlays
+
+            drawn, more = pair_overlays(
+                pairs[0].sources, pairs[0].targets, view, [model.positions], [model],
+                check=None if pairs[1] is None else (pairs[1].sources, pairs[1].targets))
+            overlays, legend = overlays + drawn, legend + more
         color = args.color or "region"   # a preview shows the regions unless --color says
         if color == "region":
             shown = preview_model(model, sel)

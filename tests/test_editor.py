@@ -175,6 +175,57 @@ def test_saved_yaml_reproduces_the_saved_model_byte_for_byte(bar_copy):
     assert not list(folder.glob(".*tmp*"))
 
 
+def test_save_writes_the_image_deform_render_writes_for_the_yaml(bar_copy):
+    """The editor's Save and ``deform --render`` on the saved YAML write the same PNG (pixels
+    and bytes) and camera file: render.size, azimuth, elevation, fov, zoom, up, roll, color
+    and a camera file (relative to the YAML) are all honoured."""
+    import json
+    import math
+
+    from PIL import Image
+
+    folder = bar_copy.parent
+    render = {"size": [240, 120], "azimuth": 55.0, "elevation": 25.0, "fov": 30.0, "zoom": 1.7,
+              "up": "+z", "roll": 8.0, "color": "elevation"}
+    (folder / "e.yaml").write_text(yaml.safe_dump({
+        "input": "bar.ply", "output": "out.ply", "backend": "numpy",
+        "regions": {"fixed": [{"box": {"min": [-1, -1, -1], "max": [1, 1, 1]}}],
+                    "handle": [{"box": {"min": [3, -1, -1], "max": [5, 1, 1]}}]},
+        "handle": {"transform": {"pivot": [3.5, 0, 0], "rotate": {"axis": [0, 0, 1],
+                                                                   "degrees": 25},
+                                 "translate": [0, 0.3, 0.1]}},
+        "fit": {"tolerance": 1e-3}, "render": render}))
+
+    def both(ed: EditorController, tag: str) -> tuple[np.ndarray, dict]:
+        where = folder / tag   # the saved YAML's paths are rewritten relative to its folder
+        where.mkdir()
+        saved = ed.save(model_path=where / "m.ply", config_path=where / "e.yaml",
+                        image_path=where / "e.png")
+        run = _cli("deform", str(saved.config), "-o", str(where / "cli.ply"),
+                   "--render", str(where / "cli.png"), "--quiet")
+        assert run.returncode == 0, run.stderr
+        assert (where / "cli.png").read_bytes() == saved.image.read_bytes()
+        cameras = [json.loads((where / f"{name}.camera.json").read_text())
+                   for name in ("e", "cli")]
+        assert cameras[0] == cameras[1]
+        return np.asarray(Image.open(saved.image).convert("RGB")), cameras[0]
+
+    ed = EditorController.from_config(folder / "e.yaml")
+    ed.fit()
+    image, camera = both(ed, "zoomed")
+    assert image.shape[1] == 240 and image.std() > 5
+    unzoomed = math.degrees(2 * math.atan(math.tan(math.radians(camera["fov_y_degrees"]) / 2)
+                                          * 1.7))
+    assert unzoomed == pytest.approx(30.0)   # render.zoom narrowed the 30-degree lens
+    assert camera["up"][2] > 0.5   # render.up: +z
+    # a camera file (relative to the YAML) wins over the view keys and brings the panel size
+    cam = dict(camera, width=150, height=100, fov_y_degrees=40.0)
+    (folder / "hand.camera.json").write_text(json.dumps(cam))
+    ed.settings.render.camera = "hand.camera.json"
+    image, camera = both(ed, "camera")
+    assert image.shape[1] == 300 and camera["fov_y_degrees"] == 40.0
+
+
 def test_two_handles_save_as_handles_and_reopen(bar_copy):
     ed = EditorController.open(bar_copy)
     ed.add_selector("fixed", Box((1.6, -1, -1), (2.4, 1, 1)))
@@ -378,3 +429,68 @@ def test_default_save_names_keep_a_double_extension(tmp_path):
     model, config, image = default_paths(ed)
     assert (model.name, config.name, image.name) == ("x_edited.compressed.ply", "x_edit.yaml",
                                                       "x_edit.png")
+
+
+# ---- control-point pairs (points:, issue 36) ----------------------------------------------
+def _points_edit(folder: Path, bar: Path, *, fixed: bool) -> Path:
+    """An edit YAML with a pairs file (and optionally a fixed region) next to ``bar``."""
+    (folder / "gcp.csv").write_text("x,y,z,X,Y,Z\n3.5,0,0,3.5,0.3,0.1\n4.5,0.2,0,4.6,0.5,0\n"
+                                    "2.5,-0.2,0.1,2.5,0,0.2\n4,0,-0.1,4,0.2,0\n")
+    text = f"input: {bar.name}\noutput: pts_out.ply\nfit: {{tolerance: 0.001}}\n"
+    if fixed:
+        text += "regions:\n  fixed: [{box: {min: [-1,-1,-1], max: [1,1,1]}}]\n"
+    path = folder / "pts.yaml"
+    path.write_text(text + "points:\n  pairs: {file: gcp.csv}\n")
+    return path
+
+
+@pytest.mark.parametrize("fixed", [True, False], ids=["fixed", "pairs-only"])
+def test_points_edit_loads_fits_and_saves_points(bar_copy, fixed):
+    from splatdeform.editor.session import Session
+
+    folder = bar_copy.parent
+    ed = EditorController.open(_points_edit(folder, bar_copy, fixed=fixed))
+    assert ed.points is not None and ed.live_handles() == []
+    assert ed.problem() is None
+    session = Session(ed)
+    st = session.state()
+    assert st["points"]["n"] == 4 and st["points"]["after"] is None
+    st = session.act({"op": "fit"})
+    pts = st["points"]
+    assert not st["stale"] and st["fit"]["k"] == 3 and len(pts["delta"]) == 3
+    # after: the field sends each source onto its target (exact pairs)
+    assert np.abs(np.array(pts["after"]) - np.array(pts["targets"])).max() < 1e-5
+    sub = folder / "sub"
+    sub.mkdir()
+    result = ed.save(sub / "m.ply", sub / "e.yaml", image=False)
+    data = yaml.safe_load(result.config.read_text())
+    assert (sub / data["points"]["pairs"]["file"]).resolve() == (folder / "gcp.csv").resolve()
+    assert "handle" not in data and "handles" not in data
+    run = _cli("deform", str(result.config), "-o", str(sub / "again.ply"))
+    assert run.returncode == 0, run.stderr
+    assert (sub / "again.ply").read_bytes() == result.model.read_bytes()
+    back = EditorController.from_config(result.config)
+    again = Session(back).state()["points"]
+    assert again["sources"] == pts["sources"] and again["targets"] == pts["targets"]
+
+
+def test_chromium_draws_the_pairs(bar_copy):
+    """A points: edit in the page: the pairs drawn as line segments source -> target (one per
+    pair) with their dots, before any fit."""
+    from browser import Chromium
+
+    proc, port, url = start_editor(_points_edit(bar_copy.parent, bar_copy, fixed=True))
+    try:
+        with Chromium(size=(1000, 700), timeout=120) as tab:
+            tab.open(url)
+            tab.wait("window.sdReady === true || !!window.sdError", 120)
+            assert tab.eval("window.sdError || ''") == "", tab.console
+            tab.wait("window.sdDebug.pairs().children.length >= 3", 60)
+            segments = tab.eval("window.sdDebug.pairs().children[0].geometry"
+                                ".getAttribute('position').count")
+            info = tab.eval("document.getElementById('fitfigures').innerText")
+    finally:
+        proc.send_signal(signal.SIGTERM)
+        proc.communicate(timeout=30)
+    assert segments == 8   # 4 pairs, 2 vertices each
+    assert "pairs 4" in info

@@ -135,3 +135,53 @@ def test_pairs_file_and_cli(tmp_path):
     (tmp_path / "bad.yaml").write_text(
         "input: in.ply\noutput: out.ply\npoints:\n  pairs: {file: gcp.csv}\n")
     assert main(["deform", str(tmp_path / "bad.yaml")]) == 2
+
+
+def test_select_draws_pairs_without_fitting(tmp_path, capsys):
+    """``select -o`` of a points: edit: arrows of the arrow colour at every projected source and
+    target (the camera file the PNG wrote); no fit (no output model)."""
+    from PIL import Image
+
+    from splatdeform.cli import main
+    from splatdeform.io import save
+    from splatdeform.render.camera import load_camera
+    from splatdeform.render.compare import LABEL_HEIGHT
+    from splatdeform.render.overlay import project
+    from splatdeform.render.pairs import ARROW_COLOR, CHECK_COLOR
+
+    rng = np.random.default_rng(4)
+    save(PointModel(positions=rng.uniform(0, 10, (5000, 3))), tmp_path / "in.ply")
+    src = np.array([[1, 1, 1], [9, 1, 2], [5, 9, 5], [5, 5, 9], [2, 7, 3]], float)
+    dst = src + [[0.6, 0, 0], [0, 0.7, 0], [0, 0, 0.8], [0.5, 0.5, 0], [-0.6, 0, 0.3]]
+    rows = ", ".join(str([*a, *b]) for a, b in zip(src.tolist(), dst.tolist(), strict=True))
+    (tmp_path / "e.yaml").write_text(
+        f"input: in.ply\noutput: out.ply\npoints:\n  pairs: [{rows}]\n"
+        "  check_pairs: [[3, 3, 3, 3.5, 3, 3]]\n")
+    out = tmp_path / "sel.png"
+    assert main(["select", str(tmp_path / "e.yaml"), "-o", str(out)]) == 0
+    text = capsys.readouterr().out
+    assert "pairs 5, check pairs 1 (not fitted)" in text
+    assert not (tmp_path / "out.ply").exists()
+    image = np.asarray(Image.open(out).convert("RGB"))
+    camera, size = load_camera(tmp_path / "sel.camera.json")
+    for color, points in ((ARROW_COLOR, np.vstack([src, dst])),
+                          (CHECK_COLOR, np.array([[3.0, 3, 3], [3.5, 3, 3]]))):
+        hit = np.all(image == color, axis=2)
+        xy, front = project(camera, points, size)
+        assert front.all()
+        for x, y in xy:
+            r, c = int(round(y)) + LABEL_HEIGHT, int(round(x))
+            assert hit[max(r - 6, 0):r + 7, max(c - 6, 0):c + 7].any(), (color, x, y)
+    # a refusal names the row, as deform's
+    (tmp_path / "bad.yaml").write_text(
+        "input: in.ply\noutput: out.ply\npoints:\n  pairs: [[1,1,1,2,1,1],[1,1,1,2,1,1],"
+        "[9,1,2,9,1,2],[5,9,5,5,9,5],[5,5,9,5,5,9]]\n")
+    assert main(["select", str(tmp_path / "bad.yaml"), "-o", str(tmp_path / "b.png")]) == 2
+    assert "points.pairs[1] duplicates points.pairs[0]" in capsys.readouterr().err
+
+
+def test_arrow_exaggeration_is_round():
+    from splatdeform.render.pairs import exaggeration
+
+    assert exaggeration(np.array([[1.0, 0, 0]]), 10.0) == 1.0
+    assert exaggeration(np.array([[0.01, 0, 0]]), 100.0) == 500.0

@@ -7,25 +7,13 @@ Actions: add / move / resize / remove selectors, :meth:`EditorController.fit`,
 :mod:`.frames`) and :meth:`EditorController.save` (deformed model, edit YAML, before/after PNG:
 :mod:`.saving`). The state changes only through these public methods (also
 :meth:`~EditorController.store_pose`, :meth:`~EditorController.set_covariance`,
-:meth:`~EditorController.snapshot` / :meth:`~EditorController.restore` for undo).
-
-Everything goes through the same pipeline as ``splatdeform deform``: the config models
+:meth:`~EditorController.snapshot` / :meth:`~EditorController.restore` for undo). Everything
+goes through the same pipeline as ``splatdeform deform``: the config models
 (:mod:`splatdeform.edit.config`), :func:`splatdeform.edit.precompute` for rings, fit and basis, and
 :func:`splatdeform.deform.apply` for the saved model, so the saved YAML reproduces the saved model
 byte for byte. One or more handles (``handles:`` in the YAML when there are several): one
 fit, one basis, one 4x4 pose per handle; and/or a curve (:mod:`.curve`, ``curve:``), whose pose
-is its moved control points.
-
-Example::
-
-    from splatdeform.editor import EditorController
-    from splatdeform.edit.selectors import Box
-    ed = EditorController.open("bar.ply")
-    ed.add_selector("fixed", Box((-1, -1, -1), (1, 1, 1)))
-    ed.add_selector("handle", Box((3, -1, -1), (5, 1, 1)))
-    ed.fit()
-    frame = ed.set_pose(matrix)          # (4, 4) affine -> new positions / normals / ...
-    ed.save()                            # bar_edited.ply, bar_edit.yaml, bar_edit.png
+is its moved control points. Example: :class:`EditorController` (run as a doctest).
 """
 
 from __future__ import annotations
@@ -70,6 +58,19 @@ class EditorController:
     relative to. config: the edit's other settings (boundary, fit, normals, backend, device,
     render) as an :class:`EditConfig`; its regions and handle are rebuilt from the editor state
     by :meth:`to_config`. model_path: the input file. config_path: the EDIT.yaml it came from.
+
+    Examples
+    --------
+    >>> from splatdeform import Box, compose_transform, editor, save
+    >>> from data_tools.synth import bumpy_bar
+    >>> ed = editor.EditorController.open(save(bumpy_bar(2000), "bar.ply"))
+    >>> ed.settings.backend = "numpy"                # the basis on the CPU
+    >>> _ = ed.add_selector("fixed", Box((-1, -1, -1), (1, 1, 1)))
+    >>> _ = ed.add_selector("handle", Box((3, -1, -1), (5, 1, 1)))
+    >>> stats = ed.fit()                             # rings, fit and basis, once
+    >>> frame = ed.set_pose(compose_transform(pivot=(4, 0, 0), translate=(0, 0.5, 0)))
+    >>> stats["converged"], ed.save(image=False).config.name   # and bar_edited.ply
+    (True, 'bar_edit.yaml')
     """
 
     def __init__(self, model: PointModel, *, model_path: str | Path, base_dir: str | Path,
@@ -83,6 +84,8 @@ class EditorController:
         self.fixed: list[Selector] = []
         self.handles: list[HandleState] = [HandleState()]
         self.curve: CurveState | None = None  # a curve edit (``curve:``), with or without handles
+        self.points: Any = None      # ``points:`` pairs as loaded (arrows; fitted with the rest)
+        self.points_fit: Any = None  # the last fit's PointsFit (pairs in model units, g)
         self._curve_cache: tuple[Any, CurveView] | None = None
         self.settings = config if config is not None else parse_edit(
             saving.bare_settings(self.model_path), str(self.model_path))
@@ -129,6 +132,7 @@ class EditorController:
         ed.handles = [HandleState([s.to_selector() for s in region])
                       for _, _, region in entries] or [HandleState()]
         ed.curve = None if cfg.curve is None else CurveState.from_config(cfg.curve)
+        ed.points = cfg.points
         masks = ed.masks()[1][:len(entries)]
         for (key, h, _), state, mask in zip(entries, ed.handles[:len(entries)], masks,
                                             strict=True):
@@ -220,12 +224,14 @@ class EditorController:
 
     def _regions_key(self) -> tuple:
         return (self.units, tuple(self.fixed), tuple(tuple(h.selectors) for h in self.handles),
-                None if self.curve is None else self.curve.basis_key())
+                None if self.curve is None else self.curve.basis_key(),
+                None if self.points is None else self.points.model_dump_json())
 
     def live_handles(self) -> list[HandleState]:
         """The handles the edit has: all of them, except the one empty handle of a curve edit
-        (a curve alone has no handle columns)."""
-        if self.curve is not None and len(self.handles) == 1 and not self.handles[0].selectors:
+        (a curve or pairs alone have no handle columns)."""
+        if (self.curve is not None or self.points is not None) and len(self.handles) == 1 \
+                and not self.handles[0].selectors:
             return []
         return self.handles
 
@@ -297,7 +303,7 @@ class EditorController:
         from splatdeform.edit.plain import metaphors
 
         fixed, handles = self.masks()
-        if not fixed.any():
+        if not fixed.any() and self.points is None:  # pairs need no fixed region
             check_regions(fixed, fixed)  # the CLI's line for an empty fixed region
         view = self.curve_view()
         if view is not None and view.problem is not None:
@@ -310,7 +316,8 @@ class EditorController:
                                      ("the handle region" if one else "it"))
         for mph in metaphors(self.to_config(), self.model, self.base_dir):
             check_metaphor(fixed, mph, self.model.n_points)
-        check_regions(fixed, self._moving())
+        if self.points is None:  # pairs: the fit's own checks (points.check_pairs)
+            check_regions(fixed, self._moving())
 
     def add_handle(self, selectors: list[Selector] | None = None) -> int:
         """A new handle (its own region and pose; one fit for all). Returns its index."""
@@ -342,7 +349,6 @@ class EditorController:
         ``progress(stage, fraction)`` is called as stages start. Returns the figures shown
         (counts, centers, residual, seconds per stage). Region errors are the CLI's lines."""
         from splatdeform.edit.result import fit_stats
-        from splatdeform.edit.run import precompute
 
         report = progress or (lambda stage, fraction: None)
         report("regions", 0.0)
@@ -351,9 +357,9 @@ class EditorController:
         key = (self._regions_key(), self._settings_key())
         report("rings, fit and basis", 0.1)
         t0 = time.perf_counter()
-        deformation = precompute(cfg, self.model, self.base_dir)
+        deformation, points_fit = saving.precompute(cfg, self.model, self.base_dir)
         report("viewer buffers", 0.9)
-        self.deformation = deformation
+        self.deformation, self.points_fit = deformation, points_fit
         self._fit_key = key
         self._frame_data = frames.prepare(self.model, deformation, self.origin)
         self.fit_stats = {
@@ -379,6 +385,8 @@ class EditorController:
         if self.curve is not None:
             given, moved, _ = self.curve.model_points(self.model, self.units)
             parts.append(moved - given)
+        if self.points_fit is not None:  # the pairs' columns come last: g I
+            parts.append(self.points_fit.delta())
         return np.vstack(parts)
 
     def set_pose(self, matrix: np.ndarray, handle: int = 0, *, full: bool = True) -> Frame:

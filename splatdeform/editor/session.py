@@ -130,7 +130,8 @@ class Session:
                    "stats": {k: _json_value(v) for k, v in self.last_fit.items()}}
         return {
             "selectors": sels, "handles": len(ed.handles), "fit": fit, "stale": ed.stale,
-            "curve": self._curve_info(), "covariance": ed.covariance,
+            "curve": self._curve_info(), "points": self._points_info(),
+            "covariance": ed.covariance,
             "poses": [payload.model_to_local(ed, ed.pose(h)).tolist()
                       for h in range(len(ed.handles))],
             "counts": ed.counts(), "problem": ed.problem(),
@@ -154,6 +155,28 @@ class Session:
                 "capture_radius": radius, "band": int(view.band.sum()),
                 "samples": (view.samples - ed.origin).tolist(), "weights": view.weights.tolist(),
                 "problem": view.problem, "yaml": ed.curve.to_yaml()}
+
+    def _points_info(self) -> dict[str, Any] | None:
+        """The control-point pairs for the page (local coordinates): sources, targets (the
+        arrows before), the pair columns' rows of delta C (g I; they come after the handles'
+        and the curve's) and, with a current fit, where the field sends each source (after)."""
+        ed = self.ed
+        if ed.points is None:
+            return None
+        from splatdeform.deform.points import pair_errors
+        from splatdeform.edit.metaphors.points import pairs_of
+
+        fit = ed.points_fit if not ed.stale else None
+        pairs = fit.pairs if fit is not None else pairs_of(ed.settings, ed.model,
+                                                          ed.base_dir)[0]
+        info: dict[str, Any] = {"n": pairs.n, "sources": (pairs.sources - ed.origin).tolist(),
+                                "targets": (pairs.targets - ed.origin).tolist(),
+                                "delta": None, "after": None}
+        if fit is not None:
+            info["delta"] = fit.delta().tolist()
+            moved = pairs.targets + pair_errors(ed.deformation, pairs, ed.delta_c())
+            info["after"] = (moved - ed.origin).tolist()
+        return info
 
     # ---- actions ------------------------------------------------------------------------
     def act(self, req: dict[str, Any]) -> dict[str, Any]:

@@ -189,3 +189,32 @@ def report(cfg: EditConfig, model: PointModel, base_dir: Path, deformation, fit:
     check_err = None if check is None else pair_errors(deformation, check, delta_c)
     return PointsReport(fit, pair_errors(deformation, fit.pairs, delta_c), check, check_err,
                         outside_hull(fit.pairs.sources, model.positions), model.n_points)
+
+
+def select(cfg: EditConfig, model: PointModel, base_dir: Path):
+    """What ``select`` shows of a ``points:`` edit, without the fit: the fixed region and its
+    rings and any handles' and curves' regions exactly as ``deform`` computes them, and the
+    pairs and check pairs (model units), checked as ``deform`` checks them (the same one-line
+    refusals). Returns (:class:`~splatdeform.edit.selection.Selection`, pairs, check or None).
+    """
+    from splatdeform.deform.points import _rings_of_fixed, check_pairs
+    from splatdeform.deform.regions import layout
+    from splatdeform.edit import plain
+    from splatdeform.edit.selection import Selection, moving_label
+
+    pairs, check = pairs_of(cfg, model, base_dir)
+    fixed = plain.fixed_mask(cfg, model, base_dir) if cfg.regions.fixed else \
+        np.zeros(model.n_points, dtype=bool)
+    metaphors = plain.metaphors(cfg, model, base_dir)
+    lo, hi = model.bbox()
+    check_pairs(pairs, lo, hi, anchored=bool(metaphors) or bool(fixed.any()))
+    if metaphors:
+        lay = layout(model, fixed, metaphors, continuity=cfg.boundary.continuity,
+                     neighbors=cfg.boundary.neighbors)
+        sel = Selection(lay.fixed, lay.moving, list(lay.fixed_rings), list(lay.moving_rings),
+                        moving_label(cfg))
+    else:
+        rings = _rings_of_fixed(model, fixed, cfg.boundary.continuity, cfg.boundary.neighbors) \
+            if fixed.any() else []
+        sel = Selection(fixed, np.zeros(model.n_points, dtype=bool), rings, [], "moving")
+    return sel, pairs, check

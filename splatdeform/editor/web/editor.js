@@ -234,8 +234,13 @@ function computeDelta() {
       for (let j = 0; j < 3; j++) d[3 * k + j] = t[j] - c[j];
     }
     const cv = S.state.curve;
-    for (let k = H; cv && k < K; k++) {  // delta = moved_to - control point
+    const C = cv ? cv.control.length : 0;
+    for (let k = H; cv && k < H + C && k < K; k++) {  // delta = moved_to - control point
       for (let j = 0; j < 3; j++) d[3 * k + j] = cv.moved[k - H][j] - cv.control[k - H][j];
+    }
+    const pt = S.state.points;  // control-point pairs: the last 3 columns, delta = g I
+    if (pt && pt.delta && K >= H + C + 3) {
+      for (let r = 0; r < 3; r++) for (let j = 0; j < 3; j++) d[3 * (K - 3 + r) + j] = pt.delta[r][j];
     }
   }
   S.delta = d;
@@ -264,7 +269,7 @@ function fitFigures(st) {
 
 function curveDelta() {  // the curve's rows of delta C (k_curve x 3), zeros without a live fit
   const cv = S.state && S.state.curve, k = cv ? cv.control.length : 0, H = S.fit.control ? S.fit.control.length : 0;
-  const live = S.state && !S.state.stale && S.fit.basis && S.fit.k === H + k;
+  const live = S.state && !S.state.stale && S.fit.basis && S.fit.k === H + k + (S.state.points ? 3 : 0);
   return Array.from({ length: k }, (_, i) => [0, 1, 2].map((j) => (live ? cv.moved[i][j] - cv.control[i][j] : 0)));
 }
 function renderCurve() {
@@ -285,6 +290,29 @@ function renderCurve() {
     g.setAttribute('position', new THREE.BufferAttribute(new Float32Array(pts.flat()), 3));
     curveGroup.add(new THREE.Line(g, new THREE.LineBasicMaterial({ color: 0xff781e, depthTest: false })));
   }
+}
+
+// ---- control-point pairs: arrows source -> target (magenta, before), and with a current fit
+// where the field sends each source (green dots, after; on the targets for an exact fit)
+const pairsGroup = new THREE.Group();
+scene3.add(pairsGroup);
+function renderPairs() {
+  for (const o of [...pairsGroup.children]) { pairsGroup.remove(o); o.geometry.dispose(); o.material.dispose(); }
+  const pt = S.state && S.state.points;
+  if (!pt) return;
+  const seg = new Float32Array(6 * pt.n);
+  for (let i = 0; i < pt.n; i++) seg.set([...pt.sources[i], ...pt.targets[i]], 6 * i);
+  const g = new THREE.BufferGeometry();
+  g.setAttribute('position', new THREE.BufferAttribute(seg, 3));
+  pairsGroup.add(new THREE.LineSegments(g, new THREE.LineBasicMaterial({ color: 0xe600c8, depthTest: false })));
+  const dot = (pts, color) => {
+    const q = new THREE.BufferGeometry();
+    q.setAttribute('position', new THREE.BufferAttribute(new Float32Array(pts.flat()), 3));
+    return new THREE.Points(q, new THREE.PointsMaterial({ color, size: 7, sizeAttenuation: false, depthTest: false }));
+  };
+  pairsGroup.add(dot(pt.sources, 0x141414));
+  pairsGroup.add(dot(pt.targets, 0xe600c8));
+  if (pt.after) pairsGroup.add(dot(pt.after, 0x14a028));
 }
 
 // P + B delta C on the CPU (depth-sort keys and picking); positions when there is no fit.
@@ -420,7 +448,8 @@ async function applyState(st) {
     (st.problem ? `\n⚠ ${st.problem}` : '');
   $('fitinfo').textContent = !st.fit ? 'no fit yet: mark fixed and handle regions, then Fit'
     : st.stale ? 'fit is stale (regions changed): Fit again' : `fit current · k = ${st.fit.k} · drag the handle gizmo`;
-  $('fitfigures').textContent = fitFigures(st);
+  $('fitfigures').textContent = fitFigures(st) + (st.points ? `\npairs ${st.points.n}: arrows source → target (magenta)` +
+    (st.points.after ? ', fitted sources green' : ', Fit moves the sources onto them') : '');
   $('undo').disabled = !st.can_undo; $('redo').disabled = !st.can_redo;
   const sel = $('active-handle');
   sel.innerHTML = '';
@@ -435,6 +464,7 @@ async function applyState(st) {
   renderTree();
   renderOutlines();
   renderCurve();
+  renderPairs();
   const cv = st.curve;
   $('curveinfo').textContent = !cv ? 'no curve: click control points on the model'
     : `${cv.control.length} control points · band ${cv.band} points` + (cv.problem ? `\n⚠ ${cv.problem}` : '');
@@ -954,7 +984,7 @@ async function start() {
 }
 window.sdApply = applyState;
 window.sdGizmo = gizmo;
-window.sdDebug = { model: () => model, outlines, gizmo, order: () => S.order, curve: () => curveGroup };
+window.sdDebug = { model: () => model, outlines, gizmo, order: () => S.order, curve: () => curveGroup, pairs: () => pairsGroup };
 window.sdAct = async (req) => { const st = await act(req); await applyState(st); return st; };
 window.sdState = () => S.shown;
 window.sdSelect = (ref) => { S.selected = ref; renderTree(); attachGizmo(); };
