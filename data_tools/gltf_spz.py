@@ -22,7 +22,9 @@ from splatdeform.io.splats import SH_COEFFS, fields_of
 def write(model, path: str | Path, name: str = gltf.SPZ_EXTS[0], version: int = 3) -> Path:
     """Write ``model`` (3D Gaussian splats) to ``path`` as an SPZ-compressed glb."""
     f = fields_of(model, path, ".glb")
-    blob = gzip.compress(spz.encode(f, version=version, frame=spz.LUF), mtime=0)
+    stream = spz.encode(f, version=version, frame=spz.LUF)
+    # v2/v3: the gzip'd stream; v4: the version-4 file itself (header, table, ZSTD streams)
+    blob = spz.write_v4(stream) if version == 4 else gzip.compress(stream, mtime=0)
     degree = {k: d for d, k in SH_COEFFS.items()}[f.sh_rest.shape[2]]
     luf = f.positions * spz.LUF_FLIP
     attributes = {"POSITION": ("VEC3", {"min": luf.min(axis=0).tolist(),

@@ -12,6 +12,7 @@
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
 
 import numpy as np
@@ -65,6 +66,18 @@ def sh_layout(n_rest: int) -> tuple[int, int]:
     return degree, per_channel
 
 
+_BAND4_SAID: list[bool] = []
+
+
+def _band4_once() -> None:
+    """SH band 4 (a degree-4 file: SPZ v4, 72 f_rest) is kept in saves but not drawn: say so
+    once per process."""
+    if not _BAND4_SAID:
+        _BAND4_SAID.append(True)
+        warnings.warn("SH band 4 is kept in the files written but not drawn: renders and the "
+                      "editor use SH bands 0-3", UserWarning, stacklevel=3)
+
+
 def sigmoid(x: np.ndarray) -> np.ndarray:
     """Logistic function, overflow-free, float64."""
     x = np.asarray(x, dtype=np.float64)
@@ -103,6 +116,8 @@ def gaussian_data(model: PointModel) -> GaussianData:
     sh_rest = None
     if g.sh_rest is not None and g.sh_dc is not None and not own_colors:
         degree, rest = sh_layout(np.asarray(g.sh_rest).shape[1])
+        if rest > SH_REST_PER_DEGREE[3]:
+            _band4_once()
         if degree:
             sh_rest = np.ascontiguousarray(np.asarray(g.sh_rest)[:, : 3 * rest], dtype=np.float32)
     return GaussianData(
