@@ -34,3 +34,15 @@ def test_band4_is_kept_and_a_render_says_once_it_is_not_drawn(tmp_path: Path) ->
     said = [ln for ln in res.stderr.splitlines() if "SH band 4" in ln]
     assert len(said) == 1 and said[0].startswith("splatdeform: warning: "), res.stderr
     assert (tmp_path / "x.png").stat().st_size > 0
+
+
+def test_the_editor_page_gets_bands_0_to_3(tmp_path: Path) -> None:
+    from splatdeform.editor import EditorController
+    from splatdeform.editor.payload import model_arrays, sh_degree
+
+    src = _degree4(tmp_path / "d4.ply")
+    ed = EditorController.open(src)
+    arrays = model_arrays(ed, None)
+    rest = load(src).gaussians.sh_rest.reshape(-1, 3, 24)
+    assert sh_degree(ed) == 3 and arrays["sh_rest"].shape[1] == 45
+    np.testing.assert_array_equal(arrays["sh_rest"].reshape(-1, 3, 15), rest[:, :, :15])

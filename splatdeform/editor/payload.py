@@ -18,7 +18,7 @@ import numpy as np
 from ..deform import full_basis
 from ..deform.normals import pca_normals
 from ..render.camera import default_up
-from ..render.gaussian_data import log_scale_shape
+from ..render.gaussian_data import warn_band4_not_drawn, log_scale_shape
 from . import view
 from .controller import EditorController
 from .frames import gaussian_cov6
@@ -78,7 +78,11 @@ def model_arrays(ed: EditorController, normals: np.ndarray | None = None
         out["cov6"] = gaussian_cov6(m)
         out["shape"] = log_scale_shape(g.scale_log)
         if g.sh_rest is not None and g.sh_rest.shape[1] >= 9:
-            out["sh_rest"] = np.ascontiguousarray(g.sh_rest, dtype=np.float32)
+            rest = np.asarray(g.sh_rest, dtype=np.float32)
+            if rest.shape[1] > 45:   # SH band 4: the page draws bands 0-3 (and says so once)
+                warn_band4_not_drawn()
+                rest = rest.reshape(len(rest), 3, -1)[:, :, :15].reshape(len(rest), 45)
+            out["sh_rest"] = np.ascontiguousarray(rest)
     return out
 
 
@@ -87,7 +91,7 @@ def sh_degree(ed: EditorController) -> int:
     if g is None or g.sh_rest is None:
         return 0
     per_channel = g.sh_rest.shape[1] // 3
-    return {3: 1, 8: 2, 15: 3}.get(per_channel, 0)
+    return {3: 1, 8: 2, 15: 3, 24: 3}.get(per_channel, 0)   # band 4 (24) is drawn as 3
 
 
 def scene_info(ed: EditorController, arrays: dict[str, np.ndarray] | None = None,

@@ -69,7 +69,7 @@ def sh_layout(n_rest: int) -> tuple[int, int]:
 _BAND4_SAID: list[bool] = []
 
 
-def _band4_once() -> None:
+def warn_band4_not_drawn() -> None:
     """SH band 4 (a degree-4 file: SPZ v4, 72 f_rest) is kept in saves but not drawn: say so
     once per process."""
     if not _BAND4_SAID:
@@ -117,7 +117,7 @@ def gaussian_data(model: PointModel) -> GaussianData:
     if g.sh_rest is not None and g.sh_dc is not None and not own_colors:
         degree, rest = sh_layout(np.asarray(g.sh_rest).shape[1])
         if rest > SH_REST_PER_DEGREE[3]:
-            _band4_once()
+            warn_band4_not_drawn()
         if degree:
             sh_rest = np.ascontiguousarray(np.asarray(g.sh_rest)[:, : 3 * rest], dtype=np.float32)
     return GaussianData(
