@@ -18,7 +18,7 @@ import numpy as np
 from ..deform import full_basis
 from ..deform.normals import pca_normals
 from ..render.camera import default_up
-from ..render.gaussian_data import warn_band4_not_drawn, log_scale_shape
+from ..render.gaussian_data import log_scale_shape, warn_band4_not_drawn
 from . import view
 from .controller import EditorController
 from .frames import gaussian_cov6
