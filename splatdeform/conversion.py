@@ -156,9 +156,48 @@ def convert_bytes(path: str | Path) -> int:
 def convert(src: str | Path, dst: str | Path, sim: Similarity | None = None, *,
             budget: int | None = None, drop_nonfinite: bool = False,
             log: Callable[[str], None] | None = None) -> str:
-    """Convert ``src`` to ``dst`` (formats by extension), moved by ``sim``. ``budget``: an
-    explicit memory budget in bytes (a cap: stream or refuse; None: half the RAM). Returns
-    ``"memory"`` or ``"stream"``: how it ran."""
+    """Convert ``src`` to ``dst`` (formats by extension), moved by ``sim``.
+
+    Parameters
+    ----------
+    src : str or Path
+        The input model (any readable format).
+    dst : str or Path
+        The output file (never the input); its extension picks the writer.
+    sim : Similarity, optional
+        The whole-scene similarity, e.g. :func:`similarity` of splat-transform's ``-r``,
+        ``-s``, ``-t`` (see the module docstring); None: no transform (load + save).
+    budget : int, optional
+        An explicit memory budget in bytes (a cap: stream or refuse); None: half the RAM.
+    drop_nonfinite : bool
+        Drop vertices with NaN/Inf coordinates instead of raising.
+    log : callable, optional
+        Receives the one-line note when the budget decided how it runs.
+
+    Returns
+    -------
+    str
+        ``"memory"`` or ``"stream"``: how it ran.
+
+    Raises
+    ------
+    InputError
+        One line: an unknown extension, the output is the input, over an explicit budget.
+
+    Examples
+    --------
+    >>> import splatdeform as sd
+    >>> from splatdeform.conversion import convert, similarity
+    >>> from data_tools.synth import gaussian_bar
+    >>> _ = sd.save(gaussian_bar(1000), "bar.ply")
+    >>> convert("bar.ply", "bar.splat")
+    'memory'
+    >>> convert("bar.ply", "bar_up.ply", similarity(translate=(0, 0, 2), scale=0.5))
+    'memory'
+    >>> before, after = sd.load("bar.ply"), sd.load("bar_up.ply")
+    >>> bool(abs(after.positions - (0.5 * before.positions + [0, 0, 2])).max() < 1e-5)
+    True
+    """
     from . import memory
     from .io import FORMATS, STREAMABLE, SUPPORTED, extension_of, load, save
     from .io.atomic import check_io_paths
