@@ -34,11 +34,11 @@ _LAZY = {
     "load": "io", "save": "io", "PointModel": "model",
     "Box": "edit.selectors", "Indices": "edit.selectors", "Plane": "edit.selectors",
     "Property": "edit.selectors", "Sphere": "edit.selectors", "select": "edit.selectors",
-    "run_edit": "edit", "load_edit": "edit", "Field": "field", "convert": "convert",
+    "run_edit": "edit", "load_edit": "edit", "Field": "field", "convert": "conversion",
 }
 
 if TYPE_CHECKING:  # pragma: no cover
-    from .convert import convert
+    from .conversion import convert
     from .deform import (
         Deformation,
         apply,

@@ -38,7 +38,7 @@ def cmd_apply(args: argparse.Namespace) -> int:
 
 
 def cmd_convert(args: argparse.Namespace) -> int:
-    from .convert import convert, parse_scale, parse_triple, similarity
+    from .conversion import convert, parse_scale, parse_triple, similarity
     from .io.pcd import data_encoding
     from .io.sog import quality
     from .memory import budget_bytes

@@ -13,7 +13,7 @@ from sh_scene import TILE, sh_tile
 
 from data_tools import splat_transform
 from splatdeform.cli import main
-from splatdeform.convert import convert, similarity, transform_model
+from splatdeform.conversion import convert, similarity, transform_model
 from splatdeform.io import load, save
 from splatdeform.io.splats import LossyWriteWarning
 

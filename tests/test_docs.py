@@ -78,12 +78,14 @@ def test_docs_build_strict(tmp_path):
 DOCTESTED = [
     "splatdeform.io:load", "splatdeform.io:save",
     "splatdeform.edit.run:run_edit", "splatdeform.edit.config:load_edit",
+    "splatdeform.conversion:convert",
+    "splatdeform.edit.selectors.box:Box", "splatdeform.edit.selectors.sphere:Sphere",
+    "splatdeform.edit.selectors.plane:Plane", "splatdeform.edit.selectors.indices:Indices",
+    "splatdeform.edit.selectors.prop:Property",
+    "splatdeform.deform.deformation:prepare_handle", "splatdeform.deform.deformation:Deformation",
+    "splatdeform.deform.model_apply:apply", "splatdeform.field:Field",
+    "splatdeform.editor.controller:EditorController",
 ]
-# Still to document with an Examples section (issue 39; add each here once it has one):
-# splatdeform.convert:convert, the selectors Box, Sphere, Plane, Indices, Property
-# (splatdeform.edit.selectors.*), splatdeform.deform.deformation:prepare_handle / Deformation,
-# splatdeform.deform.model_apply:apply, splatdeform.field:Field,
-# splatdeform.editor.controller:EditorController.
 
 
 @pytest.mark.parametrize("target", DOCTESTED)

@@ -65,8 +65,15 @@ def _assert_same(back, cfg, base: Path, config_dir: Path) -> None:
     if render is not None and render.output is not None:
         assert (config_dir / back.render.output).resolve() == (base / render.output).resolve()
         render = render.model_copy(update={"output": back.render.output})
+    points = cfg.points
+    for key in ("pairs", "check_pairs"):   # a pairs file: the same file
+        entry = None if points is None else getattr(points, key)
+        if entry is not None and getattr(entry, "file", None) is not None:
+            theirs = getattr(back.points, key)
+            assert (config_dir / theirs.file).resolve() == (base / entry.file).resolve()
+            points = points.model_copy(update={key: theirs})
     assert back == cfg.model_copy(update={"input": back.input, "output": back.output,
-                                          "render": render})
+                                          "render": render, "points": points})
 
 
 @pytest.mark.parametrize("path", SHIPPED, ids=lambda p: p.name)

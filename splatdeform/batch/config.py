@@ -47,9 +47,12 @@ class _Strict(BaseModel):
 
 
 class OverrideCfg(_Strict):
-    match: str = Field(min_length=1)
-    edit: dict[str, Any] = {}
-    render: dict[str, Any] | None = None   # BatchRenderCfg keys, merged into the batch's own
+    match: str = Field(min_length=1, description="A file-name pattern (fnmatch) of the scans "
+                       "this override applies to")
+    edit: dict[str, Any] = Field(default={}, description="Edit config keys deep-merged into "
+                                 "the edit of the matching scans (in order)")
+    render: dict[str, Any] | None = Field(  # BatchRenderCfg keys, merged into the batch's own
+        default=None, description="Batch `render` keys over the batch's own for these scans")
 
 
 class BatchRenderCfg(_Strict):
@@ -76,16 +79,27 @@ class BatchRenderCfg(_Strict):
 
 
 class BatchConfig(_Strict):
-    scans: str | list[str]
-    edit: str | dict[str, Any]
-    overrides: list[OverrideCfg] = []
-    output_dir: str = Field(min_length=1)
-    render: BatchRenderCfg | None = None
-    workers: StrictInt | None = Field(default=None, ge=1, le=512)
-    scheduler: str | None = Field(default=None, min_length=1, pattern=r"\S")
-    memory_per_worker_mb: float | None = Field(default=None, gt=0)
+    scans: str | list[str] = Field(description="A glob (** allowed), a folder (recursive), a "
+                                   ".zip/.tar/.tar.gz archive, or a list of these")
+    edit: str | dict[str, Any] = Field(description="An edit file or an inline edit mapping; its "
+                                       "input, output and render are filled per scan")
+    overrides: list[OverrideCfg] = Field(default=[], description="Per-scan changes to the "
+                                         "edit, by file name")
+    output_dir: str = Field(min_length=1, description="Where <stem>_deformed<ext>, the "
+                            "thumbnails and the reports go (not inside a scanned folder)")
+    render: BatchRenderCfg | None = Field(default=None, description="Before/after thumbnails "
+                                          "per scan (null: none)")
+    workers: StrictInt | None = Field(default=None, ge=1, le=512, description="Local worker "
+                                      "processes (null: the number of cores; `--workers` wins)")
+    scheduler: str | None = Field(default=None, min_length=1, pattern=r"\S",
+                                  description="A Dask scheduler address (tcp://HOST:PORT): run "
+                                  "on that cluster instead")
+    memory_per_worker_mb: float | None = Field(default=None, gt=0, description="Each worker's "
+                                               "memory budget (null: half the RAM / workers "
+                                               "running at once)")
     scan_timeout_s: float | None = Field(default=None, gt=0, le=MAX_TIMEOUT_S,
-                                         allow_inf_nan=False)
+                                         allow_inf_nan=False, description="A scan still "
+                                         "running after this is stopped and reported failed")
 
 
 @dataclass

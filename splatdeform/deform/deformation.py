@@ -48,6 +48,25 @@ class Deformation:
     kept: (m,) bool over the constraints: the thinned subset the incremental fit was given
     (None: every constraint). Dropped ring points are still fixed or moving points, so they
     get their prescribed values exactly; :func:`constraint_errors` covers all m.
+
+    Made by :func:`prepare_handle`, :func:`prepare_handles` or :func:`prepare_metaphors`
+    (and :meth:`splatdeform.field.Field.deformation`); applied by
+    :func:`splatdeform.deform.apply` for any control displacement delta_c (k, 3).
+
+    Examples
+    --------
+    >>> import splatdeform as sd
+    >>> from data_tools.synth import bumpy_bar
+    >>> bar = bumpy_bar(2000)
+    >>> fixed = sd.select(bar, [sd.Box(min=(-1, -1, -1), max=(1, 1, 1))])
+    >>> handle = sd.select(bar, [sd.Box(min=(3, -1, -1), max=(5, 1, 1))])
+    >>> d = sd.prepare_handle(bar, fixed, handle, backend="numpy")
+    >>> d.n_points, d.k, d.control_points.shape, d.frame is not None
+    (2000, 4, (4, 3), True)
+    >>> d.basis.values.shape == (d.free_idx.size, d.k)   # b(x) of every free point
+    True
+    >>> sorted(d.timings)
+    ['basis', 'fit', 'rings']
     """
 
     n_points: int
@@ -257,7 +276,49 @@ def prepare_handle(model: PointModel, fixed: np.ndarray, handle: np.ndarray, *,
                    continuity: int = 2, neighbors: int = 10, **settings) -> Deformation:
     """:func:`prepare_metaphors` for one handle mask (N,) bool (k = 4 affine frame
     coordinates). ``settings``: tolerance, max_centers, method, thinning, threads, backend,
-    device (when no ``fit_fn`` / ``basis_fn`` is given)."""
+    device (when no ``fit_fn`` / ``basis_fn`` is given).
+
+    Parameters
+    ----------
+    model : PointModel
+        The model to edit.
+    fixed, handle : ndarray of bool, shape (N,)
+        The fixed region (stays bit for bit) and the handle (moves by its 4x4 map); they must
+        not overlap, and the handle must touch the free region (every other point).
+    fit_fn, basis_fn : callable, optional
+        Your own fitter ``fit_fn(points, rhs)`` and basis ``basis_fn(points, fit)``; default:
+        :func:`fit_settings` / :func:`basis_settings` with ``settings``.
+    continuity : {0, 1, 2}
+        C0 / C1 / C2 at the region borders: 1 / 2 / 3 rings of constraints.
+    neighbors : int
+        The kNN size that makes the rings of a point cloud.
+    **settings
+        ``tolerance``, ``max_centers``, ``method``, ``thinning``, ``threads`` (the fit, as
+        the config's ``fit:``), ``backend``, ``device`` (the basis).
+
+    Returns
+    -------
+    Deformation
+        Rings, one fit and one basis: apply any 4x4 handle pose with :func:`apply`.
+
+    Raises
+    ------
+    RegionError
+        An empty or overlapping region, or a handle with no point next to the free region.
+
+    Examples
+    --------
+    >>> import splatdeform as sd
+    >>> from data_tools.synth import bumpy_bar
+    >>> bar = bumpy_bar(2000)                        # a bumpy cylinder, x in [0, 4]
+    >>> fixed = sd.select(bar, [sd.Box(min=(-1, -1, -1), max=(1, 1, 1))])
+    >>> handle = sd.select(bar, [sd.Box(min=(3, -1, -1), max=(5, 1, 1))])
+    >>> deformation = sd.prepare_handle(bar, fixed, handle, backend="numpy")
+    >>> deformation.k, deformation.fit.converged
+    (4, True)
+    >>> int(deformation.free_idx.size) == bar.n_points - int(fixed.sum() + handle.sum())
+    True
+    """
     fit_fn, basis_fn = _settings_fns(model, fit_fn, basis_fn, settings)
     if not handle.any():
         check_regions(fixed, handle)

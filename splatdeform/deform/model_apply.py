@@ -87,6 +87,49 @@ def apply(deformation: Deformation, model: PointModel, delta_c: np.ndarray, *,
     split: ``auto`` replaces free-region splats one Gaussian cannot follow by children
     appended after the originals (:mod:`splatdeform.deform.split`; ``stats`` then receives
     split_splats, split_children, split_capped); ``off`` (default) keeps the point count.
+
+    Parameters
+    ----------
+    deformation : Deformation
+        What :func:`prepare_handle` (or ``prepare_handles`` / ``prepare_metaphors``) made for
+        this model.
+    model : PointModel
+        The model it was prepared for (same points); never modified.
+    delta_c : ndarray, shape (k, 3)
+        The control displacement, e.g. :func:`delta_for` of the handle's 4x4 matrix.
+    moving_matrix : ndarray (4, 4) or list of them, optional
+        The handles' maps, applied verbatim to handle points.
+    covariance : {"jacobian", "rotation", "limited"}
+        How 3D Gaussian covariances deform (default ``jacobian``: J Sigma J^T).
+    stats : dict, optional
+        Receives ``refused_splats`` (and the ``split_*`` counts).
+    split : {"off", "auto"}
+        Split free-region splats one Gaussian cannot follow (``auto``).
+
+    Returns
+    -------
+    PointModel
+        The deformed copy: fixed points bit for bit, handle points by their 4x4 map.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> import splatdeform as sd
+    >>> from data_tools.synth import bumpy_bar
+    >>> bar = bumpy_bar(2000)                        # a bumpy cylinder, x in [0, 4]
+    >>> fixed = sd.select(bar, [sd.Box(min=(-1, -1, -1), max=(1, 1, 1))])
+    >>> handle = sd.select(bar, [sd.Box(min=(3, -1, -1), max=(5, 1, 1))])
+    >>> d = sd.prepare_handle(bar, fixed, handle, backend="numpy")
+    >>> lift = sd.compose_transform(pivot=(4, 0, 0), axis=(0, 0, 1), degrees=0,
+    ...                             translate=(0, 0.5, 0))
+    >>> bent = sd.apply(d, bar, sd.delta_for(d, lift), moving_matrix=lift)
+    >>> bool((bent.positions[fixed] == bar.positions[fixed]).all())    # bit for bit
+    True
+    >>> np.allclose(bent.positions[handle], bar.positions[handle] + [0, 0.5, 0])
+    True
+    >>> free = d.free_idx                            # between the two: a smooth blend
+    >>> bool(0 < (bent.positions[free] - bar.positions[free])[:, 1].mean() < 0.5)
+    True
     """
     if model.n_points != deformation.n_points:
         raise InputError(f"model: expected {deformation.n_points} points, got "

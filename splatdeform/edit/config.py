@@ -39,9 +39,12 @@ _Strict = Strict  # the root of the edit config's models (key paths come from th
 
 
 class RegionsCfg(_Strict):
-    units: Literal["model", "relative"] = "model"
-    fixed: list[SelectorCfg] = Field(default_factory=list)  # required but for points: alone
-    handle: list[SelectorCfg] | None = None
+    units: Literal["model", "relative"] = Field("model", description="`relative`: in [0, 1]^3 "
+                                                "of the bounding box (radii: of its diagonal)")
+    fixed: list[SelectorCfg] = Field(default_factory=list, description="Points that stay bit "
+                                     "for bit; required but for a `points:` edit alone")
+    handle: list[SelectorCfg] | None = Field(None, description="Points a `handle:` moves by "
+                                             "its 4x4 map (required with `handle:`)")
 
     @field_validator("fixed")
     @classmethod
@@ -58,8 +61,10 @@ MIN_SINGULAR_RATIO = 1e-9  # a handle's 3x3 part: smallest singular value / larg
 
 
 class RotateCfg(_Strict):
-    axis: Vec3 = [0.0, 0.0, 1.0]
-    degrees: Number = 0.0
+    axis: Vec3 = Field(default=[0.0, 0.0, 1.0], description="The rotation axis, a non-zero "
+                       "direction in model coordinates (never scaled by relative units)")
+    degrees: Number = Field(default=0.0, description="The angle about `axis` through the pivot "
+                            "(right-handed), within +-1e6")
 
     @field_validator("axis")
     @classmethod
@@ -86,10 +91,13 @@ def _bounded(values: list[float], what: str) -> list[float]:
 
 
 class TransformCfg(_Strict):
-    pivot: Literal["centroid"] | Vec3 = "centroid"
-    scale: Number | Vec3 = 1.0
-    rotate: RotateCfg = RotateCfg()
-    translate: Vec3 = [0.0, 0.0, 0.0]
+    pivot: Literal["centroid"] | Vec3 = Field("centroid", description="What the scale and "
+                                              "rotation are about (`centroid`: the handle's)")
+    scale: Number | Vec3 = Field(default=1.0, description="A factor, or one per axis [sx, sy, "
+                                 "sz], applied first (magnitudes between 1e-6 and 1e6)")
+    rotate: RotateCfg = Field(default=RotateCfg(), description="Applied after the scale")
+    translate: Vec3 = Field(default=[0.0, 0.0, 0.0], description="Applied last (in relative "
+                            "units scaled by the bounding-box extent per axis)")
 
     @field_validator("scale")
     @classmethod
@@ -160,9 +168,11 @@ def check_handle_matrix(matrix: Any, key: str, *, bound: float | None = MAX_VALU
 
 
 class HandleCfg(_Strict):
-    transform: TransformCfg | None = None
+    transform: TransformCfg | None = Field(None, description="Scale, rotate, translate about "
+                                           "a pivot (one of `transform`, `matrix`)")
     matrix: Annotated[list[Annotated[list[Number], Field(min_length=4, max_length=4)]],
-                      Field(min_length=4, max_length=4)] | None = None
+                      Field(min_length=4, max_length=4)] | None = Field(
+        None, description="4x4 affine rows, the last [0, 0, 0, 1]; not singular")
 
     @field_validator("matrix")
     @classmethod
@@ -182,69 +192,88 @@ class HandleCfg(_Strict):
 class HandleEntryCfg(HandleCfg):
     """One entry of ``handles:``: the ``handle:`` form plus its own ``region`` (selectors)."""
 
-    region: list[SelectorCfg] = Field(min_length=1)
+    region: list[SelectorCfg] = Field(min_length=1, description="This handle's points (not "
+                                      "overlapping the fixed region or another handle)")
 
 
 class CurveCfg(_Strict):
-    control_points: list[Vec3] = Field(min_length=2, max_length=MAX_CONTROL_POINTS)
-    moved_to: list[Vec3]
-    degree: int = Field(default=3, ge=1, le=5)
-    capture_radius: Number = Field(gt=0)
-    parametrization: Literal["uniform", "chord"] = "chord"
+    control_points: list[Vec3] = Field(min_length=2, max_length=MAX_CONTROL_POINTS,
+                                       description="The B-spline's control points (at least "
+                                       "degree + 1), each snapped to the nearest model point")
+    moved_to: list[Vec3] = Field(description="Where each control point goes (same count): "
+                                 "delta_c = moved_to - control_points")
+    degree: int = Field(default=3, ge=1, le=5, description="The spline degree")
+    capture_radius: Number = Field(gt=0, description="Model points within this distance of "
+                                   "the curve form the curve band that moves")
+    parametrization: Literal["uniform", "chord"] = Field("chord", description="Knot spacing")
 
 
 class BoundaryCfg(_Strict):
-    continuity: Literal[0, 1, 2] = 2
-    neighbors: int = Field(default=10, ge=3, le=200)
+    continuity: Literal[0, 1, 2] = Field(default=2, description="C0 / C1 / C2 at the region "
+                                         "borders: 1 / 2 / 3 rings of constraints")
+    neighbors: int = Field(default=10, ge=3, le=200, description="The kNN size that makes the "
+                           "rings of a point cloud (meshes use their faces)")
 
 
 class FitCfg(_Strict):
-    """``fit:``. tolerance bounds the largest constraint error |r_ic| over the kept (thinned)
-    constraints in the dimensionless coordinates of M (a kept ring point then misses its target
-    by at most k * tolerance * the largest control-point move); method ``auto`` takes the
-    cheapest of ``incremental``, the dense solve through the kept constraints (checked at every
-    ring point) and ``exact`` by predicted cost; thinning: ring thinning cell in
-    ring widths (0 keeps every ring point); threads: the exact solve's threads (default:
-    the CPUs this process may use). Defaults from the measured table in the README."""
+    """``fit:`` (a kept ring point misses its target by at most k * tolerance * the largest
+    control-point move). Defaults from the measured table in the README."""
 
-    tolerance: float = Field(default=DEFAULT_TOLERANCE, gt=0, lt=1)
-    max_centers: int = Field(default=DEFAULT_MAX_CENTERS, ge=0, le=20000)
-    method: Literal["auto", "incremental", "exact"] = DEFAULT_METHOD
-    selection: Literal["greedy", "fps"] = "greedy"
-    thinning: float = Field(default=DEFAULT_THINNING, ge=0, le=20)
-    threads: int | None = Field(default=None, ge=1, le=1024)
-    on_not_converged: Literal["warn", "error"] = "warn"
+    tolerance: float = Field(DEFAULT_TOLERANCE, gt=0, lt=1, description="Largest constraint "
+                             "error |r_ic| over the kept constraints, in M's coordinates")
+    max_centers: int = Field(DEFAULT_MAX_CENTERS, ge=0, le=20000, description="Where the "
+                             "incremental fit stops (see `on_not_converged`)")
+    method: Literal["auto", "incremental", "exact"] = Field(DEFAULT_METHOD, description="`auto`:"
+                                                            " the cheapest by predicted cost")
+    selection: Literal["greedy", "fps"] = Field("greedy", description="How the incremental fit "
+                                                "picks centers (`fps`: farthest point)")
+    thinning: float = Field(DEFAULT_THINNING, ge=0, le=20, description="Ring thinning cell, in "
+                            "ring widths (0 keeps every ring point)")
+    threads: int | None = Field(None, ge=1, le=1024, description="The dense solve's threads "
+                                "(null: the CPUs this process may use)")
+    on_not_converged: Literal["warn", "error"] = Field("warn", description="`error`: a fit "
+                                                       "above the tolerance exits 1, no output")
 
 
 class SaveCfg(_Strict):
     """``save:``: options of the writers that quantise or encode (``io.options.writing``)."""
 
-    spz_version: Literal[3, 4] | None = None   # .spz: 4 by default, 3 for older readers
-    sog_quality: Literal["reference", "fast"] | None = None   # SOG SH encoder (reference)
-    pcd_data: Literal["ascii", "binary", "binary_compressed"] | None = None   # input's own
+    spz_version: Literal[3, 4] | None = Field(  # .spz: 4 by default, 3 for older readers
+        default=None, description=".spz version written (null: 4; 3 for older readers)")
+    sog_quality: Literal["reference", "fast"] | None = Field(  # SOG SH encoder (reference)
+        default=None, description="The SOG writer's SH encoder (null: `reference`)")
+    pcd_data: Literal["ascii", "binary", "binary_compressed"] | None = Field(  # input's own
+        default=None, description="The PCD `DATA` encoding written (null: the input's own)")
 
 
 class GaussiansCfg(_Strict):
     """``gaussians:``: how 3D Gaussian splats' covariances deform (README "covariance modes")."""
 
-    covariance: Literal["jacobian", "rotation", "limited"] = "limited"  # DEFAULT_COVARIANCE
-    split: Literal["auto", "off"] = "off"  # deform.split: opt-in for now
+    covariance: Literal["jacobian", "rotation", "limited"] = Field(  # DEFAULT_COVARIANCE
+        "limited", description="`jacobian`: J Sigma J^T; `rotation`: turned, shape kept; "
+        "`limited`: J Sigma J^T, axis ratio growing at most 2x")
+    split: Literal["auto", "off"] = Field("off", description="`auto`: split free-region "
+                                          "splats one Gaussian cannot follow (opt-in)")
 
 
 class RenderCfg(_Strict):
-    output: str | None = None  # None: only ``select -o`` / ``deform --render`` name the image
+    output: str | None = Field(None, description="A .png (frames >= 2: .gif or a folder); null: "
+                               "only `select -o` / `deform --render` name the image")
     size: Annotated[list[Annotated[int, Field(ge=MIN_IMAGE, le=MAX_IMAGE)]],
-                    Field(min_length=2, max_length=2)] = [1200, 600]
-    azimuth: float = 30.0
-    elevation: float | None = None   # None: 20, or 40 for flat scenes (LiDAR, terrain)
-    fov: float = Field(default=35.0, ge=1, le=179)   # the lens angle
-    zoom: float = Field(default=1.0, ge=0.01, le=100)   # narrows the view about the target
-    frames: int = Field(default=0, ge=0, le=MAX_FRAMES)
-    up: Literal["+x", "+y", "+z", "-x", "-y", "-z"] | None = None  # None: the file's convention
-    roll: float = Field(default=0.0, ge=-360, le=360)
-    camera: str | None = None   # a camera file (OUT.camera.json), relative to the config file
-    # None: the file's colours, else elevation for LiDAR (splatdeform.render.colors)
-    color: Literal["rgb", "elevation", "intensity", "classification", "region"] | None = None
+                    Field(min_length=2, max_length=2)] = Field([1200, 600], description="[w, h]")
+    azimuth: float = Field(30.0, description="Degrees about the up axis")
+    elevation: float | None = Field(None, description="Degrees above the horizon (null: 20, or "
+                                    "40 for flat scenes: LiDAR, terrain)")
+    fov: float = Field(35.0, ge=1, le=179, description="The lens angle, degrees")
+    zoom: float = Field(1.0, ge=0.01, le=100, description="Narrows the view about the target")
+    frames: int = Field(0, ge=0, le=MAX_FRAMES, description=">= 2: the edit animated")
+    up: Literal["+x", "+y", "+z", "-x", "-y", "-z"] | None = Field(
+        None, description="The axis shown up (null: the file's convention)")
+    roll: float = Field(0.0, ge=-360, le=360, description="Degrees about the view direction")
+    camera: str | None = Field(None, description="A camera file (OUT.camera.json), relative to "
+                               "the config file")
+    color: Literal["rgb", "elevation", "intensity", "classification", "region"] | None = Field(
+        None, description="null: the file's colours, else elevation for LiDAR")
 
     @model_validator(mode="after")
     def _output_kind(self) -> RenderCfg:
@@ -264,22 +293,25 @@ def check_render_output(output: str, frames: int) -> None:
 
 
 class EditConfig(_Strict):
-    input: str
-    output: str
-    regions: RegionsCfg = RegionsCfg()  # fixed: required unless a points: edit alone
-    handle: HandleCfg | None = None
-    handles: list[HandleEntryCfg] | None = Field(default=None, min_length=1, max_length=32)
-    curve: CurveCfg | None = None
-    points: PointsCfg | None = None
-    boundary: BoundaryCfg = BoundaryCfg()
-    fit: FitCfg = FitCfg()
-    normals: Literal["keep", "estimate"] = "keep"
-    backend: Literal[BACKENDS] = "auto"  # basis.BACKENDS, the one list of names
-    device: str | None = None
-    render: RenderCfg | None = None
-    gaussians: GaussiansCfg = GaussiansCfg()
-    save: SaveCfg = SaveCfg()
-    memory_budget: str | int | None = None  # e.g. 2GB; deform streams above it (stream/)
+    input: str = Field(description="The model to edit, relative to the config file")
+    output: str = Field(description="The deformed model (never the input; format by extension)")
+    regions: RegionsCfg = Field(RegionsCfg(), description="Fixed and handle regions, units")
+    handle: HandleCfg | None = Field(None, description="One handle (points: `regions.handle`)")
+    handles: list[HandleEntryCfg] | None = Field(None, min_length=1, max_length=32,
+                                                 description="Several handles, each with a region")
+    curve: CurveCfg | None = Field(None, description="A curve edit (B-spline control points)")
+    points: PointsCfg | None = Field(None, description="Control-point pairs (rubber sheet)")
+    boundary: BoundaryCfg = Field(BoundaryCfg(), description="Region border continuity, kNN")
+    fit: FitCfg = Field(FitCfg(), description="The RBF fit")
+    normals: Literal["keep", "estimate"] = Field("keep", description="`estimate`: Open3D normals")
+    backend: Literal[BACKENDS] = Field("auto", description="Basis backend (`auto`: OpenCL when "
+                                       "a device exists, else numpy)")
+    device: str | None = Field(None, description="OpenCL device: \"P:D\" or a name substring")
+    render: RenderCfg | None = Field(None, description="The before/after image and its camera")
+    gaussians: GaussiansCfg = Field(GaussiansCfg(), description="How 3D Gaussian splats deform")
+    save: SaveCfg = Field(SaveCfg(), description="Options of the quantising/encoding writers")
+    memory_budget: str | int | None = Field(None, description="e.g. 2GB: `deform` streams above "
+                                            "it (null: half the RAM)")
 
     @model_validator(mode="after")
     def _metaphor(self) -> EditConfig:

@@ -14,7 +14,8 @@ PairRow = Annotated[list[Number], Field(min_length=6, max_length=6)]
 
 
 class PairsFileCfg(_Strict):
-    file: str
+    file: str = Field(description="A CSV/TXT file of pairs (comma, semicolon, tab or blank "
+                      "separated, a header line, # comments), relative to the config file")
 
 
 class PointsCfg(_Strict):
@@ -24,8 +25,16 @@ class PointsCfg(_Strict):
     ``tolerance``: largest pair residual / largest pair displacement; ``check_pairs``: held
     out, only reported."""
 
-    pairs: PairsFileCfg | list[PairRow]
-    columns: Annotated[list[str], Field(min_length=6, max_length=6)] | None = None
-    smoothing: float = Field(default=0.0, ge=0, le=MAX_VALUE)
-    tolerance: float = Field(default=1e-6, gt=0, lt=1)
-    check_pairs: PairsFileCfg | list[PairRow] | None = None
+    pairs: PairsFileCfg | list[PairRow] = Field(
+        description="The control points: rows [x, y, z, X, Y, Z] (a source point and where it "
+        "goes), or {file: CSV/TXT with a header}")
+    columns: Annotated[list[str], Field(min_length=6, max_length=6)] | None = Field(
+        default=None, description="The file header's names of x, y, z, X, Y, Z (null: those "
+        "six names)")
+    smoothing: float = Field(default=0.0, ge=0, le=MAX_VALUE, description="0 interpolates the "
+                             "pairs; larger values smooth, with scipy RBFInterpolator's "
+                             "meaning (data units)")
+    tolerance: float = Field(default=1e-6, gt=0, lt=1, description="The largest pair residual "
+                             "allowed, relative to the largest pair displacement")
+    check_pairs: PairsFileCfg | list[PairRow] | None = Field(
+        default=None, description="Held-out pairs, not fitted: only their error is reported")

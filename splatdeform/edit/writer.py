@@ -29,7 +29,8 @@ def relative_path(path: str | Path, base: str | Path) -> str:
 def edit_yaml(settings: EditConfig, *, input_path: Path, output_path: Path, config_dir: Path,
               base_dir: Path, units: str, fixed: list[dict[str, Any]],
               handle: dict[str, Any] | None = None, handles: list[dict[str, Any]] | None = None,
-              curve: dict[str, Any] | None = None, gaussians: bool = False) -> dict[str, Any]:
+              curve: dict[str, Any] | None = None, gaussians: bool = False,
+              points: dict[str, Any] | None = None) -> dict[str, Any]:
     """The YAML mapping of an edit.
 
     input_path, output_path: absolute paths (written relative to ``config_dir`` when inside);
@@ -42,7 +43,8 @@ def edit_yaml(settings: EditConfig, *, input_path: Path, output_path: Path, conf
     data: dict[str, Any] = {
         "input": relative_path(input_path, config_dir),
         "output": relative_path(output_path, config_dir),
-        "regions": {"units": units, "fixed": fixed},
+        # an empty fixed region is left out (a points: edit alone); an empty list is refused
+        "regions": {"units": units, **({"fixed": fixed} if fixed else {})},
     }
     if handle is not None:
         one = dict(handle)
@@ -52,6 +54,8 @@ def edit_yaml(settings: EditConfig, *, input_path: Path, output_path: Path, conf
         data["handles"] = handles
     if curve is not None:
         data["curve"] = curve
+    if points is not None:
+        data["points"] = points
     s = settings
     data.update({
         "boundary": s.boundary.model_dump(),
@@ -98,7 +102,21 @@ def config_yaml(cfg: EditConfig, base_dir: str | Path,
     return edit_yaml(cfg, input_path=base / cfg.input, output_path=base / cfg.output,
                      config_dir=cdir, base_dir=base, units=cfg.regions.units,
                      fixed=region(cfg.regions.fixed), handle=handle, handles=handles,
-                     curve=None if cfg.curve is None else cfg.curve.model_dump())
+                     curve=None if cfg.curve is None else cfg.curve.model_dump(),
+                     points=None if cfg.points is None else points_mapping(cfg.points, base,
+                                                                          cdir))
+
+
+def points_mapping(points, base_dir: Path, config_dir: Path) -> dict[str, Any]:
+    """The ``points:`` mapping of a parsed one (pairs in ``regions.units``), its pairs files
+    rewritten relative to ``config_dir`` (absolute when outside it)."""
+    data = points.model_dump(exclude_none=True)
+    for key in ("pairs", "check_pairs"):
+        entry = data.get(key)
+        if isinstance(entry, dict) and "file" in entry:
+            entry["file"] = relative_path((Path(base_dir) / entry["file"]).resolve(),
+                                          config_dir)
+    return data
 
 
 def yaml_text(data: dict[str, Any], comment: str = "") -> str:

@@ -79,16 +79,10 @@ def to_yaml_dict(ed: EditorController, *, output: str | Path | None = None,
 
 
 def points_yaml(ed: EditorController, config_dir: Path) -> dict[str, Any]:
-    """The ``points:`` mapping as loaded (pairs in ``regions.units``, which the editor keeps),
-    pairs files rewritten relative to ``config_dir`` (absolute when outside it)."""
-    from splatdeform.edit.writer import relative_path
+    """The ``points:`` mapping as loaded (:func:`splatdeform.edit.writer.points_mapping`)."""
+    from splatdeform.edit.writer import points_mapping
 
-    data = ed.points.model_dump(exclude_none=True)
-    for key in ("pairs", "check_pairs"):
-        entry = data.get(key)
-        if isinstance(entry, dict) and "file" in entry:
-            entry["file"] = relative_path((ed.base_dir / entry["file"]).resolve(), config_dir)
-    return data
+    return points_mapping(ed.points, ed.base_dir, config_dir)
 
 
 def precompute(cfg, model: PointModel, base_dir: Path) -> tuple[df.Deformation, Any]:

@@ -42,7 +42,8 @@ class All:
 
 
 class Entry(Strict):
-    all: list[SelectorCfg] = Field(min_length=1)
+    all: list[SelectorCfg] = Field(min_length=1, description="The points every selector of "
+                                   "the list selects (intersection; nests)")
 
     def to_selector(self) -> All:
         return All(tuple(e.to_selector() for e in self.all))

@@ -7,7 +7,7 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
-from pydantic import model_validator
+from pydantic import Field, model_validator
 
 from splatdeform.edit.schema import Strict, Vec3
 from splatdeform.edit.units import Frame, check_units
@@ -20,7 +20,30 @@ NAME = "box"
 @dataclass(frozen=True)
 class Box:
     """Points with min <= (x - origin) / scale <= max per axis (origin 0, scale 1: model
-    coordinates; :meth:`in_units` sets them for a box written in relative units)."""
+    coordinates; :meth:`in_units` sets them for a box written in relative units).
+
+    Parameters
+    ----------
+    min, max : tuple of 3 float
+        The box's corners (inclusive), in model units (or bounding-box coordinates in [0, 1]
+        once ``in_units("relative", frame)`` set ``origin`` and ``scale``).
+    origin, scale : tuple of 3 float, optional
+        The frame the corners are in: x' = (x - origin) / scale (None: model coordinates).
+
+    Examples
+    --------
+    >>> import splatdeform as sd
+    >>> from data_tools.synth import bumpy_bar
+    >>> bar = bumpy_bar(2000)                        # a bumpy cylinder, x in [0, 4]
+    >>> mask = sd.Box(min=(-1, -1, -1), max=(1, 1, 1)).mask(bar)
+    >>> mask.shape, bool(bar.positions[mask, 0].max() <= 1)
+    ((2000,), True)
+    >>> end = sd.select(bar, [sd.Box(min=(0.75, 0, 0), max=(1, 1, 1))], units="relative")
+    >>> bool(bar.positions[end, 0].min() >= 3)      # the last quarter of the length
+    True
+    >>> sd.Box(min=(0, 0, 0), max=(1, 1, 1)).to_config()
+    {'box': {'min': [0.0, 0.0, 0.0], 'max': [1.0, 1.0, 1.0]}}
+    """
 
     min: tuple[float, float, float]
     max: tuple[float, float, float]
@@ -53,8 +76,10 @@ def in_frame(points: np.ndarray, origin, scale) -> np.ndarray:
 
 
 class BoxCfg(Strict):
-    min: Vec3
-    max: Vec3
+    min: Vec3 = Field(description="The low corner [x, y, z] (inclusive; in relative units "
+                      "bounding-box coordinates)")
+    max: Vec3 = Field(description="The high corner [x, y, z] (inclusive), at least `min` on "
+                      "every axis")
 
     @model_validator(mode="after")
     def _ordered(self) -> BoxCfg:
@@ -65,7 +90,7 @@ class BoxCfg(Strict):
 
 
 class Entry(Strict):
-    box: BoxCfg
+    box: BoxCfg = Field(description="The points inside an axis-aligned box")
 
     def to_selector(self) -> Box:
         return Box(tuple(self.box.min), tuple(self.box.max))

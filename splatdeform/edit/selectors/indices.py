@@ -9,7 +9,7 @@ from pathlib import Path
 from typing import Literal
 
 import numpy as np
-from pydantic import field_validator
+from pydantic import Field, field_validator
 
 from splatdeform.edit.schema import Index, Strict
 from splatdeform.edit.units import Frame, check_units
@@ -23,7 +23,32 @@ MAX_FILE_BYTES = 256 * 2**20  # an indices file (text or .npy)
 
 @dataclass(frozen=True)
 class Indices:
-    """Explicit point indices, or a file of them (whitespace separated text, or .npy)."""
+    """Explicit point indices, or a file of them (whitespace separated text, or .npy).
+
+    Parameters
+    ----------
+    indices : tuple of int
+        Point indices in 0..N-1 (used when ``file`` is None).
+    file : str, optional
+        A text file of whitespace-separated integers or a ``.npy`` integer array; a relative
+        path starts at ``base_dir`` (an edit config's folder).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> import splatdeform as sd
+    >>> from data_tools.synth import bumpy_bar
+    >>> bar = bumpy_bar(2000)
+    >>> np.flatnonzero(sd.Indices(indices=(5, 0, 7)).mask(bar))
+    array([0, 5, 7])
+    >>> np.save("picked.npy", np.arange(100, 110))
+    >>> int(sd.select(bar, [sd.Indices(file="picked.npy")], base_dir=None).sum())
+    10
+    >>> sd.Indices(indices=(3000,)).mask(bar)
+    Traceback (most recent call last):
+    ...
+    splatdeform.errors.InputError: indices: expected values in 0..1999, got 3000..3000
+    """
 
     indices: tuple[int, ...] = ()
     file: str | None = None
@@ -99,7 +124,9 @@ def load_indices(sel: Indices, base_dir: Path | None) -> np.ndarray:
 
 
 class Entry(Strict):
-    indices: list[Index] | dict[Literal["file"], str]
+    indices: list[Index] | dict[Literal["file"], str] = Field(
+        description="Point indices [i, ...] (at most 100,000), or {file: path}: a text file of "
+        "integers or a .npy integer array, relative to the config file")
 
     @field_validator("indices", mode="before")
     @classmethod

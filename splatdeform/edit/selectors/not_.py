@@ -39,7 +39,8 @@ class Not:
 
 
 class Entry(Strict):
-    not_: SelectorCfg = Field(alias="not")
+    not_: SelectorCfg = Field(alias="not", description="The points one selector does not "
+                              "select (complement; nests)")
 
     def to_selector(self) -> Not:
         return Not(self.not_.to_selector())

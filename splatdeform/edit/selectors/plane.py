@@ -7,7 +7,7 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
-from pydantic import field_validator
+from pydantic import Field, field_validator
 
 from splatdeform.edit.schema import Strict, Vec3
 from splatdeform.edit.selectors.box import in_frame
@@ -21,7 +21,29 @@ NAME = "plane"
 @dataclass(frozen=True)
 class Plane:
     """Points with (x' - point) . normal >= 0 where x' = (x - origin) / scale (model
-    coordinates by default)."""
+    coordinates by default).
+
+    Parameters
+    ----------
+    point : tuple of 3 float
+        A point on the plane.
+    normal : tuple of 3 float
+        A non-zero vector (any length) towards the side that is selected.
+    origin, scale : tuple of 3 float, optional
+        The frame ``point`` is in (set by ``in_units("relative", frame)``; None: model units).
+
+    Examples
+    --------
+    >>> import splatdeform as sd
+    >>> from data_tools.synth import bumpy_bar
+    >>> bar = bumpy_bar(2000)                        # a bumpy cylinder, x in [0, 4]
+    >>> above = sd.Plane(point=(0, 0, 0), normal=(0, 0, 1)).mask(bar)
+    >>> bool(bar.positions[above, 2].min() >= 0), bool(bar.positions[~above, 2].max() < 0)
+    (True, True)
+    >>> right = sd.select(bar, [sd.Plane(point=(0.5, 0, 0), normal=(1, 0, 0))], units="relative")
+    >>> bool(bar.positions[right, 0].min() >= 2)     # the half beyond the middle of the box
+    True
+    """
 
     point: tuple[float, float, float]
     normal: tuple[float, float, float]
@@ -48,8 +70,10 @@ class Plane:
 
 
 class PlaneCfg(Strict):
-    point: Vec3
-    normal: Vec3
+    point: Vec3 = Field(description="A point on the plane (in relative units bounding-box "
+                        "coordinates)")
+    normal: Vec3 = Field(description="A non-zero vector towards the selected side (signed "
+                         "distance >= 0)")
 
     @field_validator("normal")
     @classmethod
@@ -60,7 +84,7 @@ class PlaneCfg(Strict):
 
 
 class Entry(Strict):
-    plane: PlaneCfg
+    plane: PlaneCfg = Field(description="The points on one side of a plane")
 
     def to_selector(self) -> Plane:
         return Plane(tuple(self.plane.point), tuple(self.plane.normal))

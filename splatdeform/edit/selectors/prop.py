@@ -22,7 +22,36 @@ NAME = "property"
 @dataclass(frozen=True)
 class Property:
     """Points whose vertex property ``name`` equals ``equals``, is one of ``values``, and lies
-    in [``min``, ``max``] (each condition only when given)."""
+    in [``min``, ``max``] (each condition only when given).
+
+    Parameters
+    ----------
+    name : str
+        A scalar vertex property of the file the model was loaded from (a PLY property, a LAS
+        dimension such as ``classification`` or ``intensity``).
+    equals : float, optional
+        Keep the points whose value equals it.
+    values : tuple of float, optional
+        Keep the points whose value is one of these (the config's ``in:``).
+    min, max : float, optional
+        Inclusive bounds on the value.
+
+    Examples
+    --------
+    >>> import splatdeform as sd
+    >>> from data_tools.synth import bumpy_bar
+    >>> _ = sd.save(bumpy_bar(2000), "bar.ply")
+    >>> bar = sd.load("bar.ply")                     # red = 120 + 25 x along the bar
+    >>> reddest = sd.Property("red", min=200).mask(bar)
+    >>> bool(bar.positions[reddest, 0].min() >= 3.2)
+    True
+    >>> int(sd.Property("green", values=(140,)).mask(bar).sum())
+    2000
+    >>> sd.Property("intensity", min=1).mask(bar)
+    Traceback (most recent call last):
+    ...
+    splatdeform.errors.InputError: ...bar.ply: property: no vertex property 'intensity' (...)
+    """
 
     name: str
     equals: float | None = None
@@ -61,11 +90,13 @@ class Property:
 
 
 class PropertyCfg(Strict):
-    name: str
-    equals: Real | None = None
-    in_: list[Real] | None = Field(default=None, alias="in", min_length=1)
-    min: Real | None = None
-    max: Real | None = None
+    name: str = Field(description="A scalar vertex property (PLY property or LAS dimension, "
+                      "e.g. classification, intensity, gps_time)")
+    equals: Real | None = Field(default=None, description="Keep the points with this value")
+    in_: list[Real] | None = Field(default=None, alias="in", min_length=1,
+                                   description="Keep the points whose value is one of these")
+    min: Real | None = Field(default=None, description="Inclusive lower bound")
+    max: Real | None = Field(default=None, description="Inclusive upper bound")
 
     @model_validator(mode="after")
     def _some_condition(self) -> PropertyCfg:
@@ -77,7 +108,8 @@ class PropertyCfg(Strict):
 
 
 class Entry(Strict):
-    property: PropertyCfg
+    property: PropertyCfg = Field(description="The points whose vertex property matches "
+                                  "(every condition given holds; at least one)")
 
     def to_selector(self) -> Property:
         p = self.property

@@ -18,6 +18,30 @@ NAME = "sphere"
 
 @dataclass(frozen=True)
 class Sphere:
+    """Points within ``radius`` of ``center`` (inclusive), in model units.
+
+    Parameters
+    ----------
+    center : tuple of 3 float
+        The ball's centre (in relative units: bounding-box coordinates).
+    radius : float
+        Its radius (in relative units: a fraction of the bounding-box diagonal).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> import splatdeform as sd
+    >>> from data_tools.synth import bumpy_bar
+    >>> bar = bumpy_bar(2000)                        # a bumpy cylinder, x in [0, 4]
+    >>> ball = sd.Sphere(center=(4, 0, 0), radius=0.8)
+    >>> mask = ball.mask(bar)
+    >>> bool(np.linalg.norm(bar.positions[mask] - [4, 0, 0], axis=1).max() <= 0.8)
+    True
+    >>> both = sd.select(bar, [ball, sd.Sphere(center=(0, 0, 0), radius=0.8)])
+    >>> int(both.sum()) > int(mask.sum())             # a list of selectors is a union
+    True
+    """
+
     center: tuple[float, float, float]
     radius: float
 
@@ -38,12 +62,14 @@ class Sphere:
 
 
 class SphereCfg(Strict):
-    center: Vec3
-    radius: Number = Field(gt=0)
+    center: Vec3 = Field(description="The ball's centre (in relative units bounding-box "
+                         "coordinates)")
+    radius: Number = Field(gt=0, description="Its radius (in relative units a fraction of the "
+                           "bounding-box diagonal)")
 
 
 class Entry(Strict):
-    sphere: SphereCfg
+    sphere: SphereCfg = Field(description="The points within a ball")
 
     def to_selector(self) -> Sphere:
         return Sphere(tuple(self.sphere.center), self.sphere.radius)
