@@ -142,17 +142,52 @@ class PlySource:
 class PointModel:
     """A scanned point model.
 
-    positions: (N, 3) float64.
-    normals:   (N, 3) float64 or None.
-    colors:    (N, 3) uint8 or None.
-    radius:    (N,) float64 surfel radius or None.
-    axes:      (N, 2, 3) float64 surfel/splat tangent axes (u, v) or None.
-    faces:     (F, 3) int64 triangles (from ``face`` lists, fan-triangulated, or ``tristrips``)
-               or None.
-    gaussians: 3DGS fields or None.
-    kind:      one of :data:`KINDS`.
-    source:    the verbatim PLY contents, or None for models not read from PLY.
-    path:      the file it was loaded from, if any (saves refuse to overwrite it).
+    Parameters
+    ----------
+    positions : array_like, shape (N, 3)
+        Point positions, stored as float64.
+    normals : ndarray of float64, shape (N, 3), optional
+        Unit normals.
+    colors : ndarray of uint8, shape (N, 3), optional
+        RGB colours.
+    radius : ndarray of float64, shape (N,), optional
+        Surfel radii.
+    axes : ndarray of float64, shape (N, 2, 3), optional
+        Surfel/splat tangent axes (u, v).
+    faces : ndarray of int64, shape (F, 3), optional
+        Triangles (from ``face`` lists, fan-triangulated, or ``tristrips``).
+    gaussians : Gaussians, optional
+        3DGS fields.
+    kind : str
+        One of :data:`KINDS`.
+    source : PlySource, optional
+        The verbatim PLY contents (None for models not read from PLY).
+    path : str, optional
+        The file it was loaded from, if any (saves refuse to overwrite it).
+
+    Returns
+    -------
+    PointModel
+        The model; :func:`load` and ``data_tools.synth`` make them from files and seeds.
+
+    Raises
+    ------
+    InputError
+        ``positions`` not of shape (N, 3).
+
+    Examples
+    --------
+    >>> import splatdeform as sd
+    >>> from data_tools.synth import bumpy_bar, gaussian_bar
+    >>> tri = sd.PointModel(positions=[[0, 0, 0], [1, 0, 0], [0, 2, 0]])
+    >>> tri.n_points, tri.kind, tri.positions.dtype, tri.diagonal()
+    (3, 'cloud', dtype('float64'), 2.23606797749979)
+    >>> bar = bumpy_bar(2000)
+    >>> bar.kind, bar.normals.shape, bar.radius.shape
+    ('surfel_radius', (2000, 3), (2000,))
+    >>> splats = gaussian_bar(500)
+    >>> splats.kind, splats.gaussians.rotation.shape
+    ('gaussians', (500, 4))
     """
 
     positions: np.ndarray

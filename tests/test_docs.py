@@ -85,7 +85,31 @@ DOCTESTED = [
     "splatdeform.deform.deformation:prepare_handle", "splatdeform.deform.deformation:Deformation",
     "splatdeform.deform.model_apply:apply", "splatdeform.field:Field",
     "splatdeform.editor.controller:EditorController",
+    "splatdeform.deform.handle:compose_transform", "splatdeform.deform.deformation:delta_for",
+    "splatdeform.deform.handle:delta_for_transform",
+    "splatdeform.deform.normals:estimate_normals", "splatdeform.deform.model_apply:full_basis",
+    "splatdeform.deform.deformation:prepare_handles",
+    "splatdeform.deform.deformation:prepare_metaphors", "splatdeform.edit.selectors:select",
+    "splatdeform.model:PointModel",
 ]
+
+
+def test_every_public_name_is_doctested_and_on_the_api_page():
+    """Each function or class in ``splatdeform.__all__`` (the errors aside) has its example in
+    DOCTESTED and its ``:::`` entry on docs/api.md."""
+    import splatdeform
+
+    targets = {id(getattr(importlib.import_module(t.split(":")[0]), t.split(":")[1])): t
+               for t in DOCTESTED}
+    public = {name: getattr(splatdeform, name) for name in splatdeform.__all__}
+    public = {name: obj for name, obj in public.items()
+              if not (isinstance(obj, type) and issubclass(obj, BaseException))}
+    missing = sorted(name for name, obj in public.items() if id(obj) not in targets)
+    assert not missing, f"public names with no doctested example (add to DOCTESTED): {missing}"
+    api = (DOCS / "api.md").read_text()
+    unlisted = [targets[id(obj)] for obj in public.values()
+                if f"::: {targets[id(obj)].replace(':', '.')}\n" not in api]
+    assert not unlisted, f"no mkdocstrings entry on docs/api.md: {unlisted}"
 
 
 @pytest.mark.parametrize("target", DOCTESTED)

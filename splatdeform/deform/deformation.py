@@ -214,8 +214,41 @@ def prepare_metaphors(model: PointModel, fixed: np.ndarray, metaphors: list[Meta
     metaphors (handles and curves): k = the sum of their columns. ``fit_fn`` / ``basis_fn``
     default to :func:`fit_settings` / :func:`basis_settings` with their defaults.
 
-    Raises RegionError when a metaphor is empty, overlaps the fixed region or another
-    metaphor, or has no point next to the free region.
+    Parameters
+    ----------
+    model : PointModel
+        The model to edit.
+    fixed : ndarray of bool, shape (N,)
+        The fixed region (stays bit for bit).
+    metaphors : list of Metaphor
+        ``splatdeform.deform.handle_metaphor(positions, mask)`` and
+        ``splatdeform.deform.curve_metaphor(model, control_points, capture_radius=)``, in
+        the column order of delta_c.
+    fit_fn, basis_fn, continuity, neighbors
+        As for :func:`prepare_handle`.
+
+    Returns
+    -------
+    Deformation
+        k = the sum of the metaphors' columns; apply any delta_c (k, 3) with :func:`apply`.
+
+    Raises
+    ------
+    RegionError
+        A metaphor that is empty, overlaps the fixed region or another metaphor, or has no
+        point next to the free region.
+
+    Examples
+    --------
+    >>> import splatdeform as sd
+    >>> from data_tools.synth import bumpy_bar
+    >>> bar = bumpy_bar(2000)
+    >>> fixed = sd.select(bar, [sd.Box(min=(-1, -1, -1), max=(1, 1, 1))])
+    >>> handle = sd.select(bar, [sd.Box(min=(3, -1, -1), max=(5, 1, 1))])
+    >>> d = sd.prepare_metaphors(bar, fixed, [sd.deform.handle_metaphor(bar.positions, handle)],
+    ...                          basis_fn=sd.deform.basis_settings(backend="numpy"))
+    >>> d.k, d.control_points.shape, len(d.groups)
+    (4, (4, 3), 1)
     """
     fit_fn, basis_fn = _default_fns(model, fit_fn, basis_fn)
     t0 = time.perf_counter()
@@ -331,7 +364,48 @@ def prepare_handles(model: PointModel, fixed: np.ndarray, handles: list[np.ndarr
                     fit_fn: FitFn | None = None, basis_fn: BasisFn | None = None,
                     continuity: int = 2, neighbors: int = 10, **settings) -> Deformation:
     """Several handle masks (N,) bool in one edit: k = 4 per handle, one fit, one basis, one
-    apply. ``settings`` as for :func:`prepare_handle`."""
+    apply. ``settings`` as for :func:`prepare_handle`.
+
+    Parameters
+    ----------
+    model : PointModel
+        The model to edit.
+    fixed : ndarray of bool, shape (N,)
+        The fixed region (stays bit for bit).
+    handles : list of ndarray of bool, shape (N,)
+        One mask per handle, disjoint from each other and from ``fixed``.
+    fit_fn, basis_fn, continuity, neighbors, **settings
+        As for :func:`prepare_handle`.
+
+    Returns
+    -------
+    Deformation
+        k = 4 per handle, in the order of ``handles`` (:func:`delta_for` takes one 4x4 each).
+
+    Raises
+    ------
+    RegionError
+        An empty or overlapping handle, or one with no point next to the free region.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> import splatdeform as sd
+    >>> from data_tools.synth import bumpy_bar
+    >>> bar = bumpy_bar(2000)
+    >>> fixed = sd.select(bar, [sd.Box(min=(-1, -1, -1), max=(1, 1, 1))])
+    >>> middle = sd.select(bar, [sd.Box(min=(1.8, -1, -1), max=(2.2, 1, 1))])
+    >>> end = sd.select(bar, [sd.Box(min=(3, -1, -1), max=(5, 1, 1))])
+    >>> d = sd.prepare_handles(bar, fixed, [middle, end], backend="numpy")
+    >>> d.k, d.control_points.shape
+    (8, (8, 3))
+    >>> poses = [np.eye(4), sd.compose_transform(pivot=(4, 0, 0), translate=(0, 0.5, 0))]
+    >>> bent = sd.apply(d, bar, sd.delta_for(d, poses), moving_matrix=poses)
+    >>> np.allclose(bent.positions[middle], bar.positions[middle])      # held in place
+    True
+    >>> np.allclose(bent.positions[end], bar.positions[end] + [0, 0.5, 0])
+    True
+    """
     fit_fn, basis_fn = _settings_fns(model, fit_fn, basis_fn, settings)
     metaphors = [handle_metaphor(model.positions, h, f"handles[{i}].region")
                  for i, h in enumerate(handles)]
@@ -361,7 +435,35 @@ def _settings_fns(model: PointModel, fit_fn: FitFn | None, basis_fn: BasisFn | N
 def delta_for(deformation: Deformation, matrices) -> np.ndarray:
     """delta_c (k, 3) that moves each handle frame by its 4x4 affine map: one matrix for a
     single handle (or the same for every handle), or a list with one per handle in the
-    deformation's handle order."""
+    deformation's handle order.
+
+    Parameters
+    ----------
+    deformation : Deformation
+        From :func:`prepare_handle` or :func:`prepare_handles`.
+    matrices : ndarray of shape (4, 4), or list of them
+        One affine map (e.g. :func:`compose_transform`) or one per handle.
+
+    Returns
+    -------
+    ndarray of float64, shape (k, 3)
+        The control displacement for :func:`apply`.
+
+    Examples
+    --------
+    >>> import splatdeform as sd
+    >>> from data_tools.synth import bumpy_bar
+    >>> bar = bumpy_bar(2000)
+    >>> fixed = sd.select(bar, [sd.Box(min=(-1, -1, -1), max=(1, 1, 1))])
+    >>> handle = sd.select(bar, [sd.Box(min=(3, -1, -1), max=(5, 1, 1))])
+    >>> d = sd.prepare_handle(bar, fixed, handle, backend="numpy")
+    >>> up = sd.compose_transform(pivot=(4, 0, 0), translate=(0, 0.5, 0))
+    >>> sd.delta_for(d, up)                          # every control point moves by 0.5 in y
+    array([[0. , 0.5, 0. ],
+           [0. , 0.5, 0. ],
+           [0. , 0.5, 0. ],
+           [0. , 0.5, 0. ]])
+    """
     from splatdeform.deform.handle import delta_for_transform
 
     groups = deformation.handle_groups()

@@ -71,7 +71,44 @@ def rotation_matrix(axis, degrees: float) -> np.ndarray:
 
 def compose_transform(*, pivot: np.ndarray, scale=1.0, axis=(0.0, 0.0, 1.0),
                       degrees: float = 0.0, translate=(0.0, 0.0, 0.0)) -> np.ndarray:
-    """4x4 matrix: scale, then rotate, then translate, about ``pivot`` (3,)."""
+    """4x4 matrix: scale, then rotate, then translate, about ``pivot`` (3,).
+
+    Parameters
+    ----------
+    pivot : array_like, shape (3,)
+        The point that scaling and rotation keep in place (model units).
+    scale : float or array_like, shape (3,)
+        Uniform or per-axis scale factors (non-zero).
+    axis : array_like, shape (3,)
+        The rotation axis (any non-zero length).
+    degrees : float
+        The rotation angle about ``axis`` (right-handed).
+    translate : array_like, shape (3,)
+        The move applied last (model units).
+
+    Returns
+    -------
+    ndarray of float64, shape (4, 4)
+        The affine map, for :func:`delta_for` and ``apply(..., moving_matrix=)``.
+
+    Raises
+    ------
+    InputError
+        A zero scale factor or a zero rotation axis.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> import splatdeform as sd
+    >>> m = sd.compose_transform(pivot=(4, 0, 0), axis=(0, 0, 1), degrees=90,
+    ...                          translate=(0, 0.5, 0))
+    >>> m.shape
+    (4, 4)
+    >>> np.allclose(m @ [4, 0, 0, 1], [4, 0.5, 0, 1])    # the pivot only moves by translate
+    True
+    >>> np.allclose(m @ [5, 0, 0, 1], [4, 1.5, 0, 1])    # +x turns to +y about the pivot
+    True
+    """
     s = np.broadcast_to(np.asarray(scale, dtype=np.float64), (3,))
     if np.any(s == 0):
         raise InputError.at("handle.transform.scale", "expected non-zero scale factors")
@@ -89,5 +126,34 @@ def apply_affine(matrix: np.ndarray, points: np.ndarray) -> np.ndarray:
 
 
 def delta_for_transform(control_points: np.ndarray, matrix: np.ndarray) -> np.ndarray:
-    """delta_c (4, 3) = T(C) - C for a 4x4 affine matrix T."""
+    """delta_c (4, 3) = T(C) - C for a 4x4 affine matrix T.
+
+    Parameters
+    ----------
+    control_points : ndarray, shape (4, 3)
+        One handle's affine frame C (``Deformation.control_points`` for a single handle).
+    matrix : ndarray, shape (4, 4)
+        The affine map T, e.g. from :func:`compose_transform`.
+
+    Returns
+    -------
+    ndarray of float64, shape (4, 3)
+        How far each control point moves (model units); :func:`delta_for` does this per
+        handle of a deformation.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> import splatdeform as sd
+    >>> frame = np.array([[4, 0, 0], [5, 0, 0], [4, 1, 0], [4, 0, 1]], dtype=float)
+    >>> up = sd.compose_transform(pivot=(4, 0, 0), translate=(0, 0.5, 0))
+    >>> sd.delta_for_transform(frame, up)
+    array([[0. , 0.5, 0. ],
+           [0. , 0.5, 0. ],
+           [0. , 0.5, 0. ],
+           [0. , 0.5, 0. ]])
+    >>> turn = sd.compose_transform(pivot=(4, 0, 0), axis=(0, 0, 1), degrees=90)
+    >>> np.allclose(sd.delta_for_transform(frame, turn)[1], [-1, 1, 0])   # (5,0,0) -> (4,1,0)
+    True
+    """
     return apply_affine(matrix, control_points) - control_points

@@ -231,7 +231,35 @@ def check_finite(model: PointModel, out: PointModel) -> None:
 
 def full_basis(deformation: Deformation) -> tuple[np.ndarray, np.ndarray]:
     """Basis for every point, for one-draw-call rendering: values (N, k) float32 and
-    gradients (N, k, 3) float32; 0 for fixed points, control coordinates for moving points."""
+    gradients (N, k, 3) float32; 0 for fixed points, control coordinates for moving points.
+
+    Parameters
+    ----------
+    deformation : Deformation
+        From :func:`prepare_handle`, :func:`prepare_handles` or :func:`prepare_metaphors`.
+
+    Returns
+    -------
+    values : ndarray of float32, shape (N, k)
+        Each point's displacement is ``values @ delta_c``.
+    gradients : ndarray of float32, shape (N, k, 3)
+        d values / d x, for the normals and splat axes.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> import splatdeform as sd
+    >>> from data_tools.synth import bumpy_bar
+    >>> bar = bumpy_bar(2000)
+    >>> fixed = sd.select(bar, [sd.Box(min=(-1, -1, -1), max=(1, 1, 1))])
+    >>> handle = sd.select(bar, [sd.Box(min=(3, -1, -1), max=(5, 1, 1))])
+    >>> d = sd.prepare_handle(bar, fixed, handle, backend="numpy")
+    >>> values, gradients = sd.full_basis(d)
+    >>> values.shape, values.dtype, gradients.shape
+    ((2000, 4), dtype('float32'), (2000, 4, 3))
+    >>> bool((values[fixed] == 0).all()), np.allclose(values[handle].sum(axis=1), 1)
+    (True, True)
+    """
     n, k = deformation.n_points, deformation.k
     values = np.zeros((n, k), dtype=np.float32)
     grads = np.zeros((n, k, 3), dtype=np.float32)

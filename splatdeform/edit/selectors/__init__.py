@@ -80,6 +80,39 @@ def select(model: PointModel, selectors: list, units: str = "model",
 
     ``units="relative"`` is a convenience for API callers: each selector is first put in model
     units (:meth:`in_units`; the config layer converts before calling, with "model").
+
+    Parameters
+    ----------
+    model : PointModel
+        The model whose points are selected.
+    selectors : list
+        :class:`Box`, :class:`Sphere`, :class:`Plane`, :class:`Indices`, :class:`Property`
+        (and their combinations); a point is selected when any of them selects it.
+    units : {"model", "relative"}
+        The units the selectors are written in ("relative": bounding-box coordinates).
+    base_dir : Path, optional
+        Where relative file paths in the selectors (an indices file) start.
+
+    Returns
+    -------
+    ndarray of bool, shape (N,)
+        The union of the selectors' masks.
+
+    Examples
+    --------
+    >>> import splatdeform as sd
+    >>> from data_tools.synth import bumpy_bar
+    >>> bar = bumpy_bar(2000)                        # a bumpy cylinder, x in [0, 4]
+    >>> ends = sd.select(bar, [sd.Box(min=(-1, -1, -1), max=(0.5, 1, 1)),
+    ...                        sd.Sphere(center=(4, 0, 0), radius=0.6)])
+    >>> ends.shape, ends.dtype
+    ((2000,), dtype('bool'))
+    >>> x = bar.positions[ends, 0]
+    >>> bool(((x <= 0.5) | (x >= 3.4)).all())
+    True
+    >>> last = sd.select(bar, [sd.Box(min=(0.75, 0, 0), max=(1, 1, 1))], units="relative")
+    >>> bool(bar.positions[last, 0].min() >= 3)
+    True
     """
     if units != "model":
         from splatdeform.edit.units import Frame
