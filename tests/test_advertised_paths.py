@@ -126,14 +126,15 @@ def test_deform_frame_equals_apply_on_the_free_points(bar_dir):
     np.testing.assert_allclose(n, res.deformed.normals[free], rtol=0, atol=1e-4)
 
 
-def test_readme_python_api_runs_as_written(tmp_path):
-    """The README's Python API block (one handle, then two handles in one edit) runs verbatim
-    on the real bunny, and each written model moves its handle points and keeps the rest."""
+def test_docs_python_api_runs_as_written(tmp_path):
+    """The API page's first Python block (one handle, then two handles in one edit; it was the
+    README's) runs verbatim on the real bunny, and each written model moves its handle points
+    and keeps the rest."""
     import re
     import runpy
 
-    block = re.search(r"## Python API\n\n```python\n(.*?)```", (ROOT / "README.md").read_text(),
-                      re.S).group(1)
+    block = re.search(r"# Python API\n.*?```python\n(.*?)```",
+                      (ROOT / "docs" / "api.md").read_text(), re.S).group(1)
     (tmp_path / "bunny.ply").symlink_to(shared_file("scans/bunny.ply"))
     (tmp_path / "readme_api.py").write_text(block)
     cwd = os.getcwd()

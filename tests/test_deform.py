@@ -532,7 +532,7 @@ def test_example_configs_parse():
     assert paths
     for path in paths:
         cfg = load_edit(path)
-        assert cfg.handle is not None or cfg.curve is not None
+        assert cfg.handle is not None or cfg.curve is not None or cfg.points is not None
 
 
 def test_covariance_frame_is_j_sigma_jt() -> None:

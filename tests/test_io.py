@@ -473,7 +473,8 @@ def test_open3d_to_ply(tmp_path: Path) -> None:
 
 
 def test_registry_lists_all_formats() -> None:
-    assert set(sio.SUPPORTED) == {".ply", ".compressed.ply", ".splat", ".spz", ".glb", ".gltf",
+    assert set(sio.SUPPORTED) == {".ply", ".compressed.ply", ".splat", ".ksplat", ".spz", ".glb",
+                                  ".gltf",
                                   ".pcd", ".xyz", ".xyzn", ".pts", ".las", ".laz", ".sog",
                                   "meta.json"}
 
