@@ -34,6 +34,8 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from data_tools.warps import drift_warp as warp  # noqa: E402 (after the path insert)
+
 
 def terrain(n: int, seed: int = 0) -> np.ndarray:
     """(n, 3) a 2 km x 1 km rolling terrain (metres)."""
@@ -41,19 +43,6 @@ def terrain(n: int, seed: int = 0) -> np.ndarray:
     xy = rng.uniform([0, 0], [1000, 2000], (n, 2))
     z = 20 * np.sin(xy[:, 0] / 170) * np.cos(xy[:, 1] / 230) + 0.01 * xy[:, 1]
     return np.column_stack([xy, z + rng.normal(0, 0.05, n)])
-
-
-def warp(p: np.ndarray) -> np.ndarray:
-    """The known smooth warp (metres): drift along y plus two broad bumps."""
-    lo, hi = p.min(axis=0), p.max(axis=0)
-    t = (p[:, 1] - lo[1]) / (hi[1] - lo[1])
-    out = p.copy()
-    out[:, 0] += 4.0 * t + 3.0 * t * t
-    out[:, 2] += 2.0 * t
-    for c, amp in (((0.3, 0.4), 3.0), ((0.7, 0.7), -2.5)):
-        cx, cy = lo[0] + c[0] * (hi[0] - lo[0]), lo[1] + c[1] * (hi[1] - lo[1])
-        out[:, 2] += amp * np.exp(-((p[:, 0] - cx) ** 2 + (p[:, 1] - cy) ** 2) / (2 * 150.0**2))
-    return out
 
 
 def case(kind: str, n_pairs: int, n_points: int, backend: str = "auto") -> dict:

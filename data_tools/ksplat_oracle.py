@@ -17,7 +17,7 @@ import subprocess
 import sys
 from pathlib import Path
 
-from data_tools.splat_transform import OracleMissing, node_bin
+from data_tools.splat_transform import OracleMissing, node_bin, npm_install
 
 PACKAGE = "@mkkellogg/gaussian-splats-3d"
 VERSION = "0.4.7"          # pinned: the reader's layout notes were learned from this version
@@ -43,18 +43,7 @@ def install() -> None:
     """Install the pinned packages into CACHE unless they are already there."""
     if installed():
         return
-    bindir = node_bin()
-    CACHE.mkdir(parents=True, exist_ok=True)
-    env = {**os.environ, "PATH": f"{bindir}{os.pathsep}{os.environ.get('PATH', '')}"}
-    npm_cli = bindir.parent / "lib" / "node_modules" / "npm" / "bin" / "npm-cli.js"
-    npm = [str(bindir / "node"), str(npm_cli)] if npm_cli.exists() else [str(bindir / "npm")]
-    proc = subprocess.run([*npm, "install", "--no-audit", "--no-fund", "--prefix", str(CACHE),
-                           f"{PACKAGE}@{VERSION}", f"{THREE}@{THREE_VERSION}"], env=env,
-                          capture_output=True, text=True)
-    if proc.returncode != 0 or not installed():
-        tail = (proc.stderr or proc.stdout).strip().splitlines()[-1:] or ["no output"]
-        raise OracleMissing(f"npm install {PACKAGE}@{VERSION} {THREE}@{THREE_VERSION} "
-                            f"failed: {tail[0]}")
+    npm_install(CACHE, [f"{PACKAGE}@{VERSION}", f"{THREE}@{THREE_VERSION}"], installed)
 
 
 def convert(src: str | Path, out: str | Path, level: int, degree: int,

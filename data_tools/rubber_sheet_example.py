@@ -19,6 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
+from data_tools.warps import drift_warp
 from splatdeform.model import PointModel
 
 N_POINTS = 60_000
@@ -35,14 +36,8 @@ def truth(n: int = N_POINTS, seed: int = 0) -> np.ndarray:
 
 
 def drift(p: np.ndarray) -> np.ndarray:
-    """The known smooth warp of the scan: drift growing along y, two broad bumps."""
-    t = p[:, 1] / 2000.0
-    out = p.copy()
-    out[:, 0] += 4.0 * t + 3.0 * t * t
-    out[:, 2] += 2.0 * t
-    for (cx, cy), amp in (((120, 800), 3.0), ((280, 1400), -2.5)):
-        out[:, 2] += amp * np.exp(-((p[:, 0] - cx) ** 2 + (p[:, 1] - cy) ** 2) / (2 * 150.0**2))
-    return out
+    """The known smooth warp of the scan (:func:`data_tools.warps.drift_warp` on the strip)."""
+    return drift_warp(p, (0.0, 0.0, 0.0), (400.0, 2000.0, 0.0))
 
 
 def control_indices(p: np.ndarray, k: int = N_PAIRS) -> np.ndarray:

@@ -66,17 +66,22 @@ def install() -> None:
     """Install the pinned version into CACHE unless it is already there."""
     if installed_version() == VERSION:
         return
+    npm_install(CACHE, [f"{PACKAGE}@{VERSION}"], lambda: installed_version() == VERSION)
+
+
+def npm_install(prefix: Path, specs: list[str], done) -> None:
+    """``npm install SPECS`` (pinned ``name@version``) into ``prefix`` with this module's node;
+    OracleMissing naming the specs unless it succeeds and ``done()`` then holds."""
     bindir = node_bin()
-    CACHE.mkdir(parents=True, exist_ok=True)
+    prefix.mkdir(parents=True, exist_ok=True)
     env = {**os.environ, "PATH": f"{bindir}{os.pathsep}{os.environ.get('PATH', '')}"}
     npm_cli = bindir.parent / "lib" / "node_modules" / "npm" / "bin" / "npm-cli.js"
     npm = [str(bindir / "node"), str(npm_cli)] if npm_cli.exists() else [str(bindir / "npm")]
-    proc = subprocess.run([*npm, "install", "--no-audit", "--no-fund", "--prefix",
-                           str(CACHE), f"{PACKAGE}@{VERSION}"], env=env, capture_output=True,
-                          text=True)
-    if proc.returncode != 0 or installed_version() != VERSION:
+    proc = subprocess.run([*npm, "install", "--no-audit", "--no-fund", "--prefix", str(prefix),
+                           *specs], env=env, capture_output=True, text=True)
+    if proc.returncode != 0 or not done():
         tail = (proc.stderr or proc.stdout).strip().splitlines()[-1:] or ["no output"]
-        raise OracleMissing(f"npm install {PACKAGE}@{VERSION} failed: {tail[0]}")
+        raise OracleMissing(f"npm install {' '.join(specs)} failed: {tail[0]}")
 
 
 def command() -> list[str]:

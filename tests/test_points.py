@@ -6,6 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from data_tools.warps import drift_warp
 from splatdeform.deform.deformation import basis_settings, fit_settings
 from splatdeform.deform.points import Pairs, pair_errors, prepare_points
 from splatdeform.errors import ConfigError
@@ -26,25 +27,12 @@ def _moved(model, d, pf):
     return model.positions[d.free_idx] + d.basis.values @ pf.delta()
 
 
-def _warp(p, lo, hi):
-    """A smooth known warp: a drift growing along the scan (y) and two broad bumps (metres)."""
-    t = (p[:, 1] - lo[1]) / (hi[1] - lo[1])
-    out = p.copy()
-    out[:, 0] += 4.0 * t + 3.0 * t * t
-    out[:, 2] += 2.0 * t
-    for c, amp in (((0.3, 0.4), 3.0), ((0.7, 0.7), -2.5)):
-        cx, cy = lo[0] + c[0] * (hi[0] - lo[0]), lo[1] + c[1] * (hi[1] - lo[1])
-        r2 = (p[:, 0] - cx) ** 2 + (p[:, 1] - cy) ** 2
-        out[:, 2] += amp * np.exp(-r2 / (2 * 150.0 ** 2))
-    return out
-
-
 def test_terrain_warp_back_rms_decreases_with_pairs():
     from splatdeform.io import load
 
     truth = load(shared_file("scans/lidar_terrain_522k.ply")).positions.astype(np.float64)
     lo, hi = truth.min(0), truth.max(0)
-    warped = PointModel(positions=_warp(truth, lo, hi))
+    warped = PointModel(positions=drift_warp(truth, lo, hi))
     rng = np.random.default_rng(7)
     rms = {}
     for count in (12, 30):
