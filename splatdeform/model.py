@@ -216,7 +216,9 @@ class PointModel:
 
     def bbox(self) -> tuple[np.ndarray, np.ndarray]:
         """Axis-aligned bounding box: two (3,) float64 arrays (min, max)."""
-        return self.positions.min(axis=0), self.positions.max(axis=0)
+        from splatdeform.geometry import bounds
+
+        return bounds(self.positions)
 
     def diagonal(self) -> float:
         """Length of the bounding-box diagonal (model units)."""

@@ -17,6 +17,7 @@ import scipy.sparse as sp
 from scipy.spatial import cKDTree
 
 from splatdeform.errors import RegionError
+from splatdeform.geometry import bounds
 from splatdeform.interrupts import knn_query
 from splatdeform.model import PointModel
 
@@ -45,7 +46,7 @@ _BAND_SAFETY = 2.0
 
 def _cell_keys(positions: np.ndarray, cell: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Voxel cells of size ``cell``: (unique keys (C,), inverse (N,), key strides (3,))."""
-    lo = positions.min(axis=0)
+    lo = bounds(positions)[0]
     ijk = np.floor((positions - lo) / cell).astype(np.int64) + 1  # 1-based: room for -1
     dims = ijk.max(axis=0) + 2
     strides = np.array([dims[1] * dims[2], dims[2], 1], dtype=np.int64)
@@ -108,7 +109,8 @@ def border_knn_adjacency(positions: np.ndarray, labels: np.ndarray, neighbors: i
         return _symmetric(np.empty((0, 2), dtype=np.int64), n)
     tree = cKDTree(positions)
     radius = knn_radius(positions, tree, k)
-    extent = float(np.ptp(positions, axis=0).max())
+    lo, hi = bounds(positions)
+    extent = float((hi - lo).max())
     if radius > 0 and 2 * radius * _BAND_SAFETY < extent:
         frontier = np.flatnonzero(border_band(positions, labels, 2 * radius * _BAND_SAFETY))
     else:

@@ -33,7 +33,7 @@ class Frame:
     def of(model: PointModel) -> Frame:
         lo, hi = model.bbox()
         extent = hi - lo
-        return Frame(lo, np.where(extent > 0, extent, 1.0), model.diagonal())
+        return Frame(lo, np.where(extent > 0, extent, 1.0), float(np.linalg.norm(extent)))
 
 
 def check_units(units: str) -> None:

@@ -319,7 +319,7 @@ def las_records_for(model: PointModel, path: str | Path):
         raise FormatError(f"model has {model.n_points} points but its LAS source "
                           f"{src.points.shape[0]}; cannot save it verbatim")
     header = src.header
-    lo, hi = model.positions.min(axis=0), model.positions.max(axis=0)
+    lo, hi = model.bbox()
     scales, offsets, shift = fit_offsets(header, lo, hi, path)
     same_scale = bool(np.all(scales == np.asarray(header.scales)))
     points = requantized(header, src.points, model, scales, offsets, shift, same_scale)
@@ -355,7 +355,7 @@ def _new_las(model: PointModel):
     extra = [(n, v) for n, v in extra if n not in taken]
     if extra:
         header.add_extra_dims([laspy.ExtraBytesParams(name=n, type=v.dtype) for n, v in extra])
-    lo, hi = model.positions.min(axis=0), model.positions.max(axis=0)
+    lo, hi = model.bbox()
     extent = float(np.max(hi - lo)) or 1.0
     step = 10.0 ** np.ceil(np.log10(extent / 2**30))  # ~1e-9 of the extent, a power of ten
     header.scales = np.full(3, max(step, 1e-9))

@@ -6,6 +6,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from splatdeform.geometry import bounds
+
 
 @dataclass(frozen=True)
 class Normalization:
@@ -21,7 +23,7 @@ class Normalization:
     def of(points: np.ndarray) -> Normalization:
         """Normalisation of the bounding box of ``points`` (M, 3)."""
         pts = np.asarray(points, dtype=np.float64)
-        lo, hi = pts.min(axis=0), pts.max(axis=0)
+        lo, hi = bounds(pts)
         scale = float(np.linalg.norm(hi - lo))
         return Normalization(center=(lo + hi) / 2.0, scale=scale if scale > 0 else 1.0)
 

@@ -47,6 +47,7 @@ from splatdeform.edit.selectors import Indices, Property, leaves, map_leaves, se
 from splatdeform.edit.selectors.indices import index_mask
 from splatdeform.edit.stream.progress import Progress
 from splatdeform.errors import ProcessingError
+from splatdeform.geometry import bounds
 from splatdeform.io import ChunkFile
 from splatdeform.model import PointModel
 
@@ -108,8 +109,8 @@ def bbox_pass(src: ChunkFile, chunk: int, quiet: bool, sample_size: int = 200_00
     progress = Progress("pass 1 (bounding box)", n, quiet=quiet)
     for a, b in chunk_ranges(n, chunk):
         pos = src.positions(a, b)
-        lo = np.minimum(lo, pos.min(axis=0))
-        hi = np.maximum(hi, pos.max(axis=0))
+        c_lo, c_hi = bounds(pos)
+        lo, hi = np.minimum(lo, c_lo), np.maximum(hi, c_hi)
         sample.append(pos[(-a) % stride::stride].copy())  # not a view: frees the chunk
         progress.update(b - a)
     seconds = progress.finish()
