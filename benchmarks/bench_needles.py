@@ -185,14 +185,34 @@ def subdivided(model: PointModel) -> tuple[PointModel, np.ndarray]:
     return out, parent
 
 
-def reference(model: PointModel, deformation, delta_c, matrix) -> tuple[PointModel, PointModel]:
-    """(rest, deformed) subdivided reference (see the module docstring)."""
+def rule_children(model: PointModel, which: np.ndarray, m: int = 2
+                  ) -> tuple[PointModel, np.ndarray]:
+    """The splats where ``which`` (N,) bool as m x m x m children by the project's own split
+    rule (``splatdeform.deform.split.children``: moment-matched, opacity keeping the rest look),
+    the others whole; (M,) parent rows."""
+    from splatdeform.deform.split import children, take
+
+    counts = np.ones((model.n_points, 3), np.int64)
+    counts[which] = m
+    kids = children(model, np.arange(model.n_points), counts)
+    out = take(model, kids.parent)
+    out.positions = kids.centers
+    out.gaussians.scale_log = kids.scale_log
+    if kids.opacity is not None:
+        out.gaussians.opacity = kids.opacity
+    return out, kids.parent
+
+
+def reference(model: PointModel, deformation, delta_c, matrix, subdivide=subdivided
+              ) -> tuple[PointModel, PointModel]:
+    """(rest, deformed) subdivided reference (see the module docstring); ``subdivide(model)``
+    -> (rest children, (M,) parent rows) makes the children."""
     from splatdeform.deform import arrays as ap
     from splatdeform.deform.gaussians import deform_gaussians
     from splatdeform.deform.handle import apply_affine
     from splatdeform.deform.split import basis_field
 
-    rest, parent = subdivided(model)
+    rest, parent = subdivide(model)
     out = rest.copy()
     jac = np.broadcast_to(np.eye(3), (rest.n_points, 3, 3)).copy()
     label = np.zeros(model.n_points, np.int8)
@@ -227,11 +247,7 @@ def psnr(a: np.ndarray, b: np.ndarray, background: np.ndarray) -> tuple[float, f
 def measure_psnr(name: str, degrees: float, images: Path | None) -> list[str]:
     from splatdeform.render import View, render_image
 
-    if name == "gbar":
-        from data_tools.synth import gaussian_bar
-        model = gaussian_bar(20000)
-    else:
-        model = scene(name)
+    model = _psnr_scene(name)
     cfg = parse_edit(edit_config(model, degrees, 0.0), "bench")
     deformation = precompute(cfg, model, ROOT)
     delta_c, matrix = plain.control_displacement(cfg, model, deformation)
@@ -279,18 +295,72 @@ def measure_psnr(name: str, degrees: float, images: Path | None) -> list[str]:
     return lines
 
 
+def diagnose(name: str, degrees: float) -> list[str]:
+    """Where the gap to the floor comes from (``--diagnose``): the same PSNR against the issue's
+    reference for results that split more than any rule would, and against a finer set that
+    keeps the rest look."""
+    from splatdeform.render import View, render_image
+
+    model = _psnr_scene(name)
+    cfg = parse_edit(edit_config(model, degrees, 0.0), "bench")
+    deformation = precompute(cfg, model, ROOT)
+    delta_c, matrix = plain.control_displacement(cfg, model, deformation)
+    free = np.zeros(model.n_points, bool)
+    free[deformation.free_idx] = True
+    ours = {f"{mode} split {split}": df.apply(deformation, model, delta_c, moving_matrix=matrix,
+                                              covariance=mode, split=split)
+            for mode in ("limited", "jacobian") for split in ("off", "auto")}
+
+    def bent(which: np.ndarray) -> tuple[PointModel, PointModel]:
+        return reference(model, deformation, delta_c, matrix,
+                         subdivide=lambda m: rule_children(m, which))
+
+    issue_ref = reference(model, deformation, delta_c, matrix)
+    finer = bent(free)
+    extra = {"every free splat split 2x2x2 (the rule's children)": finer[1],
+             "only unmoved splats split 2x2x2 (no deformation change)": bent(~free)[1]}
+    lines = []
+    for azimuth in (0.0, 90.0):
+        cam = View(size=(800, 800), azimuth=azimuth, elevation=0.0).framed(
+            [ours["limited split auto"].positions], [ours["limited split auto"]], 1.0)
+        view = View(size=(800, 800), camera=cam)
+        plain_img = render_image(model, view)
+        for ref_name, (rest, ref), cands in (
+                ("the issue's reference", issue_ref, {**ours, **extra}),
+                ("a finer set keeping the rest look (free splats 2x2x2)", finer, ours)):
+            ref_img = render_image(ref, view)
+            bg = ref_img[0, 0]
+            floor = psnr(render_image(rest, view), plain_img, bg)[0]
+            lines.append(f"{name} {degrees:g} deg, azimuth {azimuth:g}, against {ref_name}: "
+                         f"floor {floor:.2f} dB")
+            for label, out in cands.items():
+                p = psnr(render_image(out, view), ref_img, bg)[0]
+                lines.append(f"    {label:<58}{p:6.2f} dB, {floor - p:5.2f} below the floor")
+    return lines
+
+
+def _psnr_scene(name: str) -> PointModel:
+    if name == "gbar":
+        from data_tools.synth import gaussian_bar
+        return gaussian_bar(20000)
+    return scene(name)
+
+
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--scenes", default="guitar,tile,bar")
     ap.add_argument("--images", type=Path, help="write the README images into this folder")
     ap.add_argument("--psnr", help="scene:degrees,... (guitar, tile, bar, gbar): issue 37")
+    ap.add_argument("--diagnose", help="scene:degrees,...: where the gap to the floor comes from")
     args = ap.parse_args(argv)
     if args.images is not None:
         args.images.mkdir(parents=True, exist_ok=True)
-    if args.psnr:
-        for item in args.psnr.split(","):
+    if args.psnr or args.diagnose:
+        for item in (args.psnr or args.diagnose).split(","):
             name, degrees = item.split(":")
-            for line in measure_psnr(name, float(degrees), args.images):
+            lines = (measure_psnr(name, float(degrees), args.images) if args.psnr
+                     else diagnose(name, float(degrees)))
+            for line in lines:
                 print(line, flush=True)
         return
     print(f"{'scene':<8}{'splats':>8}  {'edit':<20}{'mode':<10}{'needles':>9}{'of round':>10}"
