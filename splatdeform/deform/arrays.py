@@ -60,15 +60,18 @@ def jacobians(gradients: np.ndarray, delta_c: np.ndarray) -> np.ndarray:
 def cofactor_apply(jac: np.ndarray, vectors: np.ndarray) -> np.ndarray:
     """cof(J) n = det(J) J^-T n for each point, without an inverse.
 
-    With the columns c0, c1, c2 of J: cof(J) n = n0 (c1 x c2) + n1 (c2 x c0) + n2 (c0 x c1).
+    With the columns c0, c1, c2 of J: cof(J) n = n0 (c1 x c2) + n1 (c2 x c0) + n2 (c0 x c1),
+    written out per component on contiguous rows of J's nine entries (the same products and
+    sums as three ``np.cross`` calls, so the same bits, in half the time).
     jac: (N, 3, 3); vectors: (N, 3). Returns (N, 3), not normalised.
     """
-    c0, c1, c2 = jac[:, :, 0], jac[:, :, 1], jac[:, :, 2]
-    return (
-        vectors[:, 0:1] * np.cross(c1, c2)
-        + vectors[:, 1:2] * np.cross(c2, c0)
-        + vectors[:, 2:3] * np.cross(c0, c1)
-    )
+    a, b, c, d, e, f, g, h, i = np.ascontiguousarray(np.reshape(jac, (-1, 9)).T)
+    x, y, z = np.ascontiguousarray(np.asarray(vectors).T)
+    out = np.empty((3, x.shape[0]), dtype=np.result_type(jac, vectors))
+    out[0] = x * (e * i - h * f) + y * (f * g - i * d) + z * (d * h - g * e)
+    out[1] = x * (h * c - b * i) + y * (i * a - c * g) + z * (g * b - a * h)
+    out[2] = x * (b * f - e * c) + y * (c * d - f * a) + z * (a * e - d * b)
+    return out.T
 
 
 def normalize_rows(v: np.ndarray) -> np.ndarray:
@@ -77,11 +80,26 @@ def normalize_rows(v: np.ndarray) -> np.ndarray:
     return np.divide(v, length, out=np.zeros_like(v), where=length > 0)
 
 
-def transform_normals(jac: np.ndarray, normals: np.ndarray) -> np.ndarray:
+def transform_normals(jac: np.ndarray, normals: np.ndarray,
+                      cofactor: np.ndarray | None = None) -> np.ndarray:
     """Deformed normals: cof(J) n rescaled to each input normal's length (unit in, unit out; a
-    scan's 6.28-long normals stay 6.28 long). jac (N, 3, 3), normals (N, 3) -> (N, 3)."""
+    scan's 6.28-long normals stay 6.28 long). jac (N, 3, 3), normals (N, 3) -> (N, 3);
+    ``cofactor``: cof(J) n (N, 3) when already at hand."""
     length = np.linalg.norm(normals, axis=1, keepdims=True)
-    return normalize_rows(cofactor_apply(jac, normals)) * length
+    cof = cofactor_apply(jac, normals) if cofactor is None else cofactor
+    return normalize_rows(cof) * length
+
+
+def round_surfel_radius(radius: np.ndarray, normals: np.ndarray,
+                        cofactor: np.ndarray) -> np.ndarray:
+    """Area-preserving radius of round surfels after J: (N,) radii, (N, 3) normals and their
+    cof(J) n (N, 3) -> (N,). A disc of radius r spanned by u, v (u x v = r^2 n/|n|) maps to
+    J u, J v with J u x J v = cof(J)(u x v), so r' = |r| sqrt(|cof(J) n| / |n|) (0 for a zero
+    normal), the value :func:`axes_to_radius` gives for :func:`radius_to_axes`' axes."""
+    length = np.linalg.norm(normals, axis=1)
+    area = np.divide(np.linalg.norm(cofactor, axis=1), length, out=np.zeros_like(length),
+                     where=length > 0)
+    return np.abs(np.asarray(radius, dtype=np.float64)) * np.sqrt(area)
 
 
 def transform_axes(jac: np.ndarray, axes: np.ndarray) -> np.ndarray:

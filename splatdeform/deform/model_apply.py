@@ -41,13 +41,15 @@ def _deform_gaussians(model: PointModel, out: PointModel, idx: np.ndarray,
 def _transform_attributes(model: PointModel, out: PointModel, idx: np.ndarray,
                           jac: np.ndarray, covariance: str = "jacobian",
                           stats: dict | None = None) -> None:
+    cof = None
     if model.normals is not None:
-        out.normals[idx] = ap.transform_normals(jac, model.normals[idx])
+        normals = model.normals[idx]
+        cof = ap.cofactor_apply(jac, normals)
+        out.normals[idx] = ap.transform_normals(jac, normals, cofactor=cof)
     if model.axes is not None:
         out.axes[idx] = ap.transform_axes(jac, model.axes[idx])
-    elif model.radius is not None and model.normals is not None:
-        axes = ap.transform_axes(jac, ap.radius_to_axes(model.normals[idx], model.radius[idx]))
-        out.radius[idx] = ap.axes_to_radius(axes)
+    elif model.radius is not None and cof is not None:
+        out.radius[idx] = ap.round_surfel_radius(model.radius[idx], normals, cof)
     if model.gaussians is not None:
         _deform_gaussians(model, out, idx, jac, covariance, stats)
 
@@ -216,6 +218,8 @@ def check_finite(model: PointModel, out: PointModel) -> None:
                        ("rot_0", "rot_1", "rot_2", "rot_3"), _F32_MAX))
     for what, before, after, fields, default in checks:
         limit = _stored_limit(model, fields, default)
+        if _all_within(after, limit):  # one flat pass: nothing to attribute to rows
+            continue
         rows_in = np.isfinite(before).reshape(before.shape[0], -1).all(axis=1)
         # split children (gaussians.split) come after the originals, from finite parents only
         rows_in = np.concatenate([rows_in, np.ones(after.shape[0] - rows_in.size, bool)])
@@ -227,6 +231,16 @@ def check_finite(model: PointModel, out: PointModel) -> None:
             raise InputError(f"the deformation produced non-finite or out-of-range {what} for "
                              f"{bad:,} points; check the regions and the transform (a move "
                              "that large cannot be stored)")
+
+
+def _all_within(values: np.ndarray, limit: float) -> bool:
+    """Every value finite with |value| <= limit, from one pass over the flat array (a NaN
+    makes the maximum NaN, so it fails like an infinity)."""
+    if values.size == 0:
+        return True
+    flat = np.asarray(values).reshape(-1)
+    largest = max(float(flat.max()), -float(flat.min()))
+    return bool(np.isfinite(largest) and largest <= limit)
 
 
 def full_basis(deformation: Deformation) -> tuple[np.ndarray, np.ndarray]:

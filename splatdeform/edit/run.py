@@ -53,8 +53,10 @@ def prepare_model(cfg: EditConfig, base_dir: Path, timings: dict[str, float],
 def check_fit_range(positions: np.ndarray, path: Path) -> None:
     """Refuse coordinates (N, 3) the fit cannot work with (|x| > 1e15, e.g. float32's 3.4e38),
     naming the first such point."""
-    far = np.abs(positions).max(axis=1) > MAX_COORDINATE if positions.size else None
-    if far is not None and far.any():
+    if positions.size == 0 or not np.abs(positions).max() > MAX_COORDINATE:  # NaN: not far
+        return
+    far = np.abs(positions).max(axis=1) > MAX_COORDINATE
+    if far.any():
         i = int(np.flatnonzero(far)[0])
         raise InputError(f"{path}: point {i} at {positions[i].tolist()} is beyond "
                          f"+-{MAX_COORDINATE:g}; the fit would overflow ({int(far.sum())} such "

@@ -178,7 +178,8 @@ def nonfinite_rows(data: np.ndarray, positions: np.ndarray | None = None
     a NaN/Inf coordinate or Gaussian attribute."""
     if positions is None:
         positions = _columns(data, ("x", "y", "z"))
-    bad = ~np.isfinite(positions).all(axis=1)
+    bad = (np.zeros(positions.shape[0], bool) if np.isfinite(positions).all()
+           else ~np.isfinite(positions).all(axis=1))
     what = "coordinates"
     splat = _nonfinite_splat_rows(data)
     if splat is not None and splat.any() and not bad.any():
