@@ -332,6 +332,8 @@ def test_bad_timeouts_exit_2_one_line(tmp_path: Path, bars, args, key, capsys) -
     assert main(argv) == 2
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and key in err
+    if isinstance(args, list):  # says what a timeout must be (not "invalid <lambda> value")
+        assert "<lambda>" not in err and "expected a number of seconds" in err
     assert not (tmp_path / "out").exists()
 
 

@@ -238,6 +238,17 @@ def parse_timeout(value: Any, what: str) -> float:
     return seconds
 
 
+def _timeout_argument(value: str) -> float:
+    """argparse type of ``--scan-timeout``: its error says what was expected (argparse itself
+    would print ``invalid <lambda> value``)."""
+    from ..errors import InputError
+
+    try:
+        return parse_timeout(value, "--scan-timeout")
+    except InputError as exc:
+        raise argparse.ArgumentTypeError(str(exc).split(": ", 1)[1]) from None
+
+
 def cmd_batch(args: argparse.Namespace) -> int:
     from .report import printable
 
@@ -262,7 +273,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("config", help="batch YAML file")
     p.add_argument("--workers", type=int, help="local worker processes (default: cores)")
     p.add_argument("--scheduler", help="Dask scheduler address, e.g. tcp://host:8786")
-    p.add_argument("--scan-timeout", type=lambda v: parse_timeout(v, "--scan-timeout"),
+    p.add_argument("--scan-timeout", type=_timeout_argument,
                    metavar="SECONDS", help="stop a scan after this many seconds and report it "
                    "failed (wins over scan_timeout_s in the batch file)")
     p.add_argument("--force", action="store_true", help="redo scans already done")
