@@ -2,7 +2,9 @@
 
 For every PLY scan and splat file in ``../shared/data`` and the generated benchmark scenes
 (a clean bumpy bar and sphere, noisy splat shells: positions jittered normal to the surface by a
-fraction of the point spacing, and the paper's thin-band scene), a typical handle edit (fixed:
+fraction of the point spacing, the paper's thin-band scene, and the stand-ins of three real
+scans in ``data_tools/standins.py``, each with its own ring width and region fractions to land
+near the real scan's ring count), a typical handle edit (fixed:
 the first 30% of the bounding box along its longest axis; handle: the last 20%; the handle
 rotated 30 degrees about an axis across the model and moved 10% of the diagonal), with C2 rings:
 
@@ -37,6 +39,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from data_tools import standins  # noqa: E402
 from data_tools.synth import bumpy_bar, sphere  # noqa: E402
 from splatdeform import deform as df  # noqa: E402
 from splatdeform.basis.reference import evaluate_field  # noqa: E402
@@ -65,13 +68,15 @@ def shared_files() -> list[Path]:
                   for p in (SHARED / sub).glob("*.ply"))
 
 
-def typical_edit(model: PointModel) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """fixed, handle masks (N,) and the 4x4 handle transform of the typical edit."""
+def typical_edit(model: PointModel, fixed_end: float = 0.3, handle_start: float = 0.8,
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """fixed, handle masks (N,) and the 4x4 handle transform of the typical edit (fixed: the
+    longest axis up to ``fixed_end``, handle: from ``handle_start``, bounding-box fractions)."""
     lo, hi = model.bbox()
     axis = int(np.argmax(hi - lo))
     box_min, box_max = np.zeros(3), np.ones(3)
     f_max, h_min = box_max.copy(), box_min.copy()
-    f_max[axis], h_min[axis] = 0.3, 0.8
+    f_max[axis], h_min[axis] = fixed_end, handle_start
     fixed = select(model, [Box(tuple(box_min), tuple(f_max))], "relative")
     handle = select(model, [Box(tuple(h_min), tuple(box_max))], "relative")
     across = np.zeros(3)
@@ -107,6 +112,8 @@ def noisy_shell(n: int, jitter: float, seed: int) -> PointModel:
 
 
 def scenes(only: str | None):
+    """(name, model maker, (neighbors, fixed end, handle start) of the edit) of every scene."""
+    typical = (10, 0.3, 0.8)
     gen = {
         "generated bumpy bar 270k": lambda: bumpy_bar(270_000, seed=7),
         "generated sphere 100k": lambda: sphere(100_000, seed=3),
@@ -116,10 +123,14 @@ def scenes(only: str | None):
     }
     for name, make in gen.items():
         if only is None or only in name:
-            yield name, make
+            yield name, make, typical
     for path in shared_files():
         if only is None or only in path.name:
-            yield path.name, (lambda p=path: load(p))
+            yield path.name, (lambda p=path: load(p)), typical
+    if standins.available():  # stand-ins of three real scans (data_tools/standins.py)
+        for name, (make, *edit) in standins.STANDINS.items():
+            if only is None or only in name:
+                yield name, make, tuple(edit)
 
 
 def main() -> None:
@@ -149,11 +160,11 @@ def main() -> None:
     warm = rng.normal(size=(300, 3))  # first calls load LAPACK wrappers and thread pools
     fit_exact(warm, warm, threads=threads)
     fit_auto(warm, warm, threads=threads)
-    for name, make in scenes(args.only):
+    for name, make, (neighbors, fixed_end, handle_start) in scenes(args.only):
         model = make()
-        fixed, handle, matrix = typical_edit(model)
+        fixed, handle, matrix = typical_edit(model, fixed_end, handle_start)
         try:
-            d = constraints_of(model, fixed, handle)
+            d = constraints_of(model, fixed, handle, neighbors)
         except Exception as exc:  # a scene whose typical edit is not valid: say so, go on
             print(f"{name:<28} skipped: {exc}")
             continue
@@ -166,8 +177,8 @@ def main() -> None:
         free = model.positions[free_idx]
         rings = np.split(d.constraint_idx, np.cumsum(list(d.ring_sizes[0])
                                                      + list(d.ring_sizes[1]))[:-1])
-        t_thin, kept = timed(lambda pos=model.positions, r=rings: thin_rings(
-            pos, r, 10, args.thinning), args.repeat)
+        t_thin, kept = timed(lambda pos=model.positions, r=rings, k=neighbors: thin_rings(
+            pos, r, k, args.thinning), args.repeat)
         row(name, model.n_points, d.constraint_points, d.constraint_rhs, kept, delta, free,
             largest, Normalization.of(model.positions), threads, args, t_thin)
         del model, d

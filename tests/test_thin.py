@@ -19,7 +19,13 @@ from splatdeform.basis import compute_basis
 from splatdeform.basis.reference import evaluate_field
 from splatdeform.deform.handle import compose_transform
 from splatdeform.deform.rings import boundary_rings, region_adjacency
-from splatdeform.deform.thin import COARSE_CELL, ring_width, thin_ring, thin_rings
+from splatdeform.deform.thin import (
+    COARSE_CELL,
+    SPACING_FLOOR,
+    ring_width,
+    thin_ring,
+    thin_rings,
+)
 from splatdeform.edit.config import load_edit
 from splatdeform.edit.run import format_report, run_edit
 from splatdeform.io import save
@@ -77,13 +83,17 @@ def shell_def(shell):
 
 # ------------------------------------------------------------------------------- thinning
 
-def test_line_ring_keeps_every_point_and_thick_shell_loses_most():
-    # a mesh ring one vertex wide: points along a curve, spacing 1
+def test_line_ring_keeps_about_one_in_the_floor_and_thick_shell_loses_most():
+    # a mesh ring one vertex wide: points along a curve, spacing 1. Its cells are at least
+    # SPACING_FLOOR spacings (they used to be one, keeping every point: issue 38)
     t = np.linspace(0, 2 * np.pi, 400, endpoint=False)
     curve = np.stack([60 / np.pi * np.cos(t), 60 / np.pi * np.sin(t), np.zeros_like(t)], 1)
     width, spacing = ring_width(curve, 10)
     assert width == pytest.approx(spacing, rel=0.1)
-    assert thin_ring(curve, 10, 0.75).size == curve.shape[0]
+    kept = thin_ring(curve, 10, 1.0)
+    assert 0.35 * curve.shape[0] <= kept.size <= 0.75 * curve.shape[0]
+    gap = np.linalg.norm(curve[:, None] - curve[kept][None], axis=2).min(axis=1)
+    assert gap.max() <= SPACING_FLOOR * spacing
     # a thick noisy slab: 4000 points in a 40 x 4 x 4 box
     rng = np.random.default_rng(0)
     slab = rng.uniform([0, 0, 0], [40, 4, 4], size=(4000, 3))
@@ -93,9 +103,10 @@ def test_line_ring_keeps_every_point_and_thick_shell_loses_most():
     assert thin_ring(slab, 10, 0.0).size == slab.shape[0]  # 0 keeps every point
 
 
-def test_ring_with_cells_coarse_for_the_ring_set_is_kept_whole():
-    # a sparse 20^3 cube ring next to a dense slab 5x as long: its cells are wider than
-    # COARSE_CELL of the extent of both rings, so it is kept whole; the slab is still thinned
+def test_ring_with_cells_coarse_for_the_ring_set_is_thinned_at_the_coarse_cell():
+    # a sparse 20^3 cube ring next to a dense slab 5x as long: its cells would be wider than
+    # COARSE_CELL of the extent of both rings, so it is thinned at that cell (it used to be
+    # kept whole: issue 38), keeping more than alone; the slab is still thinned
     rng = np.random.default_rng(1)
     chunky = rng.uniform([0, 0, 0], [20, 20, 20], size=(200, 3))
     long = rng.uniform([0, 30, 0], [100, 34, 4], size=(4000, 3))
@@ -105,9 +116,11 @@ def test_ring_with_cells_coarse_for_the_ring_set_is_kept_whole():
     extent = float(np.linalg.norm(positions.max(0) - positions.min(0)))
     assert width > COARSE_CELL * extent > ring_width(long, 10)[0]
     kept = thin_rings(positions, rings, 10, 1.0)
-    assert kept[:200].all()
+    alone = thin_ring(chunky, 10, 1.0).size  # alone, its own extent is not coarse
+    assert alone < kept[:200].sum() < 200
+    assert np.array_equal(np.flatnonzero(kept[:200]),
+                          thin_ring(chunky, 10, 1.0, COARSE_CELL * extent))
     assert kept[200:].sum() < 0.5 * 4000
-    assert thin_ring(chunky, 10, 1.0).size < 200  # alone, its own extent is not coarse
 
 
 def test_kept_points_are_a_well_spread_subset_of_every_ring(shell, shell_def):

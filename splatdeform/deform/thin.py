@@ -12,14 +12,20 @@ rings, keep the same subset):
 - ring width W: the median spread across the ring of each point's 2k nearest ring points
   (k = ``boundary.neighbors``; second principal axis, :func:`ring_width`), never below s.
 
-The ring is then voxel-thinned at cell size ``factor * W``: in each occupied cell the point
-nearest the cell's centre is kept (ties: the lowest index). A mesh ring one vertex wide has W
-about its edge length, so cells smaller than that keep (nearly) every point; a thick shell keeps
-about one point per W-sized cell. A ring whose cells would be wider than :data:`COARSE_CELL`
-of the extent of all the ring points keeps every point: the field changes within one cell there,
-and the solve through the thinned rings misses most dropped points (so ``auto`` would solve
-twice). The grid starts at the ring's lowest corner; everything is
-deterministic and independent of the order of the ring's points except for exact ties.
+The ring is then voxel-thinned at cell size ``factor * max(W, SPACING_FLOOR * s)``: in each
+occupied cell the point nearest the cell's centre is kept (ties: the lowest index). A thick
+shell keeps about one point per W-sized cell; a mesh ring one vertex wide (W about its edge
+length) keeps about one point in :data:`SPACING_FLOOR` (the field is smooth along the ring at
+the scale of a few vertices: the kept ones still pin the dropped ones, checked by ``auto``).
+A ring whose cells would be wider than :data:`COARSE_CELL` of the extent of all the ring
+points is thinned at that cell instead (the field changes within one wider cell: the solve
+through it would miss most dropped points), or kept whole where the ring set is small
+(:func:`thin_rings`). The grid starts at the ring's lowest corner; everything is deterministic
+and independent of the order of the ring's points except for exact ties.
+
+Every dropped point is still checked: ``fit.method: auto`` adds the dropped points its solve
+misses by more than its boundary factor of tolerances and solves again
+(:mod:`splatdeform.rbf.auto`).
 """
 
 from __future__ import annotations
@@ -29,12 +35,19 @@ from scipy.spatial import cKDTree
 
 #: Rings with fewer points are kept whole (nothing to gain, and too few for the statistics).
 MIN_RING = 32
-#: Largest cell, as a fraction of the bounding-box diagonal of all the ring points, at which a
-#: ring is thinned; above it the ring is kept whole. Measured (``benchmarks/fit_table.py``):
-#: the 3DGS tile's cells are 0.055-0.084 of it and the dense solve through its thinned rings
-#: missed 61% of the dropped points by more than 10 tolerances; every other thinned scene's
-#: are at most 0.03 of it, with at most 6% missed (most none).
+#: Largest cell, as a fraction of the bounding-box diagonal of all the ring points; a wider one
+#: is cut to it. Measured (``benchmarks/fit_table.py``): the 3DGS tile's cells are 0.055-0.084
+#: of it and the dense solve through its thinned rings missed 61% of the dropped points by more
+#: than 10 tolerances; every other thinned scene's are at most 0.03 of it, with at most 6%
+#: missed (most none). (Rings with wider cells used to be kept whole: the 14k SH3 tile
+#: stand-in's 2,187 ring points then took a dense solve through all, 0.11 s; thinned at this
+#: cell and completed by ``auto``'s retries, 825 points, 0.03 s.)
 COARSE_CELL = 0.04
+#: Least cell, in ring spacings s: a ring one point wide (mesh rings) keeps about one point in
+#: this many along it. Measured on the Igea mesh stand-in (``data_tools/standins.py``, 2,754
+#: ring points): cells of 1 / 2 / 3 / 4 spacings keep 2,248 / 1,411 / 955 / 723 points, whose
+#: dense solve misses the dropped ones by at most 1.0 / 2.1 / 3.6 / 8.0 tolerances.
+SPACING_FLOOR = 2.0
 
 
 def ring_width(points: np.ndarray, neighbors: int) -> tuple[float, float]:
@@ -44,7 +57,8 @@ def ring_width(points: np.ndarray, neighbors: int) -> tuple[float, float]:
     direction as its largest axis; the second is across the ring (a uniform spread of width w
     has variance w^2 / 12), so W = median sqrt(12 lambda_2), never below the spacing s (the
     median distance to the nearest other ring point). A ring one point wide has lambda_2 about
-    0 and W = s; a thick shell has W of the order of its kNN neighbourhood.
+    0 and W = s; a thick shell has W of the order of its kNN neighbourhood. (The cell's floor
+    of :data:`SPACING_FLOOR` spacings is :func:`thin_ring`'s.)
     """
     k = int(min(max(2 * neighbors, 4), points.shape[0] - 1))
     dist, nbr = cKDTree(points).query(points, k=k + 1)
@@ -92,16 +106,21 @@ def middle_eigenvalues(cov: tuple[np.ndarray, ...]) -> np.ndarray:
 
 
 def thin_ring(points: np.ndarray, neighbors: int, factor: float,
-              largest_cell: float = np.inf) -> np.ndarray:
+              largest_cell: float = np.inf, coarse_whole: bool = False) -> np.ndarray:
     """Indices (K,) int64, ascending, of the kept points of one ring (M, 3) (all when
-    ``factor`` <= 0, the ring is small or its cell would be wider than ``largest_cell``)."""
+    ``factor`` <= 0 or the ring is small): cells of ``factor`` times the ring's width, at least
+    :data:`SPACING_FLOOR` spacings, at most ``largest_cell`` (``coarse_whole``: a ring whose
+    cell would be wider keeps every point instead)."""
     pts = np.asarray(points, dtype=np.float64)
     m = pts.shape[0]
     if factor <= 0 or m < MIN_RING:
         return np.arange(m, dtype=np.int64)
-    width, _ = ring_width(pts, neighbors)
-    cell = factor * width
-    if not 0 < cell <= largest_cell:
+    width, spacing = ring_width(pts, neighbors)
+    cell = factor * max(width, SPACING_FLOOR * spacing)
+    if coarse_whole and cell > largest_cell:
+        return np.arange(m, dtype=np.int64)
+    cell = min(cell, largest_cell)
+    if not cell > 0:
         return np.arange(m, dtype=np.int64)
     rel = (pts - pts.min(axis=0)) / cell
     ijk = np.floor(rel).astype(np.int64)
@@ -122,20 +141,26 @@ def thin_rings(positions: np.ndarray, rings: list[np.ndarray], neighbors: int,
     positions: (N, 3) of the model; rings: index arrays into it, in constraint order.
     Rings totalling so few points that ``fit.method: auto`` solves through every one of them
     (:data:`splatdeform.rbf.auto.TINY_DENSE`) are kept whole: thinning them would cost as much
-    as that solve; so is a ring whose cell would pass :data:`COARSE_CELL` of the extent of all
-    the ring points.
+    as that solve. No cell is wider than :data:`COARSE_CELL` of the extent of all the ring
+    points; a ring whose cell would be is thinned at that cell, except where the solve through
+    every ring point is predicted to take at most :data:`splatdeform.rbf.auto.SMALL_DENSE`
+    (then it is kept whole: the solve through its capped cells still misses so many dropped
+    points that ``auto``'s retries cost more than they save; measured on the 6,831-splat SH3
+    tile, 1,426 ring points: 545 kept, two retries, then the solve through all).
     """
-    from splatdeform.rbf.auto import TINY_DENSE, dense_seconds
+    from splatdeform.rbf.auto import SMALL_DENSE, TINY_DENSE, dense_seconds
 
     total = sum(int(ring.size) for ring in rings)
-    if dense_seconds(total, 1) <= TINY_DENSE:
+    predicted = dense_seconds(total, 1)
+    if predicted <= TINY_DENSE:
         return np.ones(total, dtype=bool)
     every = positions[np.concatenate(rings)]
     largest = COARSE_CELL * float(np.linalg.norm(every.max(axis=0) - every.min(axis=0)))
+    whole = predicted <= SMALL_DENSE  # a coarse ring is kept whole (else thinned at ``largest``)
     parts = []
     for ring in rings:
         keep = np.zeros(ring.size, dtype=bool)
         if ring.size:
-            keep[thin_ring(positions[ring], neighbors, factor, largest)] = True
+            keep[thin_ring(positions[ring], neighbors, factor, largest, whole)] = True
         parts.append(keep)
     return np.concatenate(parts) if parts else np.zeros(0, dtype=bool)
