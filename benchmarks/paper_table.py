@@ -7,8 +7,10 @@ for the free points, and the per-frame CPU apply (positions + normals of the fre
 The paper's 2005 figures are printed beside ours.
 
 It also runs ``splatdeform deform`` on the same scene in a subprocess (process start to written
-file, start-up printed separately) against scipy's fit + evaluate, and prints the curve
-tolerance -> centers -> fit time -> max |r| -> deviation from the exact interpolant.
+file; the stages it prints, the imports of the whole run as ``python -X importtime`` reports
+them and the bare interpreter start given separately) against scipy's fit + evaluate, and
+prints the curve tolerance -> centers -> fit time -> max |r| -> deviation from the exact
+interpolant.
 
     python benchmarks/paper_table.py [--points 270000] [--tolerance DEFAULT] [--backend auto]
 """
@@ -54,7 +56,8 @@ def timed(fn, repeats: int = 1):
 
 def end_to_end(args: argparse.Namespace, model, workdir: Path) -> dict[str, float]:
     """``splatdeform deform`` as a user runs it: process start to written file (wall seconds),
-    its printed per-stage timings, and the bare interpreter + import start-up on its own."""
+    its printed per-stage timings, the bare interpreter's start, and the seconds every import of
+    the whole run takes (``python -X importtime``, top-level entries summed)."""
     from splatdeform.io import save
 
     scan = workdir / "bar.ply"
@@ -69,7 +72,10 @@ def end_to_end(args: argparse.Namespace, model, workdir: Path) -> dict[str, floa
         f"boundary: {{continuity: 2, neighbors: {args.neighbors}}}\n"
         f"backend: {args.backend}\n")
     exe = [sys.executable, "-m", "splatdeform.cli"]
-    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1])}
+    # as an installed package runs: byte-compiled modules (pip writes them at install time;
+    # PYTHONDONTWRITEBYTECODE, set on some CI machines, would make every run recompile ours)
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONDONTWRITEBYTECODE"}
+    env["PYTHONPATH"] = str(Path(__file__).resolve().parents[1])
     subprocess.run([*exe, "deform", str(edit)], check=True, capture_output=True, env=env)  # warm
     best, stages = np.inf, {}
     for _ in range(3):
@@ -81,10 +87,17 @@ def end_to_end(args: argparse.Namespace, model, workdir: Path) -> dict[str, floa
             best = wall
             stages = {line.split()[0]: float(line.split()[1]) for line in out.splitlines()
                       if len(line.split()) == 3 and line.split()[2] == "s"}
-    startup = min(timed(lambda: subprocess.run(
-        [sys.executable, "-c", "import splatdeform.cli, splatdeform.edit"], check=True,
-        env=env))[0] for _ in range(3))
-    return {"wall": best, "startup": startup, **stages}
+    bare = min(timed(lambda: subprocess.run([sys.executable, "-c", "pass"], check=True,
+                                            env=env))[0] for _ in range(3))
+    # every import the whole run makes, as python -X importtime reports it: the sum of the
+    # top-level entries' cumulative times (nested imports are inside them)
+    report = subprocess.run([sys.executable, "-X", "importtime", *exe[1:], "deform", str(edit)],
+                            check=True, capture_output=True, text=True, env=env).stderr
+    imports = sum(int(line.split("|")[1]) for line in report.splitlines()
+                  if line.startswith("import time:") and line.split("|")[2].startswith(" ")
+                  and not line.split("|")[2].startswith("  ")
+                  and line.split("|")[1].strip().isdigit()) / 1e6
+    return {"wall": best, "bare": bare, "imports": imports, **stages}
 
 
 def main() -> None:
@@ -144,6 +157,7 @@ def main() -> None:
           f"(C2 rings, kNN {args.neighbors}); {d.free_idx.size:,} free points; "
           f"tolerance {args.tolerance:g} (max |r|), deviation = max free-point distance to the "
           f"exact interpolant / largest handle-point move ({largest:.3g})")
+    staged = sum(e2e.get(k, 0.0) for k in ("load", "rings", "fit", "basis", "apply", "save"))
     rows = [
         ("dense solve, all constraints (scipy LU)", f"{t_dense:.2f} s", f"{PAPER['dense']} s"),
         ("  scipy evaluate on the free points", f"{t_dense_eval:.2f} s", "-"),
@@ -154,7 +168,11 @@ def main() -> None:
         ("per frame, CPU (positions + normals)", f"{t_frame * 1e3:.1f} ms",
          f"{PAPER['frame_cpu'] * 1e3:.0f} ms"),
         ("splatdeform deform, process start to file", f"{e2e['wall']:.2f} s", "-"),
-        ("  of which interpreter + imports", f"{e2e['startup']:.2f} s", "-"),
+        ("  of which the stages it prints", f"{staged:.2f} s", "-"),
+        ("  of which imports (-X importtime, whole run)", f"{e2e['imports']:.2f} s", "-"),
+        ("  of which the bare interpreter", f"{e2e['bare']:.2f} s", "-"),
+        ("  the rest (outside stages and imports)",
+         f"{e2e['wall'] - staged - e2e['imports'] - e2e['bare']:.2f} s", "-"),
     ]
     print(f"{'step':<44}{'ours':>26}{'paper (2005)':>24}")
     for name, ours, paper in rows:
