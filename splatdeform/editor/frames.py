@@ -3,7 +3,8 @@
 After a fit, :func:`prepare` lays out the arrays a pose needs over the non-fixed points (fixed
 points never move): local positions, normals, Gaussian covariances and the basis values and
 gradients. :func:`deform` then applies a delta_c to them
-(:func:`splatdeform.deform.arrays.deform_frame`), one BLAS thread; :func:`base_frame` is the
+(:func:`splatdeform.deform.arrays.deform_frame`: positions and normals on the OpenCL device
+when there is one, else numpy on one BLAS thread); :func:`base_frame` is the
 undeformed model. Everything is in *local* coordinates (model coordinates minus the
 controller's ``origin``, so large scan offsets stay precise).
 """
@@ -102,7 +103,7 @@ def deform(fd: dict[str, Any], delta: np.ndarray, *, full: bool = True,
     active = fd["active"]
     with blas_threads(1):  # oversubscribed: 10-30x slower
         p, n = ap.deform_frame(fd["base_active"], fd.get("normals_active"), fd["values"],
-                               fd["grads"], delta)
+                               fd["grads"], delta, backend="auto")
         axes = cov6 = None
         if "axes" in fd:
             jac = ap.jacobians(fd["grads"], delta.astype(np.float32))
