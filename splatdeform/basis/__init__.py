@@ -7,6 +7,7 @@ with one warning).
 
 from __future__ import annotations
 
+import threading
 import warnings
 
 import numpy as np
@@ -16,7 +17,38 @@ from ..rbf.result import RbfFit
 from .names import BACKENDS
 from .result import Basis
 
-__all__ = ["BACKENDS", "Basis", "compute_basis", "resolve_backend"]
+__all__ = ["BACKENDS", "Basis", "compute_basis", "resolve_backend", "warm_up"]
+
+_WARM: threading.Thread | None = None
+
+
+def warm_up(backend: str = "auto", device: str | None = None, k: int | None = None) -> None:
+    """Start opening the OpenCL device of ``backend`` / ``device`` on a background thread:
+    import pyopencl, find the device, create its context and build (or load from pyopencl's
+    cache) the kernel for ``k`` basis columns with gradients. ``deform`` calls this before it
+    loads the input, so the 0.1-0.2 s this takes runs beside loading and the rings instead of
+    in the basis stage; :func:`compute_basis` waits for it. Nothing for ``numpy``; any failure
+    is left for the real call to report (a missing device, a bad ``device`` name)."""
+    global _WARM
+    if backend not in ("auto", "opencl") or _WARM is not None:
+        return
+
+    def work() -> None:
+        try:
+            from . import opencl
+
+            opencl.prepare_device(device, k)
+        except Exception:  # noqa: BLE001 - reported by the compute_basis that needs it
+            pass
+
+    _WARM = threading.Thread(target=work, name="opencl-warm-up", daemon=True)
+    _WARM.start()
+
+
+def _wait_warm() -> None:
+    warm = _WARM
+    if warm is not None and warm is not threading.current_thread():
+        warm.join()
 
 
 def resolve_backend(backend: str = "auto", device: str | None = None) -> str:
@@ -29,6 +61,7 @@ def resolve_backend(backend: str = "auto", device: str | None = None) -> str:
         raise InputError(f"backend: expected one of {', '.join(BACKENDS)}, got {backend!r}")
     if backend == "numpy":
         return "numpy"
+    _wait_warm()
     from . import opencl
 
     if backend == "opencl":

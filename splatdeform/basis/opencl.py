@@ -160,6 +160,17 @@ def _state(dev: object) -> _DeviceState:
     return state
 
 
+def prepare_device(device: str | None = None, k: int | None = None) -> None:
+    """Open ``device`` (context and queue) and, given ``k``, build the basis kernel for k
+    columns with gradients at the default precision, ahead of the first
+    :func:`compute_basis` (see :func:`splatdeform.basis.warm_up`). Raises DeviceError without
+    a device."""
+    dev = _select_device(device)
+    state = _state(dev)
+    if k is not None and k >= 1:
+        _kernel(state, _config(dev, int(k), True, "auto"))
+
+
 # ----------------------------------------------------------------------------- kernel build
 
 

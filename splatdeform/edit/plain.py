@@ -81,6 +81,17 @@ def basis_fn(cfg: EditConfig) -> BasisFn:
     return basis_settings(cfg.backend, cfg.device)
 
 
+def basis_columns(cfg: EditConfig) -> int | None:
+    """The basis columns k an edit of handles only will have (4 per handle: the affine
+    control points); None when a curve's count depends on the model."""
+    from splatdeform.edit.metaphors import curve, entries
+
+    found = entries(cfg)
+    if not found or any(kind is curve for kind, _, _ in found):
+        return None
+    return 4 * len(found)
+
+
 make_fit_fn = fit_fn  # the names the stream planner takes them by
 make_basis_fn = basis_fn
 
