@@ -16,7 +16,7 @@ import traceback
 import warnings
 
 from .basis.names import BACKENDS
-from .errors import InputError, SplatdeformError, error_line, one_line
+from .errors import InputError, NoDeviceWarning, SplatdeformError, error_line, one_line
 from .verbs import (
     _show_warning,
     _warn,
@@ -314,6 +314,7 @@ def main(argv: list[str] | None = None) -> int:
         with warnings.catch_warnings():
             if not debug:  # numpy RuntimeWarnings must not turn one error line into several
                 warnings.simplefilter("ignore", RuntimeWarning)
+            warnings.simplefilter("default", NoDeviceWarning)  # but the slow fallback is said
             warnings.showwarning = _show_warning  # ours are one line each
             return _run(argv, debug)
     finally:  # callers in the same process (tests, the API) get their handler back

@@ -98,3 +98,10 @@ def one_line(text: str) -> str:
     if text.isprintable():
         return text
     return "".join(c if c.isprintable() else repr(c)[1:-1] for c in text)
+
+
+class NoDeviceWarning(RuntimeWarning):
+    """``backend: auto`` found no OpenCL device and runs the (slow) numpy reference. A
+    RuntimeWarning for callers that filter those, but the CLI shows it (one line), while it
+    hides numpy's own RuntimeWarnings."""
+

@@ -76,3 +76,25 @@ def test_basis_columns_of_an_edit():
                       {"region": [{"box": {"min": [4, 4, 4], "max": [5, 5, 5]}}],
                        "transform": {"translate": [0, 1, 0]}}]
     assert basis_columns(parse_edit(two, "t")) == 8
+
+
+def test_cli_says_when_auto_falls_back_to_numpy(tmp_path):
+    """backend: auto without a device used to run the numpy reference without a word (the CLI
+    hides numpy's RuntimeWarnings); it now prints one warning line and still succeeds."""
+    import yaml
+    from helpers import base_config, run_cli
+
+    from data_tools.synth import bumpy_bar
+    from splatdeform.io import save
+
+    (tmp_path / "scans").mkdir()
+    save(bumpy_bar(3000, seed=2), tmp_path / "scans" / "bar.ply")
+    cfg = base_config(tmp_path / "scans", backend="auto")
+    (tmp_path / "edit.yaml").write_text(yaml.safe_dump(cfg))
+    res = run_cli("deform", tmp_path / "edit.yaml", "--quiet", cwd=tmp_path,
+                  env={"PYOPENCL_CTX": "no-such-device"})
+    assert res.returncode == 0, res.stderr
+    lines = [ln for ln in res.stderr.splitlines() if ln.strip()]
+    assert len(lines) == 1 and lines[0].startswith("splatdeform: warning: backend 'auto'")
+    assert "numpy reference" in lines[0] and "pocl-opencl-icd" in lines[0]
+    assert (tmp_path / "out" / "bent.ply").exists()

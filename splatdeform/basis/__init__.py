@@ -12,7 +12,7 @@ import warnings
 
 import numpy as np
 
-from ..errors import InputError
+from ..errors import InputError, NoDeviceWarning
 from ..rbf.result import RbfFit
 from .names import BACKENDS
 from .result import Basis
@@ -72,7 +72,7 @@ def resolve_backend(backend: str = "auto", device: str | None = None) -> str:
     warnings.warn(
         f"backend 'auto': no OpenCL device found, using the numpy reference (slow); "
         f"{opencl.NO_DEVICE_HINT}",
-        RuntimeWarning,
+        NoDeviceWarning,
         stacklevel=3,
     )
     return "numpy"
