@@ -368,7 +368,7 @@ def apply_file(field_path: str | Path, model_path: str | Path, out: str | Path, 
     if choice.mode == "memory":
         save(field.apply(load(model_path), backend), out)
         return out, False
-    from splatdeform.edit.stream.run import _Writer
+    from splatdeform.edit.stream.run import ChunkWriter
     from splatdeform.io.atomic import atomic_path
     from splatdeform.memory import stream_chunk
 
@@ -376,7 +376,7 @@ def apply_file(field_path: str | Path, model_path: str | Path, out: str | Path, 
     chunk = stream_chunk(choice.budget, src.record_bytes,
                          int(getattr(cost, "reader_bytes", 0)) + 160 * 2**20)
     with atomic_path(out) as tmp:
-        writer = _Writer(src, tmp)
+        writer = ChunkWriter(src, tmp)
         for a in range(0, src.n_points, chunk):
             part = field.apply(src.read(a, min(a + chunk, src.n_points)), backend)
             rows, props = src.encode(part)

@@ -133,7 +133,7 @@ def _remove_parts(parts: Path, futures) -> None:
         time.sleep(0.1)
 
 
-class _Writer:
+class ChunkWriter:
     """Streams deformed chunks into the output in the input's format (PLY: header, rows, other
     elements verbatim; LAS/LAZ: the input's header, VLRs and EVLRs), opened at the first chunk
     (which gives the output properties)."""
@@ -161,7 +161,7 @@ def second_pass_local(src: ChunkFile, plan: Plan, shared: Shared, out: Path, chu
                       quiet: bool) -> None:
     progress = Progress("pass 5 (basis + apply + write)", src.n_points, quiet=quiet)
     with atomic_path(out) as tmp:
-        writer = _Writer(src, tmp)
+        writer = ChunkWriter(src, tmp)
         props = None
         for a, b in chunk_ranges(src.n_points, chunk):
             rows, props = deform_chunk(src, a, b, plan.labels[a:b], shared)
@@ -192,7 +192,7 @@ def second_pass_dask(src: ChunkFile, plan: Plan, shared: Shared, out: Path, chun
         progress.finish()
         props = _out_props(src, plan, shared)
         with atomic_path(out) as tmp:
-            writer = _Writer(src, tmp)
+            writer = ChunkWriter(src, tmp)
             for a, _b in chunk_ranges(src.n_points, chunk):
                 writer.write(np.load(_part_name(parts, a), allow_pickle=False), props)
             writer.close()
