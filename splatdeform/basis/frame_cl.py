@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..errors import InputError
+from ..errors import DeviceError, InputError
 from ..resources import resource_path
 from .opencl import _select_device, _state, cl
 
@@ -64,7 +64,12 @@ def deform_frame_opencl(positions: np.ndarray, normals: np.ndarray | None, value
     out_n = None if nrm is None else np.empty((n, 3), np.float32)
     if n == 0:
         return out_p, out_n
-    state = _state(_select_device(device))
+    dev = _select_device(device)
+    largest = max(a.nbytes for a in (pos, nrm, vals, grads) if a is not None)
+    if largest > int(dev.max_mem_alloc_size):  # ``auto`` then runs the numpy path
+        raise DeviceError(f"deform_frame: {largest:,} bytes in one buffer exceed the device's "
+                          f"largest allocation ({int(dev.max_mem_alloc_size):,})")
+    state = _state(dev)
     kernel = cl.Kernel(_program(state, k, nrm is not None), "frame")
     mf = cl.mem_flags
     dummy = np.zeros(1, np.float32)
