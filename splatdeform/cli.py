@@ -244,13 +244,27 @@ class Interrupted(KeyboardInterrupt):
 _signalled: list[int] = []
 
 
+def _quiet_dask_logs() -> None:
+    """The process is ending on a signal: Dask's event-loop thread may log what the cut-short
+    call left behind (distributed's sync() has logged a NameError traceback through
+    "tornado.application"), which would add a traceback to the one "interrupted" line. Silence
+    those loggers before the main thread unwinds (only when Dask was imported)."""
+    if "distributed" in sys.modules:
+        import logging
+
+        for name in ("distributed", "asyncio", "tornado"):
+            logging.getLogger(name).setLevel(logging.CRITICAL + 1)
+
+
 def _on_sigterm(signum, frame) -> None:
     _signalled.append(signal.SIGTERM)
+    _quiet_dask_logs()
     raise Terminated()
 
 
 def _on_sigint(signum, frame) -> None:
     _signalled.append(signal.SIGINT)
+    _quiet_dask_logs()
     raise Interrupted()
 
 
