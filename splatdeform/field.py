@@ -22,7 +22,8 @@ Apply (:meth:`Field.apply`): fixed points are copied bit for bit, handle points 
 transform exactly, every other point (the free region, and a curve band, which is not a
 selector) moves by the field; normals, splat axes, covariances and SH follow as in ``deform``
 (:func:`splatdeform.deform.apply`), so a field applied to a copy of its model gives the bytes
-``deform`` wrote.
+``deform`` wrote, except in a curve band (``deform`` moves it with the curve; the field meets
+the curve within the fit's tolerance).
 """
 
 from __future__ import annotations
