@@ -25,9 +25,9 @@ _WARM: threading.Thread | None = None
 def warm_up(backend: str = "auto", device: str | None = None, k: int | None = None) -> None:
     """Start opening the OpenCL device of ``backend`` / ``device`` on a background thread:
     import pyopencl, find the device, create its context and build (or load from pyopencl's
-    cache) the kernel for ``k`` basis columns with gradients. ``deform`` calls this before it
-    loads the input, so the 0.1-0.2 s this takes runs beside loading and the rings instead of
-    in the basis stage; :func:`compute_basis` waits for it. Nothing for ``numpy``; any failure
+    cache) the kernel for ``k`` basis columns with gradients. ``deform`` calls this once its
+    input has loaded, so the 0.1-0.2 s this takes runs beside the rings and the fit instead
+    of in the basis stage; :func:`compute_basis` waits for it. Nothing for ``numpy``; any failure
     is left for the real call to report (a missing device, a bad ``device`` name)."""
     global _WARM
     if backend not in ("auto", "opencl") or _WARM is not None:

@@ -146,11 +146,11 @@ def run_edit(config: EditPlan | EditConfig | dict | str | Path,
     if plan.streamed:
         return run_stream(plan, log=log, check_fit=lambda fit: check_converged(fit, cfg, warn))
     timings: dict[str, float] = {}
-    if reuse is None and cfg.points is None:  # the device opens while the input loads
+    model = prepare_model(cfg, base_dir, timings, drop_nonfinite)
+    if reuse is None and cfg.points is None:  # the device opens while the rings are built
         from splatdeform.basis import warm_up
 
         warm_up(cfg.backend, cfg.device, plain.basis_columns(cfg))
-    model = prepare_model(cfg, base_dir, timings, drop_nonfinite)
     deformation, points_fit = None, None
     if cfg.points is not None:
         from splatdeform.edit.metaphors import points as pts
