@@ -75,7 +75,7 @@ RENDER_BYTES_PER_POINT = 768
 #: allocator's and the decoders' slack come on top. ``deform --memory-budget B`` (and the
 #: config's ``memory_budget``) peaks at most at ``B + BUDGET_MARGIN`` whether it runs in memory
 #: (its estimate, interpreter included, is at most B) or streams (chunks and border sized from
-#: B); tests/test_hostile_round3_budget.py measures it. A render adds its GL context (see
+#: B); tests/test_budget_refusals.py measures it. A render adds its GL context (see
 #: :func:`render_points`).
 BUDGET_MARGIN = 256 * 2**20
 
