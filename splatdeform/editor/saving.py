@@ -145,7 +145,22 @@ def save(ed: EditorController, model_path: str | Path | None = None,
     ``deform --render`` writes for that YAML (:func:`render_image`: the same view, colours
     and renderer, pixel for pixel); ``image_size`` (width, height) pixels for both panels
     replaces ``render.size`` (default: the loaded YAML's, else 1200 x 600). Defaults:
-    :func:`default_paths`."""
+    :func:`default_paths`.
+
+    No output is reached through a symbolic link (:func:`splatdeform.io.atomic.pinned_outputs`):
+    an output that is a link is refused, each output folder is opened when the names are checked
+    and every file is written and renamed relative to it, so a link planted at a name (or in
+    place of the folder) after the checks is replaced by the new file, never written through."""
+    from ..io.atomic import pinned_outputs
+
+    with pinned_outputs():
+        return _save(ed, model_path, config_path, image_path, image=image,
+                     image_size=image_size)
+
+
+def _save(ed: EditorController, model_path: str | Path | None,
+          config_path: str | Path | None, image_path: str | Path | None, *,
+          image: bool, image_size: tuple[int, int] | None) -> SaveResult:
     from ..io import atomic_write
 
     d_model, d_yaml, d_png = default_paths(ed)

@@ -9,8 +9,17 @@
   models, images, GIFs, reports, caches and camera files alike. Temporary files of this tool
   for the same target whose writer is gone (killed) are removed first: only names of exactly
   that pattern (a pid that is not running and tempfile's random part), never a link.
-- An output that is a symbolic link is written where it points (the link stays); a dangling
-  link is refused, never replaced.
+- The temporary file is created exclusively (``O_EXCL | O_NOFOLLOW``) in the opened output
+  folder and renamed by that folder's descriptor: a symbolic link that appears at an output's
+  name after the checks (planted by someone else) is replaced by the rename, never written
+  through. Stream writers (:func:`atomic_write`) write through the temporary file's descriptor;
+  writers given a path (:func:`atomic_path`) that find a link there are refused before the
+  rename. A folder made for an output is removed again when the write fails.
+- An output the user *named* as a symbolic link is written where it pointed when
+  :func:`check_io_paths` ran (the link stays); a dangling link is refused, never replaced.
+  Inside :func:`pinned_outputs` (the editor's Save) a link is never followed: an output that
+  is a link is refused, and each output folder is opened at check time and written through
+  that descriptor, so a folder swapped for a link afterwards is not followed either.
 """
 
 from __future__ import annotations
@@ -19,9 +28,10 @@ import contextlib
 import errno
 import os
 import re
+import secrets
 import stat
-import tempfile
-from collections.abc import Iterable, Iterator
+import threading
+from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
 
 from ..errors import InputError
@@ -111,6 +121,7 @@ def check_io_paths(inputs: Iterable[Named], outputs: Iterable[Named]) -> None:
             raise InputError(f"{what} {out}: exists and is {kind}; expected a regular file path "
                              "to write")
         _check_target(what, out)
+        _plan_output(what, out)
         for in_what, inp in ins:
             if _same(out, inp):
                 raise InputError(f"{what} {out}: is the {in_what} ({inp}); refusing to overwrite "
@@ -119,6 +130,8 @@ def check_io_paths(inputs: Iterable[Named], outputs: Iterable[Named]) -> None:
             if _same(out, other):
                 raise InputError(f"{what} {out}: is also the {other_what} output; choose "
                                  "different output paths")
+    if after_checks_hook is not None:
+        after_checks_hook([out for _, out in outs])
 
 
 def check_output_path(out: PathLike, *inputs: PathLike | None) -> Path:
@@ -167,7 +180,8 @@ def pid_alive(pid: int) -> bool:
     return True
 
 
-def _remove_dead(folder: Path, names: Iterable[str], out: Path | None) -> list[Path]:
+def _remove_dead(folder: Path, names: Iterable[str], out: Path | None,
+                 dir_fd: int | None = None) -> list[Path]:
     removed = []
     for name in names:
         pid = temp_owner(name, out)
@@ -175,8 +189,9 @@ def _remove_dead(folder: Path, names: Iterable[str], out: Path | None) -> list[P
             continue
         p = folder / name
         with contextlib.suppress(OSError):
-            if stat.S_ISREG(os.lstat(p).st_mode):
-                p.unlink()
+            if stat.S_ISREG(os.stat(name if dir_fd is not None else p, dir_fd=dir_fd,
+                                    follow_symlinks=False).st_mode):
+                os.unlink(name if dir_fd is not None else p, dir_fd=dir_fd)
                 removed.append(p)
     return removed
 
@@ -195,10 +210,8 @@ def remove_stale_temps(out: PathLike, *, any_output: bool = False) -> list[Path]
         return []
     if any_output:
         return _remove_dead(folder, names, None)
-    prefix, suffix = f".{out.stem}.", f".tmp{out.suffix}"
     # cheap filter first: output folders of a batch hold many files
-    return _remove_dead(folder, [n for n in names if n.startswith(prefix) and n.endswith(suffix)],
-                        out)
+    return _remove_dead(folder, _candidates(names, out), out)
 
 
 def current_umask() -> int:
@@ -222,59 +235,231 @@ def normal_mode(out: Path) -> int:
     return 0o666 & ~current_umask()
 
 
-def _link_target(out: Path) -> Path:
-    """An output named by a symbolic link is written where the link points (the link stays);
-    a link to nothing is refused rather than replaced."""
-    if not out.is_symlink():
-        return out
+# ------------------------------------------------------------------------ links and folders
+
+_NAMED_LINKS: dict[str, Path] = {}   # abspath of an output named as a link -> its target then
+_NAMED_LOCK = threading.Lock()
+_local = threading.local()            # .pinned: the _Pinned scope of this thread, if any
+
+#: Test seams (None in normal runs): called with the checked outputs when
+#: :func:`check_io_paths` has passed, and with the output right before :func:`atomic_path`'s
+#: rename, so a test can plant a link exactly there.
+after_checks_hook: Callable[[list[Path]], None] | None = None
+before_rename_hook: Callable[[Path], None] | None = None
+
+
+class _Pinned:
+    """Opened folders of one :func:`pinned_outputs` block (abspath -> O_DIRECTORY fd)."""
+
+    def __init__(self) -> None:
+        self.fds: dict[str, int] = {}
+
+
+@contextlib.contextmanager
+def pinned_outputs() -> Iterator[None]:
+    """Within the block, on this thread: no output is ever reached through a symbolic link.
+    :func:`check_io_paths` refuses an output that is a link, and opens each output's folder
+    (refused when that folder is itself a link) and keeps it open; :func:`atomic_path` writes
+    relative to that opened folder, so a folder swapped for a link afterwards is not followed,
+    and a link that appears at an output's name is replaced by the rename, never followed.
+    The editor's Save runs in one."""
+    prev = getattr(_local, "pinned", None)
+    scope = _Pinned()
+    _local.pinned = scope
     try:
-        return out.resolve(strict=True)
-    except (OSError, RuntimeError):
-        raise InputError(f"output {out}: is a symbolic link to nothing (dangling, or a loop); "
-                         "refusing to replace the link, give the path to write") from None
+        yield
+    finally:
+        _local.pinned = prev
+        for fd in scope.fds.values():
+            with contextlib.suppress(OSError):
+                os.close(fd)
+
+
+def _flags(*names: str) -> int:
+    return sum(getattr(os, n, 0) for n in names)
+
+
+_DIR_FLAGS = _flags("O_RDONLY", "O_DIRECTORY", "O_CLOEXEC")
+
+
+def _plan_output(what: str, out: Path) -> None:
+    """Check time: a link named as an output is resolved now (written where it points now,
+    whatever it points to later); inside :func:`pinned_outputs` it is refused instead, and the
+    output's folder is opened and kept."""
+    scope = getattr(_local, "pinned", None)
+    if scope is None:
+        if out.is_symlink():
+            with _NAMED_LOCK:
+                _NAMED_LINKS[os.path.abspath(out)] = out.resolve(strict=True)
+        return
+    if out.is_symlink():
+        raise InputError(f"{what} {out}: is a symbolic link; refusing to write through a "
+                         "link, choose another name")
+    key = os.path.abspath(out.parent)
+    if key in scope.fds or _stat(out.parent) is None:
+        return   # already open, or made by the writer
+    try:
+        scope.fds[key] = os.open(key, _DIR_FLAGS | _flags("O_NOFOLLOW"))
+    except OSError as exc:
+        raise InputError(f"{what} {out}: its folder {out.parent} could not be opened "
+                         f"({exc.strerror or exc}; a symbolic link is not followed)") from None
+
+
+def _named_target(out: Path) -> Path:
+    """Write time: where ``out`` is written. A link named as the output at check time goes to
+    the file it pointed to then; any other link (one planted after the checks) is never
+    followed: the rename replaces it."""
+    if getattr(_local, "pinned", None) is not None or not out.is_symlink():
+        return out
+    with _NAMED_LOCK:
+        return _NAMED_LINKS.get(os.path.abspath(out), out)
+
+
+def _make_folders(folder: Path) -> list[Path]:
+    """Create ``folder`` and its missing parents; the ones made, outermost first."""
+    missing = []
+    while _stat(folder) is None and folder != folder.parent:
+        missing.append(folder)
+        folder = folder.parent
+    made = []
+    for f in reversed(missing):
+        try:
+            f.mkdir()
+        except FileExistsError:
+            continue
+        made.append(f)
+    return made
+
+
+def _remove_folders(made: list[Path]) -> None:
+    for f in reversed(made):   # innermost first; only while empty
+        with contextlib.suppress(OSError):
+            f.rmdir()
+
+
+def _open_folder(folder: Path) -> int:
+    scope = getattr(_local, "pinned", None)
+    if scope is not None:
+        fd = scope.fds.get(os.path.abspath(folder))
+        if fd is not None:
+            return os.dup(fd)
+        return os.open(folder, _DIR_FLAGS | _flags("O_NOFOLLOW"))
+    return os.open(folder, _DIR_FLAGS)
+
+
+_ALPHABET = "abcdefghijklmnopqrstuvwxyz0123456789_"   # tempfile's (RANDOM_CHARS)
+
+
+def _create_temp(dfd: int, out: Path) -> tuple[int, str]:
+    """A new temporary file in the opened folder, created exclusively (never a link, never an
+    existing file): (its fd, its name)."""
+    prefix, suffix = f".{out.stem}.{os.getpid()}-", f".tmp{out.suffix}"
+    flags = _flags("O_RDWR", "O_CREAT", "O_EXCL", "O_NOFOLLOW", "O_CLOEXEC")
+    for _ in range(100):
+        name = prefix + "".join(secrets.choice(_ALPHABET) for _ in range(RANDOM_LEN)) + suffix
+        try:
+            return os.open(name, flags, 0o600, dir_fd=dfd), name
+        except FileExistsError:
+            continue
+    raise FileExistsError(errno.EEXIST, "no free temporary file name", str(out))
+
+
+def _mode_in(dfd: int, name: str) -> int:
+    """:func:`normal_mode` of the entry ``name`` of the opened folder (never through a link)."""
+    with contextlib.suppress(OSError):
+        st = os.stat(name, dir_fd=dfd, follow_symlinks=False)
+        if stat.S_ISREG(st.st_mode):
+            return stat.S_IMODE(st.st_mode)
+    return 0o666 & ~current_umask()
+
+
+def _temp_path(out: Path, dfd: int, name: str) -> Path:
+    """The temporary file's path for writers that open it by name: through the opened folder
+    (``/proc/self/fd``) inside :func:`pinned_outputs` where Linux offers it, else beside
+    ``out``."""
+    if getattr(_local, "pinned", None) is not None and os.path.isdir(f"/proc/self/fd/{dfd}"):
+        return Path(f"/proc/self/fd/{dfd}") / name
+    return out.parent / name
+
+
+@contextlib.contextmanager
+def _atomic(out: PathLike) -> Iterator[tuple[Path, int]]:
+    """(temporary path, its open fd); see :func:`atomic_path`."""
+    out = Path(out)
+    _check_chars("output", out)
+    out = _named_target(out)
+    own = True   # an OSError of our own steps names the output
+    made: list[Path] = []
+    dfd = fd = -1
+    name: str | None = None
+    tmp_path: Path | None = None
+    done = False
+    try:
+        made = _make_folders(out.parent)
+        dfd = _open_folder(out.parent)
+        _remove_dead(out.parent, _candidates(os.listdir(dfd), out), out, dfd)
+        # Ctrl-C / SIGTERM between creating the temporary file and knowing its name would leave
+        # it behind: held for those few lines, delivered inside the try (which removes it)
+        with deferred_signals():
+            fd, name = _create_temp(dfd, out)
+        tmp_path = _temp_path(out, dfd, name)
+        own = False
+        yield tmp_path, fd
+        own = True
+        st = os.stat(name, dir_fd=dfd, follow_symlinks=False)
+        if not stat.S_ISREG(st.st_mode):
+            raise InputError(f"output {out}: its temporary file was replaced by something "
+                             "else than a file while it was written; nothing was written")
+        os.fchmod(fd, _mode_in(dfd, out.name))
+        if before_rename_hook is not None:
+            before_rename_hook(out)
+        # by the opened folder: replaces whatever entry ``out`` is now (a link planted since
+        # the checks included), never writes through it
+        os.replace(name, out.name, src_dir_fd=dfd, dst_dir_fd=dfd)
+        done = True
+    except OSError as exc:  # name the output, not the temporary file
+        if not own and exc.filename not in (str(tmp_path), name) and exc.filename is not None:
+            raise
+        raise OSError(exc.errno, exc.strerror or str(exc), str(out)) from exc
+    finally:
+        if not done and name is not None:
+            with contextlib.suppress(OSError):
+                os.unlink(name, dir_fd=dfd)
+        for f in (fd, dfd):
+            if f >= 0:
+                with contextlib.suppress(OSError):
+                    os.close(f)
+        if not done:
+            _remove_folders(made)
+
+
+def _candidates(names: Iterable[str], out: Path) -> list[str]:
+    prefix, suffix = f".{out.stem}.", f".tmp{out.suffix}"
+    return [n for n in names if n.startswith(prefix) and n.endswith(suffix)]
 
 
 @contextlib.contextmanager
 def atomic_path(out: PathLike) -> Iterator[Path]:
     """Yield a temporary path beside ``out``; on success give it a normal write's mode
-    (:func:`normal_mode`) and rename it to ``out``,
-    else delete it. The temporary name keeps ``out``'s suffix (some writers pick the format by
-    extension). Stale temporaries of ``out`` from killed runs are removed first."""
-    out = _link_target(Path(out))
-    _check_chars("output", out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    remove_stale_temps(out)
-    tmp_path: Path | None = None
-    try:
-        # Ctrl-C / SIGTERM between creating the temporary file and knowing its name would leave
-        # it behind: held for those few lines, delivered inside the try (which removes it)
-        with deferred_signals():
-            fd, tmp = tempfile.mkstemp(dir=out.parent, prefix=f".{out.stem}.{os.getpid()}-",
-                                       suffix=f".tmp{out.suffix}")
-            os.close(fd)
-            tmp_path = Path(tmp)
-        yield tmp_path
-        os.chmod(tmp_path, normal_mode(out))
-        os.replace(tmp_path, out)
-    except OSError as exc:  # name the output, not the temporary file that is gone now
-        if tmp_path is None:
-            raise
-        with contextlib.suppress(OSError):
-            tmp_path.unlink()
-        if exc.filename not in (str(tmp_path), tmp_path) and exc.filename is not None:
-            raise
-        raise OSError(exc.errno, exc.strerror or str(exc), str(out)) from exc
-    except BaseException:
-        if tmp_path is not None:
-            with contextlib.suppress(OSError):
-                tmp_path.unlink()
-        raise
+    (:func:`normal_mode`) and rename it to ``out``, else delete it (and the folders made for
+    it). The temporary name keeps ``out``'s suffix (some writers pick the format by
+    extension). Stale temporaries of ``out`` from killed runs are removed first.
+
+    The temporary file is created exclusively in the opened folder (never a link), and the
+    rename is made relative to that folder: a link that appears at ``out`` after the checks is
+    replaced, never written through. A link that :func:`check_io_paths` saw named as the output
+    is written where it pointed then. Writers given the path open the temporary file by name;
+    one replaced by a link meanwhile is refused before the rename (:func:`atomic_write`'s stream
+    never opens it by name)."""
+    with _atomic(out) as (tmp, _):
+        yield tmp
 
 
 @contextlib.contextmanager
 def atomic_write(out: PathLike) -> Iterator:
-    """Open a binary stream whose contents replace ``out`` atomically when the block succeeds."""
-    with atomic_path(out) as tmp, open(tmp, "wb") as stream:
+    """Open a binary stream whose contents replace ``out`` atomically when the block succeeds
+    (the exclusive temporary file of :func:`atomic_path`, written through its descriptor)."""
+    with _atomic(out) as (_, fd), os.fdopen(os.dup(fd), "wb") as stream:
         yield stream
         stream.flush()
         os.fsync(stream.fileno())
