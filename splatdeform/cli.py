@@ -9,6 +9,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import errno
+import math
 import os
 import signal
 import sys
@@ -37,17 +38,72 @@ class _Parser(argparse.ArgumentParser):
         raise InputError(f"{verb}: {message}" if verb else message)
 
 
+# argparse type functions raise ArgumentTypeError: its message survives as the error line
+# (a ValueError, InputError included, becomes argparse's "invalid _frames value"); the bounds
+# are splatdeform.render.limits', the ones configs and camera files use
 def _frames(text: str) -> int:
-    from splatdeform.edit.config import MAX_FRAMES
+    from .render.limits import MAX_FRAMES
 
     try:
         n = int(text)
         if not 0 <= n <= MAX_FRAMES:
             raise ValueError
     except ValueError:
-        raise InputError(f"--frames: expected an integer from 0 to {MAX_FRAMES}, got "
-                         f"{text!r}") from None
+        raise argparse.ArgumentTypeError(f"expected an integer from 0 to {MAX_FRAMES}, got "
+                                         f"{text!r}") from None
     return n
+
+
+def _size(text: str) -> tuple[int, int]:
+    from .render.limits import MAX_IMAGE, MIN_IMAGE, size_line
+
+    try:
+        w, h = (int(v) for v in text.lower().split("x"))
+        if not (MIN_IMAGE <= w <= MAX_IMAGE and MIN_IMAGE <= h <= MAX_IMAGE):
+            raise ValueError
+    except ValueError:
+        raise argparse.ArgumentTypeError(size_line(text)) from None
+    return w, h
+
+
+def _number(what: str, lo: float, hi: float):
+    """A type function: a finite float within [lo, hi] (``what`` says what it is)."""
+    def parse(text: str) -> float:
+        try:
+            value = float(text)
+        except ValueError:
+            value = math.nan
+        if not (math.isfinite(value) and lo <= value <= hi):
+            raise argparse.ArgumentTypeError(f"expected {what} between {lo:g} and {hi:g}, got "
+                                             f"{text!r}")
+        return value
+
+    parse.__name__ = what.replace(" ", "_")
+    return parse
+
+
+def _fov(text: str) -> float:
+    from .render.limits import MAX_FOV, MIN_FOV
+
+    return _number("degrees", MIN_FOV, MAX_FOV)(text)
+
+
+def _zoom(text: str) -> float:
+    from .render.limits import MAX_ZOOM, MIN_ZOOM
+
+    return _number("a factor", MIN_ZOOM, MAX_ZOOM)(text)
+
+
+def _roll(text: str) -> float:
+    from .render.limits import MAX_ROLL
+
+    return _number("degrees", -MAX_ROLL, MAX_ROLL)(text)
+
+
+def _angle(text: str) -> float:
+    from .render.limits import MAX_ANGLE
+
+    return _number("degrees", -MAX_ANGLE, MAX_ANGLE)(text)
 
 
 def _add_camera_args(p: argparse.ArgumentParser) -> None:
@@ -57,13 +113,13 @@ def _add_camera_args(p: argparse.ArgumentParser) -> None:
                    help="up axis, one of +x +y +z -x -y -z; write --up=-y (default: the file's "
                         "convention: -y for 3DGS scenes, +z for LiDAR and geo-referenced scans "
                         "(`info` prints it), else +y)")
-    p.add_argument("--roll", type=float, default=None, metavar="DEGREES",
+    p.add_argument("--roll", type=_roll, default=None, metavar="DEGREES",
                    help="turn the camera about its viewing direction")
     p.add_argument("--camera", metavar="CAMERA.json",
                    help="a camera file (the OUT.camera.json every render writes); wins over "
                         "azimuth/elevation/fov/size/zoom; near/far may be omitted (computed "
                         "from the model)")
-    p.add_argument("--zoom", type=float, default=None, metavar="F",
+    p.add_argument("--zoom", type=_zoom, default=None, metavar="F",
                    help="narrow the view about the target F times (config render.zoom; "
                         "default 1: the model fills the picture)")
 
@@ -137,12 +193,13 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("render", help="render a model, or two side by side (before/after)")
     p.add_argument("models", nargs="+", metavar="MODEL", help="one or two model files")
     p.add_argument("-o", "--output", required=True, help="output PNG")
-    p.add_argument("--size", default="1200x600", help="image size WxH (default 1200x600)")
-    p.add_argument("--azimuth", type=float, default=30.0)
-    p.add_argument("--elevation", type=float, default=None,
+    p.add_argument("--size", type=_size, default="1200x600",
+                   help="image size WxH (default 1200x600)")
+    p.add_argument("--azimuth", type=_angle, default=30.0)
+    p.add_argument("--elevation", type=_angle, default=None,
                    help="degrees above the horizon (default 20; 40 for flat scenes such as "
                         "LiDAR tiles and terrain)")
-    p.add_argument("--fov", type=float, default=35.0,
+    p.add_argument("--fov", type=_fov, default=35.0,
                    help="the lens angle, vertical degrees (default 35); the framing fills the "
                         "picture whatever the angle: --zoom narrows the view")
     p.add_argument("--labels", help="comma-separated labels (default: the file names)")

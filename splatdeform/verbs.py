@@ -6,7 +6,6 @@ turns them into one line)."""
 from __future__ import annotations
 
 import argparse
-import math
 import sys
 
 from .errors import InputError
@@ -100,9 +99,8 @@ def cmd_deform(args: argparse.Namespace) -> int:
                      reuse_label="--reuse-file" if args.reuse_file else "--reuse cache",
                      render=render_out, render_label="--render" if args.render else
                      "render.output", frames=args.frames, up=args.up, roll=args.roll,
-                     camera=args.camera)
+                     camera=args.camera, field=args.save_field, residuals=args.residuals)
     view = _with_zoom(plan.view, args.zoom)
-    _check_field_outputs(args, cfg, base, plan)
     try:
         result = run_edit(plan, log=None if args.quiet else print, warn=_warn)
     except InputError as exc:
@@ -133,26 +131,6 @@ def cmd_deform(args: argparse.Namespace) -> int:
         if render_out:
             print(f"rendered {image}")
     return 0
-
-
-def _check_field_outputs(args: argparse.Namespace, cfg, base, plan) -> None:
-    """--save-field / --residuals: never an input or another output; --residuals only for a
-    points: edit; both need the in-memory run."""
-    from .io.atomic import check_io_paths
-
-    if args.residuals and cfg.points is None:
-        raise InputError("--residuals: only for an edit with points: (control-point pairs)")
-    named = [(k, v) for k, v in (("--save-field", args.save_field),
-                                 ("--residuals", args.residuals)) if v]
-    if not named:
-        return
-    if plan.streamed:
-        raise InputError(f"{named[0][0]}: the edit streams; it needs the in-memory run (raise "
-                         "--memory-budget)")
-    from splatdeform.edit.config import input_paths
-
-    check_io_paths([("edit config", args.config), *input_paths(cfg, base)],
-                   [("output", plan.output), *named])
 
 
 def _check_workers(args: argparse.Namespace) -> None:
@@ -282,17 +260,6 @@ def cmd_edit(args: argparse.Namespace) -> int:
                allow_hosts=tuple(args.allow_host or ()))
 
 
-def _size(text: str) -> tuple[int, int]:
-    try:
-        w, h = (int(v) for v in text.lower().split("x"))
-        if w < 16 or h < 16 or w > 8192 or h > 8192:
-            raise ValueError
-    except ValueError:
-        raise InputError(
-            f"--size: expected WIDTHxHEIGHT between 16 and 8192, got {text!r}") from None
-    return w, h
-
-
 def _edit_view(cfg, args: argparse.Namespace):
     """The view of an edit's image: the config's ``render`` with --up / --roll / --camera (the
     camera file wins over azimuth/elevation/fov/size and brings the panel size)."""
@@ -312,12 +279,7 @@ def cmd_render(args: argparse.Namespace) -> int:
     from .io.atomic import check_io_paths
     from .render import render_comparison
 
-    size = _size(args.size)
-    for name in ("azimuth", "elevation", "fov"):
-        if getattr(args, name) is not None and not math.isfinite(getattr(args, name)):
-            raise InputError(f"--{name}: expected a finite number, got {getattr(args, name)}")
-    if not 1 <= args.fov <= 179:
-        raise InputError(f"--fov: expected degrees between 1 and 179, got {args.fov}")
+    size = args.size   # (w, h): checked by the parser (render.limits)
     if not args.output.lower().endswith(".png"):
         raise InputError(f"-o/--output: expected a .png file, got {args.output!r}")
     from pathlib import Path

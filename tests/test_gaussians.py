@@ -217,7 +217,7 @@ def test_general_jacobian_reproduces_jsjt_and_keeps_thin_axes():
     jac = jac[np.linalg.det(jac) > 0.1]
     keep = jac.shape[0]
     s64, q64 = scale_log[:keep].astype(np.float64), quat[:keep].astype(np.float64)
-    new = deform_gaussians(s64, q64, rest[:keep], jac)
+    new = deform_gaussians(s64, q64, rest[:keep], jac, covariance="jacobian")
     assert not new.similarity.any()
     want = jac @ covariance(s64, q64) @ jac.transpose(0, 2, 1)
     got = covariance(new.scale_log, new.rotation)
@@ -228,7 +228,8 @@ def test_general_jacobian_reproduces_jsjt_and_keeps_thin_axes():
     np.testing.assert_allclose(log_det, np.log(np.linalg.det(jac)), atol=1e-9)
     assert np.isfinite(new.scale_log).all()
     # float32 in, float32 out
-    new32 = deform_gaussians(scale_log[:keep], quat[:keep], rest[:keep], jac)
+    new32 = deform_gaussians(scale_log[:keep], quat[:keep], rest[:keep], jac,
+                            covariance="jacobian")
     assert new32.scale_log.dtype == np.float32 and new32.rotation.dtype == np.float32
     np.testing.assert_allclose(new32.scale_log.sum(axis=1) - scale_log[:keep].sum(axis=1),
                                np.log(np.linalg.det(jac)), atol=1e-5)
@@ -243,7 +244,7 @@ def test_similarity_composes_directly_and_identity_is_bit_exact():
     jac = rot * factor[:, None, None]
     ident = np.arange(m) % 3 == 0
     jac[ident] = np.eye(3)
-    new = deform_gaussians(scale_log, quat, rest, jac)
+    new = deform_gaussians(scale_log, quat, rest, jac, covariance="jacobian")
     assert new.similarity[~ident].all()
     # identity J: every field bit-identical
     for got, was in ((new.scale_log, scale_log), (new.rotation, quat), (new.sh_rest, rest)):
@@ -373,7 +374,7 @@ def test_bent_region_reproduces_jsjt(which, request):
     s64 = g0.scale_log[free].astype(np.float64)
     q64 = g0.rotation[free].astype(np.float64)
     # the algorithm in float64: J Sigma J^T to 1e-6 relative ...
-    new = deform_gaussians(s64, q64, None, jac)
+    new = deform_gaussians(s64, q64, None, jac, covariance="jacobian")
     want = jac @ covariance(s64, q64) @ jac.transpose(0, 2, 1)
     got = covariance(new.scale_log, new.rotation)
     rel = np.linalg.norm(got - want, axis=(1, 2)) / np.linalg.norm(want, axis=(1, 2))

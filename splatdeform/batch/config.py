@@ -25,6 +25,7 @@ from splatdeform.edit.config import (
     MAX_IMAGE,
     MIN_IMAGE,
     EditConfig,
+    ViewCfg,
     input_paths,
     parse_edit,
     read_yaml,
@@ -55,27 +56,22 @@ class OverrideCfg(_Strict):
         default=None, description="Batch `render` keys over the batch's own for these scans")
 
 
-class BatchRenderCfg(_Strict):
-    """As ``deform``'s render (the same bounds); the thumbnail is two halves side by side, so
-    the width is at most half the largest image. ``size`` is one half (THUMBNAIL_PANEL by
-    default: before and after 800 x 600 each, 1600 x 618 in all; 512 x 256 until issue 35).
+class BatchRenderCfg(ViewCfg):
+    """As ``deform``'s render (:class:`~splatdeform.edit.config.ViewCfg`, the same keys and
+    bounds); the thumbnail is two halves side by side, so the width is at most half the largest
+    image, and it is coloured by the file (no ``region``). ``size`` is one half
+    (THUMBNAIL_PANEL by default: before and after 800 x 600 each, 1600 x 618 in all).
     ``closeup`` (default true): a second before/after of the same size, ``<stem>.changed.png``,
     framed on the points that moved (the handle and the free region as they visibly move; see
     :func:`splatdeform.render.compare.closeup_camera`), shown under the whole-model one."""
 
-    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
     size: Annotated[list[Annotated[StrictInt, Field(ge=MIN_IMAGE, le=MAX_IMAGE // 2)]],
-                    Field(min_length=2, max_length=2)] = list(THUMBNAIL_PANEL)
-    azimuth: float = Field(default=30.0, ge=-1e6, le=1e6)
-    elevation: float | None = Field(default=None, ge=-1e6, le=1e6)  # None: 20; flat: 40
-    fov: float = Field(default=35.0, ge=1, le=179)   # the lens angle
-    zoom: float = Field(default=1.0, ge=0.01, le=100)   # narrows the view about the target
-    up: Literal["+x", "+y", "+z", "-x", "-y", "-z"] | None = None  # None: the file's convention
-    roll: float = Field(default=0.0, ge=-360, le=360)
-    camera: str | None = None   # a camera file (OUT.camera.json), relative to the batch file
-    # None: the file's colours, else elevation for LiDAR (splatdeform.render.colors)
-    color: Literal["rgb", "elevation", "intensity", "classification"] | None = None
-    closeup: bool = True   # also <stem>.changed.png, framed on the points that moved
+                    Field(min_length=2, max_length=2)] = Field(
+        list(THUMBNAIL_PANEL), description="[w, h] of one half")
+    color: Literal["rgb", "elevation", "intensity", "classification"] | None = Field(
+        None, description="null: the file's colours, else elevation for LiDAR")
+    closeup: bool = Field(True, description="Also <stem>.changed.png, framed on the points "
+                          "that moved")
 
 
 class BatchConfig(_Strict):
@@ -265,7 +261,7 @@ def _render_options(render: dict[str, Any] | None, base: Path, reads: list, key:
     try:
         render = BatchRenderCfg.model_validate(render).model_dump()
     except ValidationError as exc:
-        raise validation_error(src, exc, prefix=key, roots=(_Strict,)) from None
+        raise validation_error(src, exc, prefix=key, roots=(_Strict, ViewCfg)) from None
     if render.get("camera"):   # relative to the batch file; read, never written
         render["camera"] = str((base / render["camera"]).resolve())
         reads.append((f"{key}.camera", Path(render["camera"])))

@@ -165,7 +165,7 @@ def limit_anisotropy(scale_in: np.ndarray, scale_out: np.ndarray,
 
 
 def deform_gaussians(scale_log: np.ndarray, rotation: np.ndarray, sh_rest: np.ndarray | None,
-                     jac: np.ndarray, covariance: str = "jacobian") -> DeformedGaussians:
+                     jac: np.ndarray, covariance: str = DEFAULT_COVARIANCE) -> DeformedGaussians:
     """Deform M splats by their Jacobians J (M, 3, 3): the covariance by ``covariance`` (one of
     :data:`COVARIANCE_MODES`), SH rotated by the polar R of J. Splats with J exactly I come back
     bit-identical. See the module docstring."""

@@ -11,9 +11,17 @@ from pathlib import Path
 from typing import Annotated, Any, Literal
 
 import numpy as np
-from pydantic import BaseModel, Field, ValidationError, field_validator, model_validator
+from pydantic import (
+    BaseModel,
+    Field,
+    StrictInt,
+    ValidationError,
+    field_validator,
+    model_validator,
+)
 
 from splatdeform.basis.names import BACKENDS
+from splatdeform.deform.gaussians import DEFAULT_COVARIANCE
 from splatdeform.edit.points_cfg import PairsFileCfg, PointsCfg
 from splatdeform.edit.schema import (
     MAX_VALUE,
@@ -31,10 +39,21 @@ from splatdeform.rbf.defaults import (
     DEFAULT_THINNING,
     DEFAULT_TOLERANCE,
 )
+from splatdeform.render.limits import (
+    DEFAULT_FOV,
+    DEFAULT_SIZE,
+    MAX_ANGLE,
+    MAX_FOV,
+    MAX_FRAMES,
+    MAX_IMAGE,
+    MAX_ROLL,
+    MAX_ZOOM,
+    MIN_FOV,
+    MIN_IMAGE,
+    MIN_ZOOM,
+)
 
 MAX_CONTROL_POINTS = 128  # curve control points (the renderer's storage-buffer limit)
-MIN_IMAGE, MAX_IMAGE = 16, 8192  # image width/height in pixels (as --size)
-MAX_FRAMES = 1000  # render.frames and --frames
 _Strict = Strict  # the root of the edit config's models (key paths come from their fields)
 
 
@@ -249,31 +268,44 @@ class SaveCfg(_Strict):
 class GaussiansCfg(_Strict):
     """``gaussians:``: how 3D Gaussian splats' covariances deform (README "covariance modes")."""
 
-    covariance: Literal["jacobian", "rotation", "limited"] = Field(  # DEFAULT_COVARIANCE
-        "limited", description="`jacobian`: J Sigma J^T; `rotation`: turned, shape kept; "
+    covariance: Literal["jacobian", "rotation", "limited"] = Field(
+        DEFAULT_COVARIANCE, description="`jacobian`: J Sigma J^T; `rotation`: turned, shape kept; "
         "`limited`: J Sigma J^T, axis ratio growing at most 2x")
     split: Literal["auto", "off"] = Field("off", description="`auto`: split free-region "
                                           "splats one Gaussian cannot follow (opt-in)")
 
 
-class RenderCfg(_Strict):
-    output: str | None = Field(None, description="A .png (frames >= 2: .gif or a folder); null: "
-                               "only `select -o` / `deform --render` name the image")
-    size: Annotated[list[Annotated[int, Field(ge=MIN_IMAGE, le=MAX_IMAGE)]],
-                    Field(min_length=2, max_length=2)] = Field([1200, 600], description="[w, h]")
-    azimuth: float = Field(30.0, description="Degrees about the up axis")
-    elevation: float | None = Field(None, description="Degrees above the horizon (null: 20, or "
+UpAxis = Literal["+x", "+y", "+z", "-x", "-y", "-z"]
+ViewColor = Literal["rgb", "elevation", "intensity", "classification", "region"]
+Angle = Annotated[float, Field(ge=-MAX_ANGLE, le=MAX_ANGLE)]
+
+
+class ViewCfg(_Strict):
+    """The view keys ``deform``'s ``render`` and a batch's ``render`` share (one definition:
+    the batch's thumbnail narrows ``size`` and ``color``, and adds ``closeup``)."""
+
+    size: Annotated[list[Annotated[StrictInt, Field(ge=MIN_IMAGE, le=MAX_IMAGE)]],
+                    Field(min_length=2, max_length=2)] = Field(list(DEFAULT_SIZE),
+                                                               description="[w, h]")
+    azimuth: Angle = Field(30.0, description="Degrees about the up axis")
+    elevation: Angle | None = Field(None, description="Degrees above the horizon (null: 20, or "
                                     "40 for flat scenes: LiDAR, terrain)")
-    fov: float = Field(35.0, ge=1, le=179, description="The lens angle, degrees")
-    zoom: float = Field(1.0, ge=0.01, le=100, description="Narrows the view about the target")
-    frames: int = Field(0, ge=0, le=MAX_FRAMES, description=">= 2: the edit animated")
-    up: Literal["+x", "+y", "+z", "-x", "-y", "-z"] | None = Field(
-        None, description="The axis shown up (null: the file's convention)")
-    roll: float = Field(0.0, ge=-360, le=360, description="Degrees about the view direction")
+    fov: float = Field(DEFAULT_FOV, ge=MIN_FOV, le=MAX_FOV, description="The lens angle, degrees")
+    zoom: float = Field(1.0, ge=MIN_ZOOM, le=MAX_ZOOM,
+                        description="Narrows the view about the target")
+    up: UpAxis | None = Field(None, description="The axis shown up (null: the file's convention)")
+    roll: float = Field(0.0, ge=-MAX_ROLL, le=MAX_ROLL,
+                        description="Degrees about the view direction")
     camera: str | None = Field(None, description="A camera file (OUT.camera.json), relative to "
                                "the config file")
-    color: Literal["rgb", "elevation", "intensity", "classification", "region"] | None = Field(
+    color: ViewColor | None = Field(
         None, description="null: the file's colours, else elevation for LiDAR")
+
+
+class RenderCfg(ViewCfg):
+    output: str | None = Field(None, description="A .png (frames >= 2: .gif or a folder); null: "
+                               "only `select -o` / `deform --render` name the image")
+    frames: int = Field(0, ge=0, le=MAX_FRAMES, description=">= 2: the edit animated")
 
     @model_validator(mode="after")
     def _output_kind(self) -> RenderCfg:

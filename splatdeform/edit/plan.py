@@ -43,7 +43,9 @@ class EditPlan:
     bytes (None: the default, half the RAM); ``choice``: the budget rule's decision
     (:func:`splatdeform.memory.choose`; None when Dask was asked for or nothing is saved);
     ``view`` / ``render`` / ``frames``: the edit image's view, path and frame count (None / 0:
-    no image); ``source``: the config file, when the edit came from one."""
+    no image); ``source``: the config file, when the edit came from one; ``field`` /
+    ``residuals``: the fitted field (``--save-field``) and the pairs' residual CSV
+    (``--residuals``) to write after the run (None: not asked)."""
 
     cfg: EditConfig
     base_dir: Path
@@ -59,6 +61,8 @@ class EditPlan:
     render: Path | None = None
     frames: int = 0
     source: Path | None = None
+    field: Path | None = None
+    residuals: Path | None = None
 
 
 def resolve_config(config: str | Path | dict[str, Any] | EditConfig,
@@ -113,7 +117,8 @@ def plan_edit(config: str | Path | dict[str, Any] | EditConfig,
               output_label: str = "output", reuse_label: str = "reuse cache",
               render: str | Path | None = None, render_label: str = "render.output",
               frames: int = 0, up: str | None = None, roll: float | None = None,
-              camera: str | Path | None = None) -> EditPlan:
+              camera: str | Path | None = None, field: str | Path | None = None,
+              residuals: str | Path | None = None) -> EditPlan:
     """The pre-flight, once: raises (one line) before any work, else the plan.
 
     ``config``: a file path (relative paths resolve against its folder), a mapping or an
@@ -123,13 +128,17 @@ def plan_edit(config: str | Path | dict[str, Any] | EditConfig,
     ``render``: the edit image's path (``render_label``: the option or key it came from),
     with ``frames`` (``--frames``, else ``render.frames``) and ``up`` / ``roll`` / ``camera``
     (a camera file; wins over the config's view keys) for its view; ``source``: the config
-    file (an input no output may replace; default: ``config`` when it is a path).
+    file (an input no output may replace; default: ``config`` when it is a path);
+    ``field`` / ``residuals``: ``--save-field`` and ``--residuals`` (a points: edit's).
 
-    In order: the view (a camera file is read); no output may be an input or another output
-    (:func:`splatdeform.io.atomic.check_io_paths`, the one check); the output's extension; the
-    budget rule (``stream``: budget, Dask and quiet options; ``warn`` gets its warning); an
-    animation refused when the edit streams. With ``save_output`` False nothing is checked
-    and the edit runs in memory."""
+    In order: the view (a camera file is read); ``--residuals`` only for a points: edit; no
+    output may be an input or another output, whatever the spelling or a link between them
+    (:func:`splatdeform.io.atomic.check_io_paths`, the one check, over every path the run
+    writes: the model, the reuse cache, the image and its camera file or frames, the field,
+    the residuals); the output's extension; the budget rule (``stream``: budget, Dask and
+    quiet options; ``warn`` gets its warning); an animation, a field or residuals refused when
+    the edit streams (they need the model in memory). With ``save_output`` False nothing is
+    checked and the edit runs in memory."""
     cfg, base, file = resolve_config(config, base_dir)
     source = Path(source) if source is not None else file
     in_path = base / cfg.input
@@ -146,7 +155,13 @@ def plan_edit(config: str | Path | dict[str, Any] | EditConfig,
         return EditPlan(cfg, base, in_path, None, reuse, drop_nonfinite, options=options,
                         view=view, render=None if render is None else Path(render),
                         frames=frames, source=source)
-    outputs: list[tuple[str, Path | None]] = [(output_label, out_path), (reuse_label, reuse)]
+    field = Path(field) if field is not None else None
+    residuals = Path(residuals) if residuals is not None else None
+    if residuals is not None and cfg.points is None:
+        raise InputError("--residuals: only for an edit with points: (control-point pairs)")
+    outputs: list[tuple[str, Path | None]] = [(output_label, out_path), (reuse_label, reuse),
+                                              ("--save-field", field),
+                                              ("--residuals", residuals)]
     n_frames = 0
     if render is not None:
         from splatdeform.edit.images import render_frames_count, render_target
@@ -169,6 +184,10 @@ def plan_edit(config: str | Path | dict[str, Any] | EditConfig,
         from splatdeform.edit.images import refuse_streamed_frames
 
         refuse_streamed_frames()
+    if streamed and (field is not None or residuals is not None):
+        flag = "--save-field" if field is not None else "--residuals"
+        raise InputError(f"{flag}: the edit streams; it needs the in-memory run (raise "
+                         "--memory-budget)")
     return EditPlan(cfg, base, in_path, out_path, reuse, drop_nonfinite, streamed, options,
                     budget, choice, view, None if render is None else Path(render), frames,
-                    source)
+                    source, field, residuals)

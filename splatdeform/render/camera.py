@@ -26,6 +26,7 @@ import numpy as np
 
 from splatdeform.errors import InputError
 from splatdeform.render import framing
+from splatdeform.render.limits import MAX_IMAGE, MAX_ZOOM, MIN_IMAGE, MIN_ZOOM
 
 UP_AXES = ("+x", "+y", "+z", "-x", "-y", "-z")
 # rotation taking the y-up orbit frame to each up axis: columns are the images of x, y, z
@@ -149,9 +150,9 @@ class View:
             raise InputError(
                 f"--roll/render.roll: expected a finite number of degrees, got {roll}")
         zoom = 1.0 if zoom is None else float(zoom)
-        if not (math.isfinite(zoom) and 0.01 <= zoom <= 100):
-            raise InputError(f"--zoom/render.zoom: expected a factor between 0.01 and 100, "
-                             f"got {zoom}")
+        if not (math.isfinite(zoom) and MIN_ZOOM <= zoom <= MAX_ZOOM):
+            raise InputError(f"--zoom/render.zoom: expected a factor between {MIN_ZOOM:g} and "
+                             f"{MAX_ZOOM:g}, got {zoom}")
         view = replace(self, up=up, roll=roll, zoom=zoom)
         if camera_file is not None:
             camera, size = load_camera(camera_file)
@@ -359,15 +360,17 @@ def parse_camera(data: Any, where: str) -> tuple[Camera, tuple[int, int]]:
     if np.linalg.norm(np.cross(forward, up)) <= 1e-9 * np.linalg.norm(forward) * max(
             np.linalg.norm(up), 1e-300):
         raise InputError(f"{where}: up: expected a direction not parallel to target - position")
+    # the lens as drawn (a zoomed view's is narrower than MIN_FOV): any open angle
     fov = _number(data, "fov_y_degrees", where, 0.0, 180.0)
     near = _number(data, "near", where, 0.0, math.inf) if "near" in data else None
     far = _number(data, "far", where, near or 0.0, math.inf) if "far" in data else None
     size = []
     for key in ("width", "height"):
         value = data[key]
-        if isinstance(value, bool) or not isinstance(value, int) or not 1 <= value <= 8192:
-            raise InputError(f"{where}: {key}: expected an integer pixel count in 1..8192, "
-                             f"got {value!r}")
+        if isinstance(value, bool) or not isinstance(value, int) or \
+                not MIN_IMAGE <= value <= MAX_IMAGE:
+            raise InputError(f"{where}: {key}: expected an integer pixel count in "
+                             f"{MIN_IMAGE}..{MAX_IMAGE}, got {value!r}")
         size.append(value)
     return (Camera(position, target, up, fov=fov, near=near, far=far, source=where),
             (size[0], size[1]))

@@ -11,6 +11,7 @@ from typing import Any
 
 import numpy as np
 
+from splatdeform.deform.gaussians import DEFAULT_COVARIANCE
 from splatdeform.errors import InputError
 from splatdeform.io.image import save_png
 from splatdeform.model import PointModel
@@ -198,7 +199,7 @@ def render_deformation_comparison(
     view: View = PANEL,
     *,
     labels: Sequence[str] = ("before", "after"),
-    covariance: str = "jacobian",
+    covariance: str = DEFAULT_COVARIANCE,
     closeup: str | os.PathLike[str] | None = None,
 ) -> np.ndarray:
     """Before (delta C = 0) and after (``delta_c`` (k, 3)) from ONE upload of the basis

@@ -12,6 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
+from splatdeform.deform.gaussians import DEFAULT_COVARIANCE
 from splatdeform.errors import InputError
 from splatdeform.io.image import save_gif, save_png
 from splatdeform.model import PointModel
@@ -30,7 +31,7 @@ def render_frames(
     view: View = DEFAULT_VIEW,
     *,
     duration_ms: int = 80,
-    covariance: str = "jacobian",
+    covariance: str = DEFAULT_COVARIANCE,
 ) -> list[Path]:
     """Render ``n_frames`` (>= 2) frames with delta C = t * ``delta_c`` (k, 3), t = i / (n - 1),
     one camera framing the whole motion. ``out_path``: ``*.gif`` (one animated GIF, looping,

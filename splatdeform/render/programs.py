@@ -11,7 +11,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from splatdeform.deform.gaussians import COVARIANCE_MODES
+from splatdeform.deform.gaussians import COVARIANCE_MODES, DEFAULT_COVARIANCE
 from splatdeform.errors import DeviceError, InputError
 from splatdeform.render.context import get_context
 from splatdeform.resources import resource_path
@@ -92,7 +92,7 @@ def _compile(ctx: Any, kind: str, deform: bool, k: int, sh: tuple[int, int],
 
 
 def program(name: str, k: int = 0, sh: tuple[int, int] = (0, 0),
-            covariance: str = "jacobian") -> Any:
+            covariance: str = DEFAULT_COVARIANCE) -> Any:
     """A compiled program by name (see the module doc), cached per context.
 
     k: basis columns of a ``*_deform`` program; k > 4 compiles the storage-buffer variant

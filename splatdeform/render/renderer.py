@@ -28,7 +28,7 @@ from typing import Any
 
 import numpy as np
 
-from splatdeform.deform.gaussians import COVARIANCE_MODES
+from splatdeform.deform.gaussians import COVARIANCE_MODES, DEFAULT_COVARIANCE
 from splatdeform.errors import InputError
 from splatdeform.model import PointModel
 from splatdeform.render import gaussians, meshes, surfels
@@ -74,7 +74,7 @@ class Renderer:
         gradients: np.ndarray | None = None,
         *,
         fill_holes: bool = True,
-        covariance: str = "jacobian",
+        covariance: str = DEFAULT_COVARIANCE,
     ) -> GpuModel:
         """Send ``model`` and (optionally) its basis to the GPU once.
 
@@ -224,7 +224,7 @@ def deformation_session(
     delta_c: np.ndarray | None,
     view: View = DEFAULT_VIEW,
     *,
-    covariance: str = "jacobian",
+    covariance: str = DEFAULT_COVARIANCE,
 ) -> Iterator[tuple[Renderer, GpuModel, Camera]]:
     """Upload ``model`` with its basis (values (N, k), gradients (N, k, 3), or None) once at
     ``view.size``, frame a camera on the undeformed and the ``delta_c`` (k, 3)-deformed
@@ -255,7 +255,7 @@ def render_image(
     values: np.ndarray | None = None,
     gradients: np.ndarray | None = None,
     delta_c: np.ndarray | None = None,
-    covariance: str = "jacobian",
+    covariance: str = DEFAULT_COVARIANCE,
 ) -> np.ndarray:
     """Render ``model`` (deformed on the GPU by ``delta_c`` (k, 3) when the basis ``values``
     (N, k) / ``gradients`` (N, k, 3) are given) to an (H, W, 3) uint8 image of ``view.size``.
