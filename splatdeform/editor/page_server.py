@@ -12,8 +12,9 @@ Hostile clients: a connection is only given a worker thread once its whole reque
 :data:`REQUEST_TIMEOUT` seconds after it connected, or when more than :data:`MAX_PENDING`
 connections wait (the oldest first). Requests are answered by :data:`WORKERS` threads, with at
 most :data:`MAX_QUEUED` waiting (503 beyond); heads are at most :data:`MAX_HEAD` bytes, bodies
-at most :data:`MAX_BODY` (413), a ``Content-Length`` that is not a whole number is a 400. Every
-answer is valid JSON (no NaN / Infinity), and so must every request be.
+at most :data:`MAX_BODY` (413), a ``Content-Length`` that is not a whole number is a 400, and
+so are two ``Host`` or two ``Origin`` headers. Every answer is valid JSON (no NaN / Infinity),
+and so must every request be.
 """
 
 from __future__ import annotations
@@ -334,7 +335,13 @@ class _Handler(BaseHTTPRequestHandler):
 
     def _refused(self, api: bool) -> bool:
         """Answer 403 and return True when the request may not go on: the ``Host`` always, the
-        Origin and token for the page and the API (static files need no token)."""
+        Origin and token for the page and the API (static files need no token). Two ``Host``
+        (or ``Origin``) headers are a 400: which one counts would be a guess."""
+        for name in ("Host", "Origin"):
+            if len(self.headers.get_all(name) or []) > 1:
+                self._send(400, f"bad request: more than one {name} header".encode(),
+                           "text/plain; charset=utf-8")
+                return True
         if api:
             why = refusal(self.path, self.headers, self.server.token, self.server.hosts)
         elif not self.server.hosts.allows(self.headers.get("Host", "") or ""):

@@ -29,6 +29,7 @@ from typing import Any
 from urllib.parse import parse_qs, urlsplit
 
 from ..errors import InputError, SplatdeformError
+from ..io.atomic import NAME_MAX, TEMP_EXTRA
 
 LOOPBACK_NAMES = ("localhost", "127.0.0.1", "::1", "ip6-localhost")
 
@@ -75,8 +76,8 @@ def _host_name(host_header: str) -> str | None:
     if not host_header or any(c in host_header for c in "@/?#\\ \t") or \
             not host_header.isprintable():
         return None
-    parts = urlsplit(f"//{host_header}")
     try:
+        parts = urlsplit(f"//{host_header}")   # raises on a broken [v6] address
         parts.port  # noqa: B018 - raises on a port that is not a number in range
     except ValueError:
         return None
@@ -122,12 +123,12 @@ def _own_names() -> set[str]:
 
 def _same_origin(origin: str, host_header: str) -> bool:
     """``Origin`` names the host:port the request was sent to (the page this server served)."""
-    parts = urlsplit(origin)
-    if parts.scheme not in ("http", "https") or not parts.hostname:
-        return False
-    port = parts.port or (443 if parts.scheme == "https" else 80)
-    target = urlsplit(f"//{host_header}")
-    try:
+    try:   # a port that is not a number in range, a broken [v6]: not this editor's origin
+        parts = urlsplit(origin)
+        target = urlsplit(f"//{host_header}")
+        if parts.scheme not in ("http", "https") or not parts.hostname:
+            return False
+        port = parts.port or (443 if parts.scheme == "https" else 80)
         target_port = target.port or 80
     except ValueError:
         return False
@@ -141,6 +142,9 @@ def refusal(path: str, headers: Mapping[str, str], token: str,
     default: loopback only), the ``Origin`` (none, or the same host and port), then the token
     (compared as UTF-8 bytes, in constant time)."""
     rule = hosts or HostRule()
+    get_all = getattr(headers, "get_all", None)
+    if get_all is not None and any(len(get_all(h) or []) > 1 for h in ("Host", "Origin")):
+        return "refused: more than one Host or Origin header"
     host = headers.get("Host", "") or ""
     if not rule.allows(host):
         shown = _host_name(host) or host[:80]
@@ -172,6 +176,9 @@ def _check_name(name: str, what: str) -> str:
     if name.startswith("."):
         raise InputError(f"{what} {name!r}: expected a visible file name (not starting "
                          "with '.')")
+    if len(os.fsencode(name)) > NAME_MAX - TEMP_EXTRA:
+        raise InputError(f"{what} {name[:40]!r}... ({len(os.fsencode(name))} bytes): file "
+                         f"name too long (at most {NAME_MAX - TEMP_EXTRA} bytes)")
     return name
 
 
