@@ -17,6 +17,9 @@ from .errors import InputError
 # |coordinate| beyond which a model is refused for editing (the fit's r^3 terms and its
 # normalisation lose every digit; float32's 3.4e38 overflows) and a LAS header is corrupt
 MAX_COORDINATE = 1e15
+# a scale factor (handle scales, ``convert --scale``) outside this by magnitude is degenerate:
+# it collapses the model to a point or throws it past every float32 coordinate
+MIN_SCALE, MAX_SCALE = 1e-6, 1e6
 KINDS = ("mesh", "oriented_cloud", "cloud", "surfel_radius", "surfel_axes", "gaussians")
 
 

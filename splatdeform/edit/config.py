@@ -33,6 +33,7 @@ from splatdeform.edit.schema import (
 from splatdeform.edit.selectors import SelectorCfg
 from splatdeform.edit.yaml_read import read_yaml
 from splatdeform.errors import ConfigError
+from splatdeform.model import MAX_SCALE, MIN_SCALE
 from splatdeform.rbf.defaults import (
     DEFAULT_MAX_CENTERS,
     DEFAULT_METHOD,
@@ -75,7 +76,8 @@ class RegionsCfg(_Strict):
 
 
 MAX_DEGREES = 1e6  # a rotation angle beyond this is a typo or an attack, not an edit
-MIN_SCALE, MAX_SCALE = 1e-6, 1e6  # a handle scale outside this (by magnitude) is degenerate
+# a handle scale outside MIN_SCALE..MAX_SCALE (by magnitude) is degenerate (the one bound,
+# splatdeform.model's: convert --scale holds to it too)
 MIN_SINGULAR_RATIO = 1e-9  # a handle's 3x3 part: smallest singular value / largest, at least
 
 
