@@ -199,7 +199,7 @@ def convert(src: str | Path, dst: str | Path, sim: Similarity | None = None, *,
     True
     """
     from . import memory
-    from .io import FORMATS, STREAMABLE, SUPPORTED, extension_of, load, save
+    from .io import FORMATS, STREAMABLE, SUPPORTED, check_writable, extension_of, load, save
     from .io.atomic import check_io_paths
 
     src, dst = Path(src), Path(dst)
@@ -209,6 +209,7 @@ def convert(src: str | Path, dst: str | Path, sim: Similarity | None = None, *,
     if ext_out not in FORMATS:
         raise InputError(f"output {dst}: unknown extension {ext_out or '(none)'!r}; expected "
                          f"one of {', '.join(SUPPORTED)}")
+    check_writable(dst)   # a format only read here: refused before any work or folder
     if src.is_file() and ext_in not in FORMATS:
         raise InputError(f"input {src}: unknown extension {ext_in or '(none)'!r}; expected "
                          f"one of {', '.join(SUPPORTED)}")

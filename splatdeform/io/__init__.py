@@ -28,8 +28,11 @@ SOG_META = _splats.SOG_META
 #: A double extension (``.compressed.ply``) is matched before the plain one; a key without a
 #: leading dot (``meta.json``: a SOG folder) is a whole file name.
 FORMATS: dict[str, Format] = {".ply": _ply.FORMATS[".ply"]}
+#: extensions read here but never written -> why, and what to write instead
+READ_ONLY: dict[str, str] = {}
 for _declared in (_splats, _pcd, _xyz, _las):
     FORMATS.update(_declared.FORMATS)
+    READ_ONLY.update(getattr(_declared, "READ_ONLY", {}))
 
 SUPPORTED = tuple(FORMATS)
 #: extensions the streaming / Dask paths read in chunks
@@ -127,6 +130,17 @@ def _extension(path: Path, what: str) -> str:
     return ext
 
 
+def check_writable(path: str | Path, what: str = "output") -> str:
+    """The format key of output ``path`` (:func:`extension_of`) when this tool writes that
+    format; InputError, one line naming ``path``, for an unknown extension or a format it only
+    reads (:data:`READ_ONLY`). Called before any work and before any file or folder is made."""
+    path = Path(path)
+    ext = _extension(path, what)
+    if ext in READ_ONLY:
+        raise InputError(f"{path}: {READ_ONLY[ext]}")
+    return ext
+
+
 def load(path: str | Path, *, drop_nonfinite: bool = False) -> PointModel:
     """Load a model file (any extension of :data:`FORMATS`).
 
@@ -206,7 +220,7 @@ def save(model: PointModel, path: str | Path, *, text: bool | None = None) -> Pa
     500
     """
     path = check_output_path(path, model.path)
-    ext = _extension(path, "output")
+    ext = check_writable(path)
     source = FORMATS.get(_source_format(model) or "")
     if source is not None and source.convert is not None and \
             FORMATS[ext].module != source.module:   # a source of its own, another format
@@ -219,4 +233,4 @@ __all__ = ["FORMATS", "Format", "FileCost", "HEAD_BYTES", "load", "save", "SUPPO
            "STREAMABLE", "PLY_EXTENSIONS", "LAS_EXTENSIONS", "COSTED", "LIDAR_EXTENSIONS",
            "SOG_META", "extension_of", "split_extension", "header_cost", "is_lidar",
            "format_fields", "atomic_path", "atomic_write", "check_output_path", "ChunkFile",
-           "open_chunks"]
+           "open_chunks", "check_writable", "READ_ONLY"]

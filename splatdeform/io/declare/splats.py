@@ -176,6 +176,11 @@ SOG_META = "meta.json"
 _SOG = {"probe": _sog_probe, "fields": _sog_fields, "lossy": True}
 _GLTF = Format("gltf", probe=_gltf_probe, fields=_gltf_fields)
 
+#: Formats read here but never written: extension -> the refusal (after the output's path),
+#: said before any work or any file (:func:`splatdeform.io.check_writable`).
+READ_ONLY = {".ksplat": ".ksplat is read only here; write .splat, .spz, .sog, .compressed.ply "
+                        "or .ply (the GaussianSplats3D viewer reads them)"}
+
 FORMATS = {
     ".compressed.ply": Format("ply", writer="playcanvas", probe=_compressed_ply_probe,
                               fields=_compressed_ply_fields, lossy=True),
