@@ -8,6 +8,8 @@
 - :func:`run_cli_peak` and :func:`load_peaks`: peak resident memory of a child process (its
   VmHWM), which sees every allocator (numpy, lazrs, zlib, Pillow), unlike tracemalloc.
 - Synchronisation by polling a condition (:func:`wait_for`), never by sleeping a fixed time.
+- Work bounds in CPU seconds (:class:`cpu_time`), never in wall-clock time: a loaded machine
+  stretches the second, not the first.
 """
 
 from __future__ import annotations
@@ -15,6 +17,7 @@ from __future__ import annotations
 import contextlib
 import json
 import os
+import resource
 import signal
 import stat
 import subprocess
@@ -110,6 +113,33 @@ def wait_for(condition: Callable[[], bool], timeout: float = 60, what: str = "co
         if time.monotonic() > deadline:
             raise AssertionError(f"timed out after {timeout} s waiting for {what}")
         time.sleep(poll)
+
+
+class cpu_time:  # noqa: N801 - used as a context manager, like a function
+    """CPU seconds (user + system) spent inside a ``with`` block by this process (all its
+    threads) and by the children it waited for (``subprocess.run``), in ``.seconds`` after the
+    block. Tests bound work with it; a wall-clock bound fails on a loaded machine.
+
+    Example::
+
+        with cpu_time() as cpu:
+            run_cli("info", path)
+        assert cpu.seconds < 10
+    """
+
+    seconds: float = 0.0
+
+    @staticmethod
+    def _now() -> float:
+        return sum(r.ru_utime + r.ru_stime for r in (resource.getrusage(resource.RUSAGE_SELF),
+                                                      resource.getrusage(resource.RUSAGE_CHILDREN)))
+
+    def __enter__(self) -> cpu_time:
+        self._start = self._now()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.seconds = self._now() - self._start
 
 
 # -------------------------------------------------------------- peak memory of a child

@@ -1,4 +1,4 @@
-"""Hostile inputs, round three: the memory estimate reads the validated header (never a second
+"""Budget refusals: the memory estimate reads the validated header (never a second
 parser), and an explicit ``--memory-budget`` is a cap (issue 32, items 2 and 9).
 
 - a LAS/LAZ whose header declares 2^31 VLRs is refused by ``render`` at once (one line, exit 2),
@@ -16,14 +16,13 @@ from __future__ import annotations
 
 import struct
 import subprocess
-import time
 from pathlib import Path
 
 import numpy as np
 import pytest
 import yaml
 from conftest import ROOT, bar_edit, shared_file
-from helpers import run_cli_peak
+from helpers import cpu_time, run_cli_peak
 
 from data_tools.synth import bumpy_bar
 from splatdeform import memory
@@ -59,10 +58,9 @@ def corrupt_vlr_count(src: Path, out: Path) -> Path:
 @pytest.mark.parametrize("name", ["lidar/vegetation_1_3.las", "lidar/simple.laz"])
 def test_corrupt_vlr_count_is_refused_by_the_estimate(tmp_path: Path, name: str) -> None:
     bad = corrupt_vlr_count(shared_file(name), tmp_path / Path(name).name)
-    t0 = time.perf_counter()
-    with pytest.raises(FormatError, match="2147483648 VLRs declared"):
+    with cpu_time() as cpu, pytest.raises(FormatError, match="2147483648 VLRs declared"):
         memory.file_cost(bad)
-    assert time.perf_counter() - t0 < 2.0
+    assert cpu.seconds < 2.0   # CPU seconds: the 2^31 records are never walked
     # the batch guard's estimate from the first bytes runs the same checks
     with pytest.raises(FormatError, match="VLRs declared"):
         memory.head_cost(bad.name, bad.read_bytes()[:memory.HEAD_BYTES], bad.stat().st_size)
@@ -70,15 +68,14 @@ def test_corrupt_vlr_count_is_refused_by_the_estimate(tmp_path: Path, name: str)
 
 def test_render_of_a_corrupt_vlr_count_fails_fast_with_one_line(tmp_path: Path) -> None:
     bad = corrupt_vlr_count(shared_file("lidar/vegetation_1_3.las"), tmp_path / "vlr.las")
-    t0 = time.perf_counter()
-    r, _ = run_cli("render", str(bad), "-o", str(tmp_path / "x.png"), timeout=30)
-    took = time.perf_counter() - t0
+    with cpu_time() as cpu:
+        r, _ = run_cli("render", str(bad), "-o", str(tmp_path / "x.png"), timeout=120)
     assert r.returncode == 2, r.stderr
     err = errors(r)
     assert len(err) == 1 and "Traceback" not in r.stderr, r.stderr
     assert err[0].startswith(f"splatdeform: error: {bad}: corrupt LAS/LAZ header") and \
         "VLRs" in err[0]
-    assert took < 10   # interpreter start and imports included (the check itself: < 2 s above)
+    assert cpu.seconds < 10   # the child's CPU, interpreter start and imports included
     assert not (tmp_path / "x.png").exists()
 
 

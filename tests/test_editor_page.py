@@ -10,7 +10,6 @@ import shutil
 import subprocess
 import sys
 import threading
-import time
 from contextlib import contextmanager
 from pathlib import Path
 
@@ -172,6 +171,14 @@ def _open(tab: Chromium, url: str) -> None:
     assert tab.eval("window.sdError || ''") == "", tab.console
 
 
+def _drawn(tab: Chromium, after: int = 0) -> None:
+    """Wait until the page has drawn more than ``after`` frames and every draw it has asked for
+    has run (its draws run in animation frames, queued before the one awaited here), so that a
+    screenshot shows the current state; a condition, not a fixed sleep."""
+    tab.wait(f"sdStats.frames > {after}")
+    tab.eval("new Promise(r => requestAnimationFrame(() => requestAnimationFrame(() => r(1))))")
+
+
 def _polar(j: np.ndarray) -> np.ndarray:
     u, _, vt = np.linalg.svd(j)
     return u @ vt
@@ -331,7 +338,7 @@ def test_scanned_mesh_without_normals_is_shaded(tmp_path):
         assert srv.scene["kind"] == "mesh" and srv.scene["normals"] == "none"
         with Chromium(size=(900, 600)) as tab:
             _open(tab, srv.url())
-            time.sleep(0.5)
+            _drawn(tab)
             img = np.asarray(Image.open(BytesIO(tab.screenshot())).convert("L")).astype(int)
     finally:
         srv.shutdown()
@@ -357,17 +364,19 @@ def test_splat_scene_is_drawn_sorted_by_the_page(tmp_path):
         assert srv.scene["up"] == "-y"   # the renderer's rule for 3DGS files
         with Chromium(size=(900, 600)) as tab:
             _open(tab, srv.url())
+            _drawn(tab)
             img = np.asarray(Image.open(BytesIO(tab.screenshot())).convert("RGB")).astype(int)
             # the page's back-to-front order is a permutation of all splats
             order = tab.eval(f"Array.from(sdDebug.order().slice(0, {srv.scene['n']}))")
             # the covariance mode is the edit's, and the page's choice recompiles its shader
             assert tab.eval("document.getElementById('covariance').value") == "limited"
+            frames = tab.eval("sdStats.frames")
             tab.eval("(() => { const e = document.getElementById('covariance'); "
                      "e.value = 'rotation'; e.dispatchEvent(new Event('change')); })()")
             tab.wait("sdState().covariance === 'rotation'")
             assert tab.eval("window.sdError || ''") == "" and srv.session.ed.settings.gaussians\
                 .covariance == "rotation"
-            time.sleep(0.5)
+            _drawn(tab, frames)   # the recompiled shader's frame
             again = np.asarray(Image.open(BytesIO(tab.screenshot())).convert("RGB")).astype(int)
             assert not any("rror" in m for m in tab.console), tab.console
     finally:

@@ -4,8 +4,9 @@
 - every declared extension loads and saves a small generated model where the format writes;
 - each format's header probe counts what the loader loads (the splat formats from the count
   their header declares);
-- no ``.suffix`` decides a format outside ``splatdeform/io/`` (one extension parser,
-  :func:`splatdeform.io.extension_of`);
+- no extension is compared outside ``splatdeform/io/`` but through its one case-insensitive
+  parser (:func:`splatdeform.io.extension_of` / ``split_extension``): an AST check that sees
+  ``.suffix`` comparisons, ``.endswith`` and comparisons with extension strings;
 - batch derives ``x_deformed.compressed.ply`` (same format) from ``x.compressed.ply``;
 - an SPZ that declares 10M splats in 1 MB is refused by ``deform --memory-budget 200MB`` from
   its declared count (one line naming the estimate and the budget).
@@ -13,6 +14,7 @@
 
 from __future__ import annotations
 
+import ast
 import gzip
 import re
 import subprocess
@@ -34,7 +36,6 @@ PACKAGE = ROOT / "splatdeform"
 SPLAT_KEYS = [ext for ext, fmt in FORMATS.items() if fmt.lossy or fmt.module == "gltf"]
 POINT_KEYS = [ext for ext in FORMATS if ext not in SPLAT_KEYS]
 READ_ONLY = {".ksplat"}
-NEEDS = {".xyz": "open3d", ".xyzn": "open3d", ".pts": "open3d", ".laz": "lazrs"}
 
 
 def _path(folder: Path, ext: str) -> Path:
@@ -59,8 +60,6 @@ def models():
 def test_every_declared_extension_saves_loads_and_probes_its_count(ext, models, tmp_path):
     """Every writable format (READ_ONLY ones are made by their reader's tests from their own
     library's files)."""
-    if ext in NEEDS:
-        pytest.importorskip(NEEDS[ext])
     model = models["splats" if ext in SPLAT_KEYS else "points"]
     path = _save(model, _path(tmp_path, ext))
     loaded = sd.load(path)
@@ -101,60 +100,164 @@ def test_splat_probes_count_what_the_header_declares(tmp_path):
 
 
 # --------------------------------------------------------------------------------------------
-# no .suffix format decision outside splatdeform/io/
+# no extension compared outside splatdeform/io/ but through io's one parser
 
-#: ``.suffix`` uses outside io/ that are not format decisions, by their line (whatever module
-#: holds it): why
+#: comparisons of file types that are not model formats, by (module, function): why. Each is
+#: case-insensitive (``.lower()``) unless it names the project's own files.
 NOT_FORMATS = {
-    'if path.suffix.lower() in (".yaml", ".yml"):': "an edit file (editor)",
-    'if ypath.suffix.lower() not in (".yaml", ".yml"):': "an edit file (editor save)",
-    'if png.suffix.lower() != ".png":': "an image (editor save)",
-    'if target.suffix in (".js", ".mjs"):': "a web asset's type (page server)",
-    'elif target.suffix in (".glsl", ".vert", ".frag"):': "a web asset's type (page server)",
-    "suffix = Path(output).suffix.lower()": "an image or GIF output (render config)",
-    'if out.suffix.lower() == ".png":': "an image output",
-    "if out.suffix:": "an image output",
-    'raise InputError(f"{out_path}: unknown output extension {out_path.suffix!r}; "':
-        "names an unknown extension in an error line (decided by extension_of)",
-    'if path.suffix == ".npy":': "an indices file",
-    'return p.with_name(f"{p.stem if p.suffix else p.name}.camera.json")':
-        "an image's camera sidecar",
-    'if out.suffix and out.suffix.lower() != ".gif":': "a GIF output",
-    'if out.suffix.lower() == ".gif":': "a GIF output",
-    'if path.suffix.lower() == ".zip":': "an archive's kind (batch sources)",
+    ("editor/controller.py", "EditorController.open"): "an edit file (YAML) or a model",
+    ("editor/saving.py", "_save"): "an edit file (YAML) and an image (editor save)",
+    ("editor/page_server.py", "_Handler._static"): "the page's own web assets (MIME types)",
+    ("edit/images.py", "render_target"): "an image output",
+    ("edit/config.py", "check_render_output"): "an image or GIF output (render config)",
+    ("render/frames.py", "render_frames"): "a GIF output",
+    ("verbs.py", "cmd_select"): "a PNG preview output",
+    ("verbs.py", "cmd_render"): "a PNG output",
 }
-#: format decisions by ``.suffix`` in modules owned elsewhere, to move onto
-#: ``splatdeform.io.extension_of`` / ``split_extension`` (each is a double-extension bug:
-#: ``x.compressed.ply`` taken as ``.ply``); remove an entry when it is fixed
-PENDING: dict[str, str] = {}
-SUFFIX = re.compile(r"\.suffix(es)?\b")
+#: comparisons to move onto ``splatdeform.io.extension_of`` (owned elsewhere), by (module,
+#: function): why; remove an entry when it is fixed
+PENDING = {
+    ("edit/selectors/indices.py", "load_indices"):
+        "case-sensitive `.suffix == '.npy'` (P.NPY): issue 44 item 4 reads it through io",
+}
+#: an extension as a string: ``.ply``, ``.compressed.ply``, ``.tar.gz``
+EXTENSION = re.compile(r"^\.[a-z0-9]+(\.[a-z0-9]+)*$", re.IGNORECASE)
+PARSERS = {"extension_of", "split_extension"}
 
 
-def suffix_uses() -> dict[str, list[str]]:
-    """Every stripped source line outside io/ that uses ``.suffix``: the modules holding it."""
-    found: dict[str, list[str]] = {}
+def _strings(node: ast.AST, consts: dict[str, list[str]]) -> list[str]:
+    """The string literals ``node`` is or holds (a tuple, list or set; a module constant)."""
+    if isinstance(node, ast.Constant) and isinstance(node.value, str):
+        return [node.value]
+    if isinstance(node, (ast.Tuple, ast.List, ast.Set)):
+        return [s for e in node.elts for s in _strings(e, consts)]
+    if isinstance(node, ast.Name):
+        return consts.get(node.id, [])
+    return []
+
+
+def _names_extension(node: ast.AST, consts: dict[str, list[str]]) -> bool:
+    return any(EXTENSION.match(s) for s in _strings(node, consts))
+
+
+def _calls(node: ast.AST, names: set[str]) -> bool:
+    return any(isinstance(n, ast.Call) and
+               (getattr(n.func, "id", None) or getattr(n.func, "attr", None)) in names
+               for n in ast.walk(node))
+
+
+def _raw_extension(node: ast.AST) -> bool:
+    """Whether ``node`` reads an extension without io's parser (``.suffix``, ``splitext``)."""
+    return any(isinstance(n, ast.Attribute) and n.attr in ("suffix", "suffixes")
+               for n in ast.walk(node)) or _calls(node, {"splitext"})
+
+
+def extension_decisions(tree: ast.Module) -> list[tuple[str, int]]:
+    """(function qualname, line) of each extension comparison in a module that does not go
+    through :data:`PARSERS`: a comparison of a ``.suffix`` (or a name bound to one), a string
+    comparison with an extension literal whose other side is not a parser's result, and an
+    ``.endswith`` of an extension."""
+    consts = {t.id: _strings(st.value, {}) for st in tree.body if isinstance(st, ast.Assign)
+              for t in st.targets if isinstance(t, ast.Name) and _strings(st.value, {})}
+    scopes: list[tuple[str, ast.AST]] = [("<module>", tree)]
+
+    def nest(prefix: str, node: ast.AST) -> None:  # classes and functions by qualname
+        for child in ast.iter_child_nodes(node):
+            if isinstance(child, (ast.FunctionDef, ast.AsyncFunctionDef, ast.ClassDef)):
+                scopes.append((prefix + child.name, child))
+                nest(prefix + child.name + ".", child)
+            else:
+                nest(prefix, child)
+
+    nest("", tree)
+    found = []
+    for scope_name, scope in scopes:
+        own = [n for n in ast.walk(scope) if _scope_of(n, scopes) is scope]
+        parsed, raw = set(), set()
+        for node in own:
+            if isinstance(node, (ast.Assign, ast.AnnAssign)) and node.value is not None:
+                targets = node.targets if isinstance(node, ast.Assign) else [node.target]
+                names = {n.id for t in targets for n in ast.walk(t) if isinstance(n, ast.Name)}
+                if _calls(node.value, PARSERS):
+                    parsed |= names
+                elif _raw_extension(node.value):
+                    raw |= names
+        for node in own:
+            if isinstance(node, ast.Compare):
+                sides = [node.left, *node.comparators]
+                if any(_raw_extension(s) or (isinstance(s, ast.Name) and s.id in raw)
+                       for s in sides) or (
+                        any(_names_extension(s, consts) for s in sides) and
+                        not any(_calls(s, PARSERS) or
+                                (isinstance(s, ast.Name) and s.id in parsed) for s in sides)):
+                    found.append((scope_name, node.lineno))
+            elif isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute) and \
+                    node.func.attr in ("endswith", "removesuffix") and \
+                    any(_names_extension(a, consts) for a in node.args):
+                found.append((scope_name, node.lineno))
+    return found
+
+
+def _scope_of(node: ast.AST, scopes: list[tuple[str, ast.AST]]) -> ast.AST:
+    """The innermost of ``scopes`` holding ``node`` (by line span)."""
+    best = scopes[0][1]
+    for _, scope in scopes[1:]:
+        if scope is not node and scope.lineno <= getattr(node, "lineno", 0) <= \
+                scope.end_lineno and scope.lineno >= getattr(best, "lineno", 0):
+            best = scope
+    return best
+
+
+def extension_uses() -> dict[tuple[str, str], list[int]]:
+    """(module, function) -> lines of each extension comparison outside io/ (by AST)."""
+    found: dict[tuple[str, str], list[int]] = {}
     for path in sorted(PACKAGE.rglob("*.py")):
         rel = path.relative_to(PACKAGE).as_posix()
         if rel.startswith("io/"):
             continue
-        for line in path.read_text().splitlines():
-            if SUFFIX.search(line):
-                found.setdefault(line.strip(), []).append(rel)
+        for scope, line in extension_decisions(ast.parse(path.read_text(), str(path))):
+            found.setdefault((rel, scope), []).append(line)
     return found
 
 
-def test_no_suffix_decides_a_format_outside_io():
-    uses = suffix_uses()
-    unknown = sorted((uses[line], line) for line in uses.keys() - NOT_FORMATS.keys()
+def test_no_extension_compared_outside_io():
+    uses = extension_uses()
+    unknown = sorted((key, uses[key]) for key in uses.keys() - NOT_FORMATS.keys()
                      - PENDING.keys())
-    assert not unknown, ("a format decided by `.suffix` outside splatdeform/io/ (use "
-                         f"splatdeform.io.extension_of / split_extension): {unknown}")
+    assert not unknown, ("an extension compared outside splatdeform/io/ without its parser "
+                         f"(use splatdeform.io.extension_of / split_extension): {unknown}")
 
 
-def test_the_suffix_scan_sees_the_uses_it_allows():
-    """The allow-lists name real lines (a stale entry would hide a new use written the same
-    way elsewhere)."""
-    uses = suffix_uses()
+def test_the_extension_scan_sees_what_it_must():
+    """The scan sees each way of comparing an extension (and passes the parser's results);
+    the allow-lists name functions that still compare one (a stale entry would hide a new
+    use)."""
+    source = """
+ARCHIVES = (".zip", ".tar.gz")
+def suffix(p): return p.suffix == ".ply"
+def lowered(p): return p.suffix.lower() in (".yaml", ".yml")
+def bound(p):
+    s = Path(p).suffix.lower()
+    return s not in allowed
+def ends(p): return str(p).lower().endswith(".zip")
+def ends_const(p): return p.endswith(ARCHIVES)
+def literal(name): return name[-4:] == ".png"
+def split(p): return os.path.splitext(p)[1] == ".las"
+class C:
+    def method(self, p): return p.name.endswith((".las", ".laz"))
+def parsed(p): return extension_of(p) == ".ply"
+def parsed_name(p):
+    ext = extension_of(p)
+    return ext in ARCHIVES
+def parsed_pair(p):
+    stem, ext = split_extension(p)
+    return ext == ".gz"
+def other(data, line): return data.endswith(b"\\n") or line.endswith(":") or line == "x"
+"""
+    found = {scope for scope, _ in extension_decisions(ast.parse(source))}
+    assert found == {"suffix", "lowered", "bound", "ends", "ends_const", "literal", "split",
+                     "C.method"}, found
+    uses = extension_uses()
     assert not sorted(NOT_FORMATS.keys() - uses.keys()), "stale NOT_FORMATS entries"
     assert not sorted(PENDING.keys() - uses.keys()), "fixed PENDING entries: remove them"
 

@@ -7,14 +7,13 @@ from __future__ import annotations
 
 import os
 import signal
-import threading
-import time
 from pathlib import Path
 
 import distributed
 import pytest
 import yaml
 from conftest import bar_edit
+from distributed.diagnostics.plugin import WorkerPlugin
 from fixtures import assert_same_result
 
 from data_tools.synth import bumpy_bar
@@ -56,31 +55,38 @@ def test_dask_equals_local(scene, client) -> None:
     assert not list(folder.glob(".dask.parts.*"))  # part folder removed
 
 
-def _kill_one_worker_when_parts_appear(folder: Path, client, done: threading.Event,
-                                       killed: list) -> None:
-    pids = client.run(os.getpid)
-    victim = sorted(pids.values())[0]
-    while not done.is_set():
-        if any(folder.glob(".killed.parts.*/part_*.npy")):
-            os.kill(victim, signal.SIGKILL)
-            killed.append(victim)
+class _KillOnFirstPart(WorkerPlugin):
+    """Kills its worker (SIGKILL) the moment a part task of the run finishes on it, before the
+    scheduler hears of the result, once per ``marker`` file (created exclusively, holding the
+    pid). The kill happens inside the run by construction: no watcher thread racing the run."""
+
+    def __init__(self, marker: str) -> None:
+        self.marker = marker
+
+    def transition(self, key, start, finish, **kwargs) -> None:
+        if finish != "memory" or not str(key).startswith("splatdeform-part-"):
             return
-        time.sleep(0.01)
+        try:
+            fd = os.open(self.marker, os.O_WRONLY | os.O_CREAT | os.O_EXCL)
+        except FileExistsError:
+            return  # one kill per run: the nanny's new worker carries the plugin too
+        os.write(fd, str(os.getpid()).encode())
+        os.close(fd)
+        os.kill(os.getpid(), signal.SIGKILL)
 
 
 def test_dask_survives_a_killed_worker(scene, client) -> None:
     folder, cfg = scene
-    done, killed = threading.Event(), []
-    watcher = threading.Thread(target=_kill_one_worker_when_parts_appear,
-                               args=(folder, client, done, killed))
-    watcher.start()
+    marker = folder / "killed.pid"
+    client.register_plugin(_KillOnFirstPart(str(marker)), name="kill-on-first-part")
     try:
         run_stream(cfg, folder, output=folder / "killed.ply", chunk=CHUNK // 2, quiet=True,
                    client=client)
     finally:
-        done.set()
-        watcher.join()
-    assert killed, "the run finished before a worker could be killed"
+        client.unregister_worker_plugin("kill-on-first-part")
+    assert marker.is_file(), "no part task finished on a worker"
+    victim = int(marker.read_text())
+    assert victim not in client.run(os.getpid).values()  # killed (its nanny started another)
     assert_same_result(folder / "local.ply", folder / "killed.ply", folder / "bar.ply")
 
 

@@ -21,6 +21,7 @@ from pathlib import Path
 from typing import BinaryIO
 
 from ..errors import InputError
+from ..io import extension_of
 from ..io.atomic import pid_alive
 from ..io.regular import open_regular
 from ..memory import HEAD_BYTES
@@ -75,7 +76,7 @@ Vet = Callable[[bytes, int], None]
 def _open_member(scan: Scan) -> Iterator[BinaryIO]:
     """The member's byte stream, found by its position (names can repeat in an archive)."""
     changed = InputError(f"{scan.name}: the archive changed since it was listed; run again")
-    if scan.path.lower().endswith(".zip"):
+    if extension_of(scan.path) == ".zip":
         with zipfile.ZipFile(scan.path) as zf:
             infos = zf.infolist()
             if scan.index is None or scan.index >= len(infos) or \

@@ -23,12 +23,14 @@ from pathlib import Path, PurePosixPath
 from typing import BinaryIO
 
 from ..errors import ConfigError, InputError, error_line
-from ..io import SUPPORTED, extension_of
+from ..io import SUPPORTED, extension_of, split_extension
 from ..memory import HEAD_BYTES
 
 #: longest archive problem a report row keeps (errors.error_line's limit)
 PROBLEM_CHARS = 300
 ARCHIVES = (".zip", ".tar", ".tar.gz", ".tgz", ".tar.bz2", ".tbz2", ".tar.xz", ".txz")
+#: compressions of a tar whose extension has two parts (``x.tar.gz``)
+_TAR_COMPRESSIONS = (".gz", ".bz2", ".xz")
 
 
 @dataclass(frozen=True)
@@ -153,8 +155,18 @@ def _magic_tail(pattern: str) -> tuple[str, ...]:
     return ()
 
 
+def archive_extension(path: str | Path) -> str:
+    """The archive extension of ``path``'s name (one of :data:`ARCHIVES`, lower case; '' when it
+    is not an archive's), read by io's one parser: ``X.ZIP`` -> ``.zip``, ``scan.TAR.GZ`` ->
+    ``.tar.gz`` (the compression's extension after the tar's)."""
+    stem, ext = split_extension(path)
+    if ext in _TAR_COMPRESSIONS and extension_of(stem) == ".tar":
+        ext = ".tar" + ext
+    return ext if ext in ARCHIVES else ""
+
+
 def is_archive(path: str | Path) -> bool:
-    return str(path).lower().endswith(ARCHIVES)
+    return archive_extension(path) != ""
 
 
 def _supported(name: str) -> bool:
@@ -253,7 +265,7 @@ def archive_members(path: Path) -> list[Scan]:
         out.append(Scan(str(path), name, identity, index, size, why, need=need, offset=offset))
 
     try:
-        if path.suffix.lower() == ".zip":
+        if extension_of(path) == ".zip":
             _list_zip(path, add)
         else:
             _list_tar(path, add)
