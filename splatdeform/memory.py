@@ -178,7 +178,7 @@ def choose(need: int, budget: int | None, *, streamable: bool, name: str | Path 
     - an explicit budget is a cap: otherwise refused, one line naming the estimate and the
       budget;
     - the default budget keeps the rule from before the cap: in memory, with a warning when
-      ``whole`` is what keeps it there.
+      ``whole`` or ``why_not`` is what keeps it there.
     """
     explicit = budget is not None
     limit = int(budget) if explicit else default_budget()
@@ -193,8 +193,10 @@ def choose(need: int, budget: int | None, *, streamable: bool, name: str | Path 
                       f"{name}: the in-memory estimate is {_mb(need)}, more than the memory "
                       f"budget of {_mb(limit)} ({budget_name}), and {reason}; raise the "
                       "budget or give a smaller scan")
-    warning = "" if whole is None else (f"{name}: over the memory budget, but {whole} needs "
-                                        "the whole model in memory: running in memory")
+    reason = (f"{whole} needs the whole model in memory" if whole is not None else
+              why_not if not streamable and why_not else "")
+    warning = "" if not reason else (f"{name}: over the memory budget ({_mb(limit)}), but "
+                                     f"{reason}: running in memory")
     return Choice("memory", need, limit, explicit, warning)
 
 

@@ -192,9 +192,6 @@ def cmd_select(args: argparse.Namespace) -> int:
     streamed = should_stream(cfg, base / cfg.input, budget) and not args.drop_nonfinite
     pairs = None   # a points: edit's (pairs, check pairs), drawn by -o; never fitted
     try:
-        if streamed and cfg.points is not None:
-            raise InputError("points: a control-point edit selects in memory (raise "
-                             "--memory-budget)")
         if cfg.points is not None:
             from splatdeform.edit.metaphors import points as pts
 

@@ -77,3 +77,46 @@ def test_the_plan_lists_every_output(scans, tmp_path):
     plan = plan_edit(cfg, tmp_path, field=tmp_path / "f.npz", reuse=tmp_path / "c.npz")
     assert (plan.output, plan.field, plan.reuse) == (tmp_path / "out/bent.ply",
                                                       tmp_path / "f.npz", tmp_path / "c.npz")
+
+
+# ------------------------------------------------ metaphors declare what they can take part in
+
+def test_each_kind_declares_its_capabilities():
+    from splatdeform.edit.config import parse_edit
+    from splatdeform.edit.metaphors import KINDS, points, refusal
+
+    for kind in (*KINDS, points):
+        assert kind.CAPABILITIES.why, kind.__name__
+    one = parse_edit(base_config(Path("/nowhere")), "edit")
+    assert refusal(one, "streams") == "" and refusal(one, "reusable") == ""
+    many = base_config(Path("/nowhere"))
+    many["handles"] = [{"region": many["regions"].pop("handle"), **many.pop("handle")}]
+    assert "several handles" in refusal(parse_edit(many, "edit"), "streams")
+    pairs = base_config(Path("/nowhere"), points={"pairs": [[2, 0, 0, 2, 0.1, 0]]})
+    pairs["regions"].pop("handle")
+    pairs.pop("handle")
+    cfg = parse_edit(pairs, "edit")
+    assert refusal(cfg, "streams").startswith("points:")
+    assert refusal(cfg, "reusable").startswith("points:")
+
+
+def test_an_edit_that_cannot_stream_runs_in_memory_under_the_default_budget():
+    """Decided once: over the default budget (none given) an edit that cannot stream runs in
+    memory with a warning; over an explicit budget it is refused, naming why."""
+    from splatdeform.memory import choose
+
+    default = choose(10**12, None, streamable=False, name="x.ply",
+                     why_not="curve: curve edits do not stream yet")
+    assert default.mode == "memory" and "curve edits do not stream" in default.message
+    capped = choose(10**12, 10**6, streamable=False, name="x.ply",
+                    why_not="curve: curve edits do not stream yet")
+    assert capped.mode == "refuse" and "curve edits do not stream" in capped.message
+
+
+def test_points_edit_refused_before_work(scans, tmp_path):
+    work = tmp_path / "w"
+    cfg = base_config(scans, points={"pairs": [[2, 0, 0, 2, 0.1, 0]]})
+    cfg["regions"].pop("handle")
+    cfg.pop("handle")
+    path = write_config(work, cfg)
+    _refused(work, "deform", path.name, "--reuse", needles=["points", "--reuse"])

@@ -98,6 +98,11 @@ def decide(cfg: EditConfig, in_path: Path, options: StreamOptions, budget: int |
         if whole is not None:
             raise ConfigError("--scheduler/--workers: cannot be combined with --reuse or "
                               "--drop-nonfinite")
+        from splatdeform.edit.stream import stream_refusal
+
+        why = stream_refusal(cfg)
+        if why:
+            raise ConfigError(f"--scheduler/--workers: {why}; run it without them")
         return True, None
     key = options.budget_name or ("--memory-budget" if options.budget is not None else
                                   "memory_budget")
@@ -140,6 +145,12 @@ def plan_edit(config: str | Path | dict[str, Any] | EditConfig,
     the edit streams (they need the model in memory). With ``save_output`` False nothing is
     checked and the edit runs in memory."""
     cfg, base, file = resolve_config(config, base_dir)
+    if reuse is not None:
+        from splatdeform.edit.metaphors import refusal
+
+        why = refusal(cfg, "reusable")
+        if why:
+            raise ConfigError(f"{why} (`apply` reuses a saved field instead)")
     source = Path(source) if source is not None else file
     in_path = base / cfg.input
     out_path = (Path(output) if output is not None else base / cfg.output) if save_output \

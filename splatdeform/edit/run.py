@@ -138,11 +138,6 @@ def run_edit(config: EditPlan | EditConfig | dict | str | Path,
                          reuse=reuse, drop_nonfinite=drop_nonfinite, stream=stream, warn=warn)
     cfg, base_dir, in_path, reuse = plan.cfg, plan.base_dir, plan.input, plan.reuse
     drop_nonfinite = plan.drop_nonfinite
-    if cfg.points is not None and (plan.streamed or reuse is not None):
-        from splatdeform.errors import ConfigError
-
-        raise ConfigError("points: a control-point edit runs in memory, without --reuse (raise "
-                          "--memory-budget; `apply` streams its saved field)")
     if plan.streamed:
         return run_stream(plan, log=log, check_fit=lambda fit: check_converged(fit, cfg, warn))
     timings: dict[str, float] = {}

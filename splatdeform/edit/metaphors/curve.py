@@ -10,8 +10,11 @@ import numpy as np
 from splatdeform.deform.metaphor import Metaphor
 from splatdeform.edit import units as u
 from splatdeform.edit.config import CurveCfg, EditConfig
+from splatdeform.edit.metaphors.capabilities import Capabilities
 from splatdeform.errors import ConfigError
 from splatdeform.model import PointModel
+
+CAPABILITIES = Capabilities(streams=0, why={"streams": "curve: curve edits do not stream yet"})
 
 
 def entries(cfg: EditConfig) -> list[tuple[str, CurveCfg]]:

@@ -11,7 +11,11 @@ from splatdeform.deform.handle import compose_transform, delta_for_transform
 from splatdeform.deform.metaphor import Metaphor, handle_metaphor
 from splatdeform.edit import units as u
 from splatdeform.edit.config import EditConfig, HandleCfg, TransformCfg, check_handle_matrix
+from splatdeform.edit.metaphors.capabilities import Capabilities
 from splatdeform.model import PointModel
+
+CAPABILITIES = Capabilities(streams=1, keys={"streams": ("handle",)}, why={
+    "streams": "handles: several handles do not stream yet"})
 
 
 def entries(cfg: EditConfig) -> list[tuple[str, tuple[HandleCfg, list, str]]]:

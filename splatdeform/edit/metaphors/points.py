@@ -23,11 +23,23 @@ import numpy as np
 from splatdeform.deform.points import Pairs, PointsFit, outside_hull, pair_errors, prepare_points
 from splatdeform.edit import units as u
 from splatdeform.edit.config import EditConfig, PairsFileCfg
+from splatdeform.edit.metaphors.capabilities import Capabilities
 from splatdeform.errors import ConfigError
 from splatdeform.model import PointModel
 
 MAX_PAIRS_BYTES = 64 * 2**20  # a pairs file
 DEFAULT_COLUMNS = ("x", "y", "z", "X", "Y", "Z")
+
+#: control-point pairs fit in memory, without --reuse (their columns come from the pairs, not a
+#: region), and are edited in the editor (:func:`splatdeform.edit.metaphors.refusal`)
+CAPABILITIES = Capabilities(streams=0, reusable=0, why={
+    "streams": "points: a control-point edit runs in memory",
+    "reusable": "points: a control-point edit runs without --reuse"})
+
+
+def entries(cfg: EditConfig) -> list[tuple[str, object]]:
+    """(key, entry) of the edit's control-point pairs: ``[("points", cfg.points)]`` or []."""
+    return [("points", cfg.points)] if cfg.points is not None else []
 
 
 def read_pairs_file(path: Path, columns: list[str] | None, key: str) -> tuple[np.ndarray, list]:

@@ -62,14 +62,16 @@ COSTED = io_costed
 
 
 def stream_refusal(cfg) -> str:
-    """Why this edit cannot stream ('' when it can): what :func:`run.check_streamable` refuses."""
-    if cfg.curve is not None:
-        return "curve edits do not stream yet"
-    if cfg.handles is not None:
-        return "several handles do not stream yet"
-    if cfg.normals == "estimate":
-        return "normals: estimate needs the whole model"
-    return ""
+    """Why this edit cannot stream ('' when it can): the metaphors' own capabilities
+    (:func:`splatdeform.edit.metaphors.refusal`), then what needs the whole model. The one
+    rule: the pre-flight (:func:`edit_choice`) and the stream's reader
+    (:func:`run.check_streamable`) both ask it."""
+    from splatdeform.edit.metaphors import refusal
+
+    why = refusal(cfg, "streams")
+    if not why and cfg.normals == "estimate":
+        why = "normals: estimate needs the whole model"
+    return why
 
 
 def edit_choice(cfg, in_path: Path, budget: int | None, *, whole: str | None = None,
@@ -90,10 +92,9 @@ def edit_choice(cfg, in_path: Path, budget: int | None, *, whole: str | None = N
     need = memory.deform_peak(cost, cfg.boundary.neighbors, cfg.fit.max_centers)
     why = "" if ext in STREAMABLE else f"{ext} files do not stream"
     why = why or stream_refusal(cfg)
-    # with the default budget an edit that cannot stream goes on to stream's own refusal,
-    # as before the budget was a cap
-    streamable = ext in STREAMABLE and (budget is None or not why)
-    return memory.choose(need, budget, streamable=streamable, name=in_path, whole=whole,
+    # decided here, once: an edit that cannot stream runs in memory under the default budget
+    # (with a warning) and is refused over an explicit one
+    return memory.choose(need, budget, streamable=not why, name=in_path, whole=whole,
                          why_not=why, budget_name=budget_name)
 
 

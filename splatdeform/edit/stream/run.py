@@ -25,6 +25,7 @@ import numpy as np
 from splatdeform import deform as df
 from splatdeform.basis.result import Basis
 from splatdeform.dask_client import dask_client  # noqa: F401 - run_stream's client
+from splatdeform.deform.gaussians import DEFAULT_COVARIANCE
 from splatdeform.edit.stream.plan import FIXED, FREE, HANDLE, Plan, build_plan, chunk_ranges
 from splatdeform.edit.stream.progress import Progress
 from splatdeform.errors import InputError, ProcessingError
@@ -43,7 +44,7 @@ class Shared:
     delta_c: np.ndarray
     backend: str
     device: str | None
-    covariance: str = "jacobian"  # gaussians.covariance
+    covariance: str = DEFAULT_COVARIANCE  # gaussians.covariance
 
 
 def deform_chunk(src: ChunkFile, start: int, stop: int, labels: np.ndarray,
@@ -225,13 +226,13 @@ def stream_deform(src: ChunkFile, cfg, base_dir: Path, out: Path, *, chunk: int,
 
 
 def check_streamable(cfg, in_path: Path, out_path: Path) -> ChunkFile:
-    """The chunk reader, or an InputError saying why this edit cannot stream."""
-    if cfg.curve is not None:
-        raise InputError("curve edits do not stream yet; raise --memory-budget")
-    if cfg.handles is not None:
-        raise InputError("handles: several handles do not stream yet; raise --memory-budget")
-    if cfg.normals == "estimate":
-        raise InputError("normals: estimate needs the whole model; raise --memory-budget")
+    """The chunk reader, or an InputError saying why this edit cannot stream (the one rule,
+    :func:`splatdeform.edit.stream.stream_refusal`)."""
+    from splatdeform.edit.stream import stream_refusal
+
+    why = stream_refusal(cfg)
+    if why:
+        raise InputError(f"{why}; raise --memory-budget")
     src = open_chunks(in_path)
     out_format = FORMATS.get(extension_of(out_path))  # x.compressed.ply is not a plain PLY
     if out_format is None or out_format.chunks is None or not isinstance(src, out_format.chunks):
