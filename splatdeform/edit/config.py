@@ -238,7 +238,8 @@ class BoundaryCfg(_Strict):
 
 class FitCfg(_Strict):
     """``fit:`` (a kept ring point misses its target by at most k * tolerance * the largest
-    control-point move). Defaults from the measured table in the README."""
+    control-point move). Defaults from the measured fit table on the Benchmarks page
+    (docs/benchmarks.md)."""
 
     tolerance: float = Field(DEFAULT_TOLERANCE, gt=0, lt=1, description="Largest constraint "
                              "error |r_ic| over the kept constraints, in M's coordinates")
@@ -268,7 +269,8 @@ class SaveCfg(_Strict):
 
 
 class GaussiansCfg(_Strict):
-    """``gaussians:``: how 3D Gaussian splats' covariances deform (README "covariance modes")."""
+    """``gaussians:``: how 3D Gaussian splats' covariances deform (the Splats guide,
+    docs/guides/splats.md: "Covariance modes")."""
 
     covariance: Literal["jacobian", "rotation", "limited"] = Field(
         DEFAULT_COVARIANCE, description="`jacobian`: J Sigma J^T; `rotation`: turned, shape kept; "

@@ -20,7 +20,8 @@ ROLES = ("fixed", "handle")
 FREE, FIXED, HANDLE = 0, 1, 2
 MAX_HANDLES = 64        # handles one edit may have in the editor
 MAX_SELECTORS = 1000    # selectors over the fixed region and all handles together
-MIN_SINGULAR = 1e-6     # a pose's 3x3 part: smallest singular value, absolute (README: scale)
+#: a pose's 3x3 part: smallest singular value, absolute (docs/guides/editor.md)
+MIN_SINGULAR = 1e-6
 MIN_CONDITION = 1e-9    # ... and relative to the largest
 
 

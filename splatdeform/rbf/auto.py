@@ -35,10 +35,11 @@ misses by more than :data:`BOUNDARY_FACTOR` tolerances join the kept set and it 
 these retries stay below :data:`DENSE_KEPT_SHARE` of the dense solve through every point,
 which runs otherwise.
 
-The constants are from ``benchmarks/fit_table.py`` on the development machine (README: "Fit
-benchmark"); they are costs in seconds on one core, only their ratios matter. Decisions use the
-counts alone, never wall time nor the thread count (costs are predicted for one thread), so
-the same scene gets the same fit on every machine and thread setting.
+The constants are from ``benchmarks/fit_table.py`` on the development machine
+(docs/benchmarks.md, "The table behind the defaults"); they are costs in seconds on one core,
+only their ratios matter. Decisions use the counts alone, never wall time nor the thread count
+(costs are predicted for one thread), so the same scene gets the same fit on every machine and
+thread setting.
 """
 
 from __future__ import annotations
@@ -109,7 +110,8 @@ FAR_PAST = 2.0
 #: for 2,156 kept points) then goes to the dense solve 64 centers (~6 ms) sooner.
 EARLY_FAR = 4.5
 #: Largest |r| over every ring point (kept or dropped) that ``auto`` accepts from a thinned
-#: incremental fit, in tolerances; above it the dense solve runs (README: "Fit benchmark").
+#: incremental fit, in tolerances; above it the dense solve runs (docs/benchmarks.md, the fit
+#: table).
 BOUNDARY_FACTOR = 10.0
 
 

@@ -1,5 +1,6 @@
 """Defaults of ``fit.tolerance``, ``fit.max_centers``, ``fit.method`` and ``fit.thinning``, chosen
-from the measured table in the README (``benchmarks/fit_table.py`` re-measures it): at them every
+from the measured fit table (docs/benchmarks.md, "The table behind the defaults";
+``benchmarks/fit_table.py`` re-measures it): at them every
 shared scan and splat file and every generated benchmark scene converges, within 3% of the exact
 interpolant. A module of its own so the config layer reads them without importing the fitter
 (scipy.linalg)."""

@@ -5,7 +5,7 @@ phi(|x_i - s_j|) = |x_i - s_j|^3 per center s_j; centers are constraint points t
 farthest-point order (or residual-weighted farthest-point order). Householder QR adds one
 column (one reflection) at a time; after column j the least-squares residual of every
 right-hand-side column is Q [0; rows > j of Q^T rhs]. The tolerance bounds the largest constraint
-error max_ic |r_ic| (DESIGN.md section 1, "Fitting"): the tail 2-norm of Q^T rhs is a cheap
+error max_ic |r_ic| (docs/guides/edits.md, "Tolerance"): the tail 2-norm of Q^T rhs is a cheap
 running bound, and r itself is recovered from the stored reflections once per block of columns.
 Stop at the first block that meets the tolerance (at its first column that does), then solve
 R W = Q1^T rhs once.
@@ -320,8 +320,8 @@ def fit_incremental(
         sum_j w_j s_j = 0), appended as 4 extra least-squares rows with right-hand side 0; 0
         disables them.
     selection: "greedy" (residual-weighted farthest points, the default: same deviation from the
-        exact interpolant with fewer centers, see the README's fit table) or "fps" (farthest
-        point order, independent of the residual).
+        exact interpolant with fewer centers, see the fit table in docs/benchmarks.md) or "fps"
+        (farthest point order, independent of the residual).
     threads: BLAS threads inside the fit (None leaves the pool alone); see :func:`blas_threads`.
     stop: called after each block with (centers so far, largest |r|); True abandons the fit
         (returned with ``converged=False``): ``fit.method: auto`` switches to the dense solve
