@@ -258,7 +258,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("output", metavar="OUT")
     p.add_argument("--rotate-euler", metavar="X,Y,Z",
                    help="rotate by Euler angles in degrees (splat-transform -r X,Y,Z)")
-    p.add_argument("--scale", metavar="S", help="scale uniformly by S > 0 (splat-transform -s)")
+    p.add_argument("--scale", metavar="S",
+                   help="scale uniformly by S, 1e-6 to 1e6 (splat-transform -s)")
     p.add_argument("--translate", metavar="X,Y,Z",
                    help="translate by X,Y,Z (splat-transform -t X,Y,Z)")
     p.add_argument("--memory-budget", metavar="SIZE",

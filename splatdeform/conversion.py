@@ -35,7 +35,7 @@ from pathlib import Path
 import numpy as np
 
 from .errors import InputError
-from .model import PointModel
+from .model import MAX_SCALE, MIN_SCALE, PointModel
 
 #: splat-transform's frame is the file's turned 180 degrees about z (measured with 3.7.0)
 FRAME = np.diag([-1.0, -1.0, 1.0])
@@ -103,8 +103,10 @@ def parse_scale(text: str, flag: str = "--scale") -> float:
         value = float(text)
     except ValueError:
         value = float("nan")
-    if not (math.isfinite(value) and value > 0):
-        raise InputError(f"{flag}: expected a finite number > 0, got {text!r}")
+    if not (math.isfinite(value) and MIN_SCALE <= value <= MAX_SCALE):
+        raise InputError(f"{flag}: expected a number between {MIN_SCALE:g} and {MAX_SCALE:g} "
+                         f"(as handle scales; a smaller or larger one collapses or overflows "
+                         f"the model), got {text!r}")
     return value
 
 
