@@ -269,7 +269,7 @@ def test_camera_files(scans, tmp_path):
     binary = tmp_path / "cam.json"
     binary.write_bytes(os.urandom(2000) + b"\xff\xfe")
     for cam, needles in [(binary, ["cam.json", "not text"]),
-                         ("/dev/zero", ["/dev/zero", "not a regular file"])]:
+                         ("/dev/zero", ["/dev/zero", "character device"])]:
         res = run("render", scans / "bar.ply", "-o", tmp_path / "r.png", "--camera", cam,
                   cwd=tmp_path, timeout=TIMEOUT)
         one_error_line(res, 2, needles)

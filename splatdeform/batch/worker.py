@@ -25,13 +25,20 @@ from .config import Job
 
 #: longest error a report row keeps (errors.error_line's limit)
 ROW_CHARS = 500
+#: a scan's sidecar is one report row (a few hundred bytes): anything bigger is not ours
+MAX_SIDECAR_BYTES = 1 << 20
 
 
 def read_sidecar(job: Job) -> dict[str, Any] | None:
-    """The sidecar when it matches this job (same hash, model and thumbnail present)."""
+    """The sidecar when it matches this job (same hash, model and thumbnail present); read
+    through the one opener (a regular file of at most MAX_SIDECAR_BYTES), else None (redo)."""
+    from ..errors import SplatdeformError
+    from ..io.regular import read_regular
+
     try:
-        data = json.loads(Path(job.sidecar).read_text())
-    except (OSError, ValueError):
+        data = json.loads(read_regular(job.sidecar, max_bytes=MAX_SIDECAR_BYTES,
+                                       what="batch sidecar").decode("utf-8"))
+    except (OSError, ValueError, SplatdeformError, RecursionError):
         return None
     if not isinstance(data, dict) or data.get("config_hash") != job.config_hash:
         return None

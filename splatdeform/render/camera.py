@@ -16,7 +16,6 @@ from __future__ import annotations
 import json
 import math
 import os
-import stat
 from collections.abc import Iterable
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -382,20 +381,15 @@ MAX_CAMERA_BYTES = 1 << 20  # a camera file is a few hundred bytes
 def load_camera(path: str | os.PathLike[str]) -> tuple[Camera, tuple[int, int]]:
     """Read a camera file (the ``OUT.camera.json`` a render wrote) -> (Camera, (W, H) of one
     panel). Raises InputError naming the file."""
-    try:
-        st = os.stat(path)
-        if not stat.S_ISREG(st.st_mode):
-            raise InputError(f"{path}: the camera file is not a regular file (a device, FIFO "
-                             "or folder); expected a .camera.json file")
-        if st.st_size > MAX_CAMERA_BYTES:
-            raise InputError(f"{path}: the camera file has {st.st_size} bytes, more than "
-                             f"{MAX_CAMERA_BYTES >> 10} KB; expected a .camera.json file")
-        with open(path, "rb") as f:
-            raw = f.read(MAX_CAMERA_BYTES + 1)
+    from splatdeform.errors import FormatError
+    from splatdeform.io.regular import read_regular
+
+    try:   # the one opener: a regular file (no FIFO, device or folder), its size bounded first
+        raw = read_regular(path, max_bytes=MAX_CAMERA_BYTES, what="camera file")
+    except FormatError as exc:
+        raise InputError(f"{exc}; expected a .camera.json file") from None
     except OSError as exc:
         raise InputError(f"{path}: cannot read the camera file ({exc.strerror})") from None
-    if len(raw) > MAX_CAMERA_BYTES:
-        raise InputError(f"{path}: the camera file is larger than {MAX_CAMERA_BYTES >> 10} KB")
     try:
         data = json.loads(raw.decode("utf-8"))
     except UnicodeDecodeError:
