@@ -231,9 +231,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="a name the browser may reach the editor by (the Host header), "
                         "besides loopback names and addresses and --host; repeatable (others "
                         "are refused: DNS rebinding)")
-    p.add_argument("--viewer", choices=("page", "viser"), default="page",
+    p.add_argument("--viewer", choices=("page",), default="page",
                    help="page (default, the only one): the editor's WebGL2 page, deforming on "
-                        "the browser's GPU; viser: retired (answers with one line)")
+                        "the browser's GPU")
     p.set_defaults(func=cmd_edit)
 
     p = sub.add_parser("apply", help="apply a field saved by deform --save-field to a model")

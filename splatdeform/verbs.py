@@ -248,10 +248,6 @@ def cmd_select(args: argparse.Namespace) -> int:
 
 
 def cmd_edit(args: argparse.Namespace) -> int:
-    if args.viewer == "viser":
-        raise InputError("--viewer viser: the viser viewer was retired; the editor's page "
-                         "(--viewer page, the default) does everything it did, plus curves and "
-                         "undo")
     from .editor.page_server import run
 
     if not 0 <= args.port <= 65535:

@@ -1,5 +1,5 @@
 """The editor: controller (no browser), the ``edit`` verb in a subprocess (the page; loopback
-only, Ctrl-C / SIGTERM end it with exit 0; the retired ``--viewer viser`` is one line), and one
+only, Ctrl-C / SIGTERM end it with exit 0; the retired ``--viewer viser`` is an invalid choice in one line), and one
 real headless chromium on the verb's page."""
 
 from __future__ import annotations
@@ -376,12 +376,12 @@ def test_edit_verb_bad_input_is_one_line(tmp_path):
     assert run.returncode == 2 and "--port" in run.stderr
 
 
-def test_viser_viewer_is_retired_in_one_line(bar_path):
+def test_retired_viser_viewer_is_an_invalid_choice_in_one_line(bar_path):
     run = _cli("edit", str(bar_path), "--viewer", "viser", "--port", "0")
     assert run.returncode == 2 and "Traceback" not in run.stderr
     lines = run.stderr.strip().splitlines()
-    assert len(lines) == 1 and "viser viewer was retired" in lines[0]
-    assert "curves and undo" in lines[0] and "--viewer page" in lines[0]
+    assert len(lines) == 1 and "--viewer: invalid choice: 'viser'" in lines[0]
+    assert "'page'" in lines[0]
 
 
 # ---- one real browser ------------------------------------------------------------------

@@ -51,17 +51,6 @@ def scale_rotation_to_factor(scale_log: np.ndarray, rotation: np.ndarray) -> np.
     return quaternion_to_matrix(rotation) * np.exp(np.asarray(scale_log, np.float64))[:, None, :]
 
 
-def covariance_to_scale_rotation(cov: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(M, 3, 3) symmetric covariances -> (M, 3) log scales, (M, 4) quaternions (right-handed
-    eigenvector frame). Squares the condition number and floors variances at 1e-30: deformations
-    use :func:`deform_gaussians` instead, which keeps thin axes."""
-    evals, evecs = np.linalg.eigh(cov)
-    flip = np.linalg.det(evecs) < 0
-    evecs[flip, :, 0] *= -1
-    scale_log = 0.5 * np.log(np.maximum(evals, 1e-30))
-    return scale_log.astype(np.float32), matrix_to_quaternion(evecs).astype(np.float32)
-
-
 def svd3(m: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """One-sided (Hestenes) Jacobi SVD of (M, 3, 3) matrices: m = u diag(s) v^T.
 

@@ -455,12 +455,6 @@ def validation_error(source: str, exc: ValidationError, prefix: str = "",
     return ConfigError.at(path, _message(err), file=source)
 
 
-def format_validation_error(source: str, exc: ValidationError, prefix: str = "",
-                            roots: tuple[type[BaseModel], ...] = ()) -> str:
-    """One line for the first (most specific) validation error."""
-    return str(validation_error(source, exc, prefix, roots))
-
-
 def parse_edit(data: dict[str, Any], source: str, prefix: str = "") -> EditConfig:
     """Validate an edit mapping (``prefix`` names where it sits, e.g. 'edit' in a batch)."""
     try:

@@ -31,7 +31,6 @@ from splatdeform.edit.config import EditConfig, load_edit, parse_edit
 from splatdeform.edit.selectors import Selector, select
 
 from .. import deform as df
-from ..basis import resolve_backend
 from ..errors import InputError, RegionError
 from ..model import PointModel
 from . import frames, saving
@@ -462,10 +461,6 @@ class EditorController:
         self.settings.gaussians.covariance = snap.covariance
 
     # ---- config and save ---------------------------------------------------------------
-    def resolved_backend(self) -> str:
-        """The concrete basis backend ('numpy' or 'opencl') 'auto' means here."""
-        return resolve_backend(self.settings.backend, self.settings.device)
-
     def to_config(self, *, output: str | Path | None = None,
                   config_dir: str | Path | None = None) -> EditConfig:
         """The edit config of the current state: regions in the editor's units, the handle pose

@@ -428,12 +428,6 @@ def decode_blob(path: str | Path, data: bytes | bytearray | memoryview, frame: t
     return decode(raw, path, frame)
 
 
-def read_stream(path: str | Path) -> np.ndarray:
-    """The decompressed SPZ stream of a .spz file (opened through the one opener: a regular
-    file), with :func:`gunzip_blob`'s bounds (v4: the streams end to end, :func:`read_v4`)."""
-    return read_file(path)[0]
-
-
 def read_file(path: str | Path) -> tuple[np.ndarray, dict]:
     """(the decompressed stream, the header fields; for v4 with ``extensions`` and ``frame``)
     of a .spz file, read through the one opener."""

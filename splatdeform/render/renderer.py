@@ -165,17 +165,6 @@ class Renderer:
         (H, W, 3) uint8 RGB image."""
         return np.ascontiguousarray(self.draw_rgba(gpu, camera, delta_c, **flags)[:, :, :3])
 
-    def draw_float(self, gpu: GpuModel, camera: Camera, delta_c: np.ndarray | None = None, *,
-                   plain: bool = False) -> np.ndarray:
-        """Gaussians only: the (H, W, 4) float32 premultiplied composite (rgb over the
-        background, alpha = 1 - transmittance), top row first, before 8-bit rounding."""
-        if gpu.kind != "gaussian":
-            raise InputError(f"gpu: expected a Gaussian splat model, got kind {gpu.kind!r}")
-        image = gaussians.composite(self.targets, gpu, camera, camera.view(gpu.origin),
-                                    camera.projection(self.size[0] / self.size[1]),
-                                    self._mode(gpu, plain), delta_c)
-        return np.ascontiguousarray(image)
-
     # -- read-back of the vertex stage ----------------------------------------------------------
     def transform(self, gpu: GpuModel, delta_c: np.ndarray | None = None) -> dict[str, np.ndarray]:
         """Run only the vertex stage (transform feedback) and read its outputs back.
