@@ -243,8 +243,9 @@ class Field:
         return fixed, handles
 
     def deformation(self, model: PointModel, backend: str | None = None):
-        """The :class:`~splatdeform.deform.Deformation` of this field on ``model``."""
-        from splatdeform.basis import compute_basis
+        """The :class:`~splatdeform.deform.Deformation` of this field on ``model`` (its basis
+        deferred: :class:`~splatdeform.basis.oneshot.DeferredBasis`)."""
+        from splatdeform.basis.oneshot import deferred_basis
         from splatdeform.deform.deformation import Deformation
         from splatdeform.deform.handle import AffineFrame
         from splatdeform.deform.regions import Group
@@ -271,8 +272,9 @@ class Field:
             grads[rows, a:b] = frame.coordinate_gradients()
             groups.append(Group(info["name"], (a, b), rows, frame))
         free_idx = np.flatnonzero(~(fixed | moving))
-        basis = compute_basis(model.positions[free_idx], self.fit, gradients=True,
-                              backend=backend or self.meta.get("backend", "auto"))
+        # deferred: apply evaluates it one-shot, as ``deform`` does (the same bytes)
+        basis = deferred_basis(model.positions[free_idx], self.fit, gradients=True,
+                               backend=backend or self.meta.get("backend", "auto"))
         empty = np.empty(0, dtype=np.int64)
         return Deformation(n_points=n, fixed=fixed, moving=moving, free_idx=free_idx,
                            moving_idx=moving_idx, moving_coords=coords, moving_gradients=grads,

@@ -306,7 +306,16 @@ def guitar_edit(tmp_path_factory):
 
 
 def _free_jacobians(res) -> np.ndarray:
-    """J = I + sum_k delta_c[k] (x) grad b_k for the free points, written out here."""
+    """J of the free points as the pipeline computed it: I + grad d from the one-shot
+    evaluation of W delta_c (``deform`` without --reuse), or I + sum_k delta_c[k] (x) grad b_k
+    from a stored basis, written out here."""
+    from splatdeform.basis.oneshot import DeferredBasis, oneshot_chunks
+
+    basis = res.deformation.basis
+    if isinstance(basis, DeferredBasis):  # run_edit applied it before anything stored it
+        grads = [g.astype(np.float64) for *_, g in oneshot_chunks(
+            basis.points, basis.fit, res.delta_c, backend=basis.backend, device=basis.device)]
+        return np.eye(3) + np.concatenate(grads)
     grads = res.deformation.basis.gradients.astype(np.float64)
     return np.eye(3) + np.einsum("ka,nkb->nab", res.delta_c, grads)
 

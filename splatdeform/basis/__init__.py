@@ -22,10 +22,12 @@ __all__ = ["BACKENDS", "Basis", "compute_basis", "resolve_backend", "warm_up"]
 _WARM: threading.Thread | None = None
 
 
-def warm_up(backend: str = "auto", device: str | None = None, k: int | None = None) -> None:
+def warm_up(backend: str = "auto", device: str | None = None, k: int | None = None,
+            gradients: bool = True) -> None:
     """Start opening the OpenCL device of ``backend`` / ``device`` on a background thread:
     import pyopencl, find the device, create its context and build (or load from pyopencl's
-    cache) the kernel for ``k`` basis columns with gradients. ``deform`` calls this once its
+    cache) the kernel for ``k`` basis columns (with gradients when asked: the one-shot
+    evaluation of a model without normals needs none). ``deform`` calls this once its
     input has loaded, so the 0.1-0.2 s this takes runs beside the rings and the fit instead
     of in the basis stage; :func:`compute_basis` waits for it. Nothing for ``numpy``; any failure
     is left for the real call to report (a missing device, a bad ``device`` name)."""
@@ -37,7 +39,7 @@ def warm_up(backend: str = "auto", device: str | None = None, k: int | None = No
         try:
             from . import opencl
 
-            opencl.prepare_device(device, k)
+            opencl.prepare_device(device, k, gradients)
         except Exception:  # noqa: BLE001 - reported by the compute_basis that needs it
             pass
 

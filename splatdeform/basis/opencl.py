@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import os
 import threading
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -160,15 +161,16 @@ def _state(dev: object) -> _DeviceState:
     return state
 
 
-def prepare_device(device: str | None = None, k: int | None = None) -> None:
+def prepare_device(device: str | None = None, k: int | None = None,
+                   gradients: bool = True) -> None:
     """Open ``device`` (context and queue) and, given ``k``, build the basis kernel for k
-    columns with gradients at the default precision, ahead of the first
+    columns (with ``gradients``) at the default precision, ahead of the first
     :func:`compute_basis` (see :func:`splatdeform.basis.warm_up`). Raises DeviceError without
     a device."""
     dev = _select_device(device)
     state = _state(dev)
     if k is not None and k >= 1:
-        _kernel(state, _config(dev, int(k), True, "auto"))
+        _kernel(state, _config(dev, int(k), bool(gradients), "auto"))
 
 
 # ----------------------------------------------------------------------------- kernel build
@@ -296,12 +298,55 @@ def _run(
     """Evaluate validated inputs with one kernel configuration, chunk by chunk.
 
     arr (N, 3) model units; centers (n, 3) and weights (4 + n, k) float64; center (3,), scale."""
+    n_points, k = arr.shape[0], weights.shape[1]
+    values = np.empty((n_points, k), dtype=np.float32)
+    grads = np.empty((n_points, k, 3), dtype=np.float32) if config.gradients else None
+    for _ in _chunks(state, config, arr, centers, weights, center, scale, max_chunk_points,
+                     values, grads):
+        pass
+    return Basis(values=values, gradients=grads)
+
+
+def chunks(
+    points: np.ndarray,
+    fit: RbfFit,
+    *,
+    gradients: bool = True,
+    device: str | None = None,
+    max_chunk_points: int = DEFAULT_MAX_CHUNK_POINTS,
+) -> Iterator[tuple[int, int, np.ndarray, np.ndarray | None]]:
+    """The basis of ``fit`` at ``points`` (N, 3) one device chunk at a time, never all N rows:
+    yields (start, stop, values (m, k) float32, gradients (m, k, 3) float32 or None) for rows
+    start:stop, in views of one reused host buffer (valid until the next step). Precision
+    ``auto`` (double where the device has it). What one-shot evaluation
+    (:mod:`splatdeform.basis.oneshot`) runs with k = 3 columns W delta_c."""
+    arr = _check_points(points)
+    centers, weights, center, scale = _check_fit(fit)
+    dev = _select_device(device)
+    config = _config(dev, weights.shape[1], bool(gradients), "auto")
+    yield from _chunks(_state(dev), config, arr, centers, weights, center, scale,
+                       max(1, int(max_chunk_points)))
+
+
+def _chunks(
+    state: _DeviceState,
+    config: _Config,
+    arr: np.ndarray,
+    centers: np.ndarray,
+    weights: np.ndarray,
+    center: np.ndarray,
+    scale: float,
+    max_chunk_points: int,
+    values: np.ndarray | None = None,
+    grads: np.ndarray | None = None,
+) -> Iterator[tuple[int, int, np.ndarray, np.ndarray | None]]:
+    """Run the kernel chunk by chunk and yield (start, stop, values (m, k), grads (m, k, 3) or
+    None) float32: rows of ``values`` / ``grads`` when given (the whole (N, ...) outputs), else
+    views of one chunk-sized host buffer reused by the next step."""
     n_points, k, n_centers = arr.shape[0], weights.shape[1], centers.shape[0]
     gradients = config.gradients
-    values = np.empty((n_points, k), dtype=np.float32)
-    grads = np.empty((n_points, k, 3), dtype=np.float32) if gradients else None
     if n_points == 0:
-        return Basis(values=values, gradients=grads)
+        return
     dev = state.device
     kernel = _kernel(state, config)
     real = np.float64 if config.fp64 else np.float32
@@ -313,6 +358,10 @@ def _run(
     chunk = min(max_chunk_points, n_points, max(1, CHUNK_BYTE_BUDGET // per_point))
     chunk = min(chunk, max(1, int(dev.max_mem_alloc_size) // out_bytes))
     chunk = -(-chunk // group) * group
+    own = values is None
+    if own:  # one chunk-sized host buffer, handed out a view at a time
+        values = np.empty((chunk, k), dtype=np.float32)
+        grads = np.empty((chunk, k, 3), dtype=np.float32) if gradients else None
 
     mf = cl.mem_flags
     ctx, queue = state.context, state.queue
@@ -353,11 +402,12 @@ def _run(
             cl.enqueue_copy(queue, d_points, host_points)
             kernel.set_arg(2, np.int32(m))
             cl.enqueue_nd_range_kernel(queue, kernel, (launched // config.vw,), (config.wg,))
-            cl.enqueue_copy(queue, values[start:stop], d_values)
+            rows = slice(0, m) if own else slice(start, stop)
+            cl.enqueue_copy(queue, values[rows], d_values)
             if grads is not None:
-                cl.enqueue_copy(queue, grads[start:stop], d_grads)
+                cl.enqueue_copy(queue, grads[rows], d_grads)
+            yield start, stop, values[rows], None if grads is None else grads[rows]
         queue.finish()
     finally:
         for buf in (d_centers, d_poly, d_points, d_values, d_grads):
             buf.release()
-    return Basis(values=values, gradients=grads)

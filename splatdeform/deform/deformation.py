@@ -198,13 +198,18 @@ def fit_settings(model: PointModel, *, tolerance: float = DEFAULT_TOLERANCE,
 
 
 def basis_settings(backend: str = "auto", device: str | None = None,
-                   gradients: bool = True) -> BasisFn:
-    """The basis evaluator ``basis_fn(points, fit)`` for a backend (numpy | opencl | auto)."""
+                   gradients: bool = True, stored: bool = True) -> BasisFn:
+    """The basis evaluator ``basis_fn(points, fit)`` for a backend (numpy | opencl | auto).
+    ``stored=False`` (an edit applied once): a :class:`~splatdeform.basis.oneshot.DeferredBasis`
+    that :func:`apply` evaluates one-shot (d(x), J(x) from W delta_c, chunk by chunk), stored
+    only if something reads it (the editor, ``--reuse``, rendering)."""
     from functools import partial
 
     from splatdeform.basis import compute_basis
+    from splatdeform.basis.oneshot import deferred_basis
 
-    return partial(compute_basis, gradients=gradients, backend=backend, device=device)
+    fn = compute_basis if stored else deferred_basis
+    return partial(fn, gradients=gradients, backend=backend, device=device)
 
 
 def prepare_metaphors(model: PointModel, fixed: np.ndarray, metaphors: list[Metaphor], *,

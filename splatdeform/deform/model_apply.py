@@ -10,8 +10,10 @@ from __future__ import annotations
 
 import numpy as np
 
+from splatdeform.basis.oneshot import DeferredBasis
 from splatdeform.deform import arrays as ap
 from splatdeform.deform.deformation import Deformation
+from splatdeform.deform.gaussians import DEFAULT_COVARIANCE
 from splatdeform.deform.handle import apply_affine
 from splatdeform.deform.regions import Group
 from splatdeform.errors import InputError
@@ -39,7 +41,7 @@ def _deform_gaussians(model: PointModel, out: PointModel, idx: np.ndarray,
 
 
 def _transform_attributes(model: PointModel, out: PointModel, idx: np.ndarray,
-                          jac: np.ndarray, covariance: str = "jacobian",
+                          jac: np.ndarray, covariance: str = DEFAULT_COVARIANCE,
                           stats: dict | None = None) -> None:
     cof = None
     if model.normals is not None:
@@ -76,7 +78,7 @@ def handle_matrices(deformation: Deformation, moving_matrix
 
 
 def apply(deformation: Deformation, model: PointModel, delta_c: np.ndarray, *,
-          moving_matrix=None, covariance: str = "jacobian", stats: dict | None = None,
+          moving_matrix=None, covariance: str = DEFAULT_COVARIANCE, stats: dict | None = None,
           split: str = "off") -> PointModel:
     """The deformed copy of ``model`` for control displacements delta_c (k, 3).
 
@@ -152,20 +154,26 @@ def _apply(deformation: Deformation, model: PointModel, delta: np.ndarray,
            split: str = "off") -> PointModel:
     out = model.copy()
     free = deformation.free_idx
-    values = deformation.basis.values.astype(np.float64, copy=False)
-    out.positions[free] = ap.displace(model.positions[free], values, delta)
+    needs_jac = any(a is not None for a in (model.normals, model.axes, model.gaussians))
+    oneshot = isinstance(deformation.basis, DeferredBasis) and deformation.basis.stored is None
+    if oneshot:  # d(x) and J(x) from the centers and W delta_c, chunk by chunk
+        jac_free = _apply_oneshot(deformation, model, out, delta, needs_jac, covariance,
+                                  stats, keep_jac=split == "auto" and model.gaussians is not None)
+    else:
+        values = deformation.basis.values.astype(np.float64, copy=False)
+        out.positions[free] = ap.displace(model.positions[free], values, delta)
     mov = deformation.moving_idx
     out.positions[mov] = model.positions[mov] + deformation.moving_coords @ delta
     for group, matrix in handle_matrices(deformation, moving_matrix):
         rows = mov[group.rows]
         out.positions[rows] = apply_affine(matrix, model.positions[rows])
-    needs_jac = any(a is not None for a in (model.normals, model.axes, model.gaussians))
     if needs_jac:
-        if deformation.basis.gradients is None:
-            raise InputError("deformation: basis has no gradients; normals/axes need them")
-        grads = deformation.basis.gradients.astype(np.float64, copy=False)
-        jac_free = ap.jacobians(grads, delta)
-        _transform_attributes(model, out, free, jac_free, covariance, stats)
+        if not oneshot:
+            if deformation.basis.gradients is None:
+                raise InputError("deformation: basis has no gradients; normals/axes need them")
+            grads = deformation.basis.gradients.astype(np.float64, copy=False)
+            jac_free = ap.jacobians(grads, delta)
+            _transform_attributes(model, out, free, jac_free, covariance, stats)
         _transform_attributes(model, out, mov,
                               ap.jacobians(np.ascontiguousarray(deformation.moving_gradients),
                                            delta), covariance, stats)
@@ -177,6 +185,40 @@ def _apply(deformation: Deformation, model: PointModel, delta: np.ndarray,
                                covariance=covariance, transform=_transform_attributes,
                                stats=stats)
     return out
+
+
+def _apply_oneshot(deformation: Deformation, model: PointModel, out: PointModel,
+                   delta: np.ndarray, needs_jac: bool, covariance: str, stats: dict | None,
+                   keep_jac: bool) -> np.ndarray | None:
+    """Free points of ``out`` (positions, and the attributes J moves) by one-shot evaluation of
+    d(x) and J(x) = I + grad d(x), a chunk at a time (:mod:`splatdeform.basis.oneshot`): the
+    same arithmetic downstream as the stored basis (float64 positions + d, J in float64), so
+    both paths agree to float32 rounding. Returns the free points' J (Nf, 3, 3) when
+    ``keep_jac`` (the splat split needs them all), else None."""
+    from splatdeform.basis.oneshot import oneshot_chunks
+
+    basis = deformation.basis
+    if needs_jac and not basis.with_gradients:
+        raise InputError("deformation: basis has no gradients; normals/axes need them")
+    free = deformation.free_idx
+    jac_all = np.empty((free.size, 3, 3)) if keep_jac and needs_jac else None
+    for lo, hi, disp, grad in oneshot_chunks(basis.points, basis.fit, delta,
+                                             gradients=needs_jac, backend=basis.backend,
+                                             device=basis.device):
+        rows = free[lo:hi]
+        moved = disp.astype(np.float64)
+        moved += model.positions[rows]
+        out.positions[rows] = moved
+        if not needs_jac:
+            continue
+        jac = grad.astype(np.float64)
+        jac[:, 0, 0] += 1
+        jac[:, 1, 1] += 1
+        jac[:, 2, 2] += 1
+        _transform_attributes(model, out, rows, jac, covariance, stats)
+        if jac_all is not None:
+            jac_all[lo:hi] = jac
+    return jac_all
 
 
 _F32_MAX = float(np.finfo(np.float32).max)

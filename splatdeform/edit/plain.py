@@ -76,9 +76,10 @@ def fit_fn(cfg: EditConfig, model: PointModel) -> FitFn:
                         threads=f.threads)
 
 
-def basis_fn(cfg: EditConfig) -> BasisFn:
-    """The basis of ``backend`` / ``device`` (with gradients)."""
-    return basis_settings(cfg.backend, cfg.device)
+def basis_fn(cfg: EditConfig, stored: bool = True) -> BasisFn:
+    """The basis of ``backend`` / ``device`` (with gradients); ``stored=False``: deferred, for
+    one-shot evaluation by apply (:mod:`splatdeform.basis.oneshot`)."""
+    return basis_settings(cfg.backend, cfg.device, stored=stored)
 
 
 def basis_columns(cfg: EditConfig) -> int | None:

@@ -63,11 +63,14 @@ def check_fit_range(positions: np.ndarray, path: Path) -> None:
                          "point(s)); fix or crop the file")
 
 
-def precompute(cfg: EditConfig, model: PointModel, base_dir: Path) -> df.Deformation:
-    """Regions, rings, one fit and one basis for every handle and curve of the edit."""
+def precompute(cfg: EditConfig, model: PointModel, base_dir: Path, *,
+               stored: bool = True) -> df.Deformation:
+    """Regions, rings, one fit and one basis for every handle and curve of the edit
+    (``stored=False``: the basis deferred, for one-shot evaluation by apply)."""
     return df.prepare_metaphors(model, plain.fixed_mask(cfg, model, base_dir),
                                 plain.metaphors(cfg, model, base_dir),
-                                fit_fn=plain.fit_fn(cfg, model), basis_fn=plain.basis_fn(cfg),
+                                fit_fn=plain.fit_fn(cfg, model),
+                                basis_fn=plain.basis_fn(cfg, stored=stored),
                                 continuity=cfg.boundary.continuity,
                                 neighbors=cfg.boundary.neighbors)
 
@@ -145,12 +148,13 @@ def run_edit(config: EditPlan | EditConfig | dict | str | Path,
     if reuse is None and cfg.points is None:  # the device opens while the rings are built
         from splatdeform.basis import warm_up
 
-        warm_up(cfg.backend, cfg.device, plain.basis_columns(cfg))
+        jac = any(a is not None for a in (model.normals, model.axes, model.gaussians))
+        warm_up(cfg.backend, cfg.device, 3, jac)  # one-shot: the K = 3 kernel of W delta_c
     deformation, points_fit = None, None
     if cfg.points is not None:
         from splatdeform.edit.metaphors import points as pts
 
-        deformation, points_fit = pts.precompute(cfg, model, base_dir)
+        deformation, points_fit = pts.precompute(cfg, model, base_dir, stored=False)
         timings.update(deformation.timings)
         check_converged(deformation.fit, cfg, warn)
     if reuse is not None:
@@ -161,7 +165,7 @@ def run_edit(config: EditPlan | EditConfig | dict | str | Path,
         if log and deformation is not None:
             log(f"reused precomputed deformation {reuse}")
     if deformation is None:
-        deformation = precompute(cfg, model, base_dir)
+        deformation = precompute(cfg, model, base_dir, stored=reuse is not None)  # one-shot
         timings.update(deformation.timings)
         check_converged(deformation.fit, cfg, warn)
         if reuse is not None:

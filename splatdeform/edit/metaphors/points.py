@@ -161,16 +161,16 @@ class PointsReport:
         return Path(path)
 
 
-def precompute(cfg: EditConfig, model: PointModel, base_dir: Path):
+def precompute(cfg: EditConfig, model: PointModel, base_dir: Path, *, stored: bool = True):
     """The deformation of a ``points:`` edit (pairs plus any fixed regions, handles, curve)
-    and its :class:`PointsFit`."""
+    and its :class:`PointsFit` (``stored=False``: the basis deferred, for one-shot apply)."""
     from splatdeform.edit import plain
 
     pairs, _ = pairs_of(cfg, model, base_dir)
     fixed = plain.fixed_mask(cfg, model, base_dir) if cfg.regions.fixed else \
         np.zeros(model.n_points, dtype=bool)
     return prepare_points(model, fixed, plain.metaphors(cfg, model, base_dir), pairs,
-                          fit_fn=plain.fit_fn(cfg, model), basis_fn=plain.basis_fn(cfg),
+                          fit_fn=plain.fit_fn(cfg, model), basis_fn=plain.basis_fn(cfg, stored),
                           smoothing=cfg.points.smoothing, tolerance=cfg.points.tolerance,
                           continuity=cfg.boundary.continuity, neighbors=cfg.boundary.neighbors)
 

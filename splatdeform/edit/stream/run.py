@@ -49,8 +49,10 @@ class Shared:
 
 def deform_chunk(src: ChunkFile, start: int, stop: int, labels: np.ndarray,
                  shared: Shared):
-    """Deform points [start, stop): returns (rows or records, PLY properties or None)."""
-    from splatdeform.basis import compute_basis
+    """Deform points [start, stop): returns (rows or records, PLY properties or None). Free
+    points by one-shot evaluation of d(x) and J(x) (:mod:`splatdeform.basis.oneshot`): the
+    chunk's basis is never stored."""
+    from splatdeform.basis.oneshot import deferred_basis
 
     model = src.read(start, stop)
     free = np.flatnonzero(labels == FREE)
@@ -58,8 +60,8 @@ def deform_chunk(src: ChunkFile, start: int, stop: int, labels: np.ndarray,
     frame = shared.frame
     needs_grad = any(a is not None for a in (model.normals, model.axes, model.gaussians))
     if free.size:
-        basis = compute_basis(model.positions[free], shared.fit, gradients=needs_grad,
-                              backend=shared.backend, device=shared.device)
+        basis = deferred_basis(model.positions[free], shared.fit, gradients=needs_grad,
+                               backend=shared.backend, device=shared.device)
     else:
         k = shared.fit.weights.shape[1]
         basis = Basis(np.zeros((0, k)), np.zeros((0, k, 3)) if needs_grad else None)

@@ -1,0 +1,202 @@
+"""One-shot evaluation (issue 45): d(x) and J(x) from the centers and W delta_c, chunk by chunk,
+against the stored basis B (N, k) applied once. Both give the same model to float32 rounding
+(positions, normals, Gaussian covariances), on both backends, for a handle, a curve and a
+points edit; the fixed region is bit-exact and handle points beyond the rings get T exactly
+on either path; the float64 numpy reference (:mod:`splatdeform.basis.reference`) is the oracle.
+Real OpenCL (PoCL), real files through the edit layer."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import splatdeform as sd
+from data_tools.synth import bumpy_bar, gaussian_bar
+from splatdeform import deform as df
+from splatdeform.basis import opencl
+from splatdeform.basis.oneshot import DeferredBasis, combined_fit, oneshot_chunks
+from splatdeform.basis.reference import compute_basis as reference
+from splatdeform.deform.gaussians import scale_rotation_to_factor
+from splatdeform.edit import plain
+from splatdeform.edit.plan import plan_edit
+from splatdeform.edit.run import precompute, prepare_model
+from splatdeform.errors import InputError
+from splatdeform.rbf import fit_incremental
+
+needs_cl = pytest.mark.skipif(not opencl.opencl_available(), reason="no OpenCL device")
+BACKENDS = ["numpy", pytest.param("opencl", marks=needs_cl)]
+
+
+def _fit(seed: int = 0, n: int = 300, centers: int = 40):
+    rng = np.random.default_rng(seed)
+    pts = rng.uniform(-2, 3, size=(n, 3)) + [10.0, -4.0, 2.0]
+    return fit_incremental(pts, rng.uniform(-1, 1, size=(n, 4)), tolerance=0.0,
+                           max_centers=centers), rng
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+@pytest.mark.parametrize("chunk", [97, 1 << 18])
+def test_chunks_are_the_basis_times_delta(backend, chunk):
+    """d = B delta_c and grad d = sum_k delta_c[k] (x) grad b_k, at every chunk boundary: the
+    numpy path to float64 rounding, OpenCL to float32 rounding of the float64 oracle."""
+    fit, rng = _fit()
+    pts = rng.uniform(-2, 3, size=(1000, 3)) + [10.0, -4.0, 2.0]
+    delta = rng.normal(size=(4, 3))
+    ref = reference(pts, fit)
+    want_d = ref.values @ delta
+    want_g = np.einsum("nkb,ka->nab", ref.gradients, delta)
+    got_d, got_g, rows = np.zeros((1000, 3)), np.zeros((1000, 3, 3)), []
+    for lo, hi, d, g in oneshot_chunks(pts, fit, delta, backend=backend, chunk=chunk):
+        got_d[lo:hi], got_g[lo:hi] = d, g
+        rows.append((lo, hi))
+    assert rows[0][0] == 0 and rows[-1][1] == 1000
+    assert all(a[1] == b[0] for a, b in zip(rows, rows[1:], strict=False))
+    tol = 1e-12 if backend == "numpy" else 2e-6
+    assert np.abs(got_d - want_d).max() <= tol * np.abs(want_d).max()
+    assert np.abs(got_g - want_g).max() <= tol * np.abs(want_g).max()
+    values_only = list(oneshot_chunks(pts, fit, delta, gradients=False, backend=backend))
+    assert all(g is None for *_, g in values_only)
+
+
+def test_delta_shape_is_checked():
+    fit, _ = _fit()
+    with pytest.raises(InputError, match=r"delta_c: expected shape \(4, 3\)"):
+        combined_fit(fit, np.zeros((3, 3)))
+
+
+def test_deferred_basis_stores_on_first_read():
+    """Anything that reads the basis (editor, --reuse, rendering) gets the stored one, and apply
+    then uses it (no second evaluation)."""
+    bar = bumpy_bar(2000)
+    fixed = sd.select(bar, [sd.Box(min=(-1, -1, -1), max=(1, 1, 1))])
+    handle = sd.select(bar, [sd.Box(min=(3, -1, -1), max=(5, 1, 1))])
+    d = sd.prepare_handle(bar, fixed, handle,
+                          basis_fn=df.basis_settings("numpy", stored=False))
+    assert isinstance(d.basis, DeferredBasis) and d.basis.stored is None
+    lift = sd.compose_transform(pivot=(4, 0, 0), translate=(0, 0.5, 0))
+    once = sd.apply(d, bar, sd.delta_for(d, lift), moving_matrix=lift)
+    assert d.basis.stored is None                                   # apply did not store it
+    values, _ = sd.full_basis(d)                                    # a reader stores it
+    assert d.basis.stored is not None and values.shape == (bar.n_points, 4)
+    stored = sd.apply(d, bar, sd.delta_for(d, lift), moving_matrix=lift)
+    assert np.array_equal(stored.positions, sd.apply(
+        sd.prepare_handle(bar, fixed, handle, backend="numpy"), bar, sd.delta_for(d, lift),
+        moving_matrix=lift).positions)
+    assert np.abs(once.positions - stored.positions).max() < 1e-12 * 4
+
+
+# ----------------------------------------------------------------------------- edits
+
+def _handle_cfg(units_box: tuple) -> dict:
+    return {"regions": {"units": "relative",
+                        "fixed": [{"box": {"min": [0, 0, 0], "max": [0.25, 1, 1]}}],
+                        "handle": [{"box": {"min": [0.75, 0, 0], "max": [1, 1, 1]}}]},
+            "handle": {"transform": {"pivot": [0.75, 0.5, 0.5],
+                                     "rotate": {"axis": [0, 0, 1], "degrees": 20},
+                                     "translate": [0, 0.05, 0]}}}
+
+
+def _curve_cfg(_: tuple) -> dict:
+    cp = np.array([[1.4, 0.0, 0.5], [1.8, 0.0, 0.5], [2.2, 0.0, 0.5], [2.6, 0.0, 0.5]])
+    mv = cp + [[0, 0, 0], [0, 0, 0.15], [0, 0, 0.15], [0, 0, 0]]
+    return {"regions": {"units": "model",
+                        "fixed": [{"box": {"min": [-1, -1, -1], "max": [0.8, 1, 1]}},
+                                  {"box": {"min": [3.2, -1, -1], "max": [5, 1, 1]}}]},
+            "curve": {"control_points": cp.tolist(), "moved_to": mv.tolist(), "degree": 3,
+                      "capture_radius": 0.15},
+            "fit": {"tolerance": 1e-3, "max_centers": 2000}}
+
+
+def _points_cfg(_: tuple) -> dict:
+    src = np.array([[1.5, 0.5, 0.0], [2.0, -0.5, 0.0], [2.5, 0.0, 0.5], [3.5, 0.0, -0.5],
+                    [3.0, 0.5, 0.1]])
+    dst = src + [[0, 0.1, 0], [0, 0, 0.1], [0.1, 0, 0], [0, -0.1, 0.05], [0, 0.05, 0.05]]
+    return {"regions": {"units": "model",
+                        "fixed": [{"box": {"min": [-1, -1, -1], "max": [1, 1, 1]}}]},
+            "points": {"pairs": [[*a, *b] for a, b in zip(src.tolist(), dst.tolist(),
+                                                           strict=True)]}}
+
+
+EDITS = {"handle": _handle_cfg, "curve": _curve_cfg, "points": _points_cfg}
+
+
+@pytest.fixture(scope="module")
+def scans(tmp_path_factory) -> Path:
+    folder = tmp_path_factory.mktemp("oneshot")
+    sd.save(bumpy_bar(12000, seed=3), folder / "bar.ply")
+    sd.save(gaussian_bar(6000, sh_degree=1, seed=3), folder / "splats.ply")
+    return folder
+
+
+def _deform(folder: Path, edit: str, scan: str, backend: str, stored: bool):
+    cfg = dict(EDITS[edit](()), input=scan, output="unused.ply", backend=backend)
+    plan = plan_edit(cfg, folder)
+    model = prepare_model(plan.cfg, folder, {})
+    if edit == "points":
+        from splatdeform.edit.metaphors import points as pts
+
+        d, pfit = pts.precompute(plan.cfg, model, folder, stored=stored)
+        delta, matrix = pts.control_displacement(plan.cfg, model, d, pfit)
+    else:
+        d = precompute(plan.cfg, model, folder, stored=stored)
+        delta, matrix = plain.control_displacement(plan.cfg, model, d)
+    assert isinstance(d.basis, DeferredBasis) != stored
+    out = df.apply(d, model, delta, moving_matrix=matrix)
+    if not stored:
+        assert d.basis.stored is None           # the one-shot path ran, nothing was stored
+    return model, d, out
+
+
+def _covariances(model) -> np.ndarray:
+    f = scale_rotation_to_factor(model.gaussians.scale_log.astype(np.float64),
+                                 model.gaussians.rotation.astype(np.float64))
+    return f @ np.swapaxes(f, 1, 2)
+
+
+@pytest.mark.parametrize("scan", ["bar.ply", "splats.ply"])
+@pytest.mark.parametrize("edit", sorted(EDITS))
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_oneshot_equals_stored_basis(scans, edit, scan, backend):
+    model, d, one = _deform(scans, edit, scan, backend, stored=False)
+    _, _, stored = _deform(scans, edit, scan, backend, stored=True)
+    _, _, oracle = _deform(scans, edit, scan, "numpy", stored=True)   # float64 reference
+    diag = model.diagonal()
+    free = d.free_idx
+    assert free.size > 1000
+    # fixed points bit for bit, moving points (handle T exactly, curve band, ...) identical
+    # on both paths: only free points evaluate the field
+    rest = np.setdiff1d(np.arange(model.n_points), free)
+    assert np.array_equal(one.positions[d.fixed], model.positions[d.fixed])
+    assert np.array_equal(one.positions[rest], stored.positions[rest])
+    tol = 1e-12 if backend == "numpy" else 2e-6
+    for other in (stored, oracle):
+        assert np.abs(one.positions - other.positions).max() <= tol * diag
+    moved = np.abs(one.positions[free] - model.positions[free]).max()
+    assert moved > 1e-3 * diag                     # the edit did move the free region
+    if model.normals is not None:
+        assert np.array_equal(one.normals[d.fixed], model.normals[d.fixed])
+        for other in (stored, oracle):
+            assert np.abs(one.normals - other.normals).max() <= 50 * tol
+    if model.radius is not None:
+        assert np.abs(one.radius - stored.radius).max() <= 50 * tol * np.abs(model.radius).max()
+    if model.gaussians is not None:
+        c_one, c_st, c_or = _covariances(one), _covariances(stored), _covariances(oracle)
+        size = np.abs(c_st).reshape(-1, 9).max(axis=1)[:, None, None]
+        for other in (c_st, c_or):
+            assert (np.abs(c_one - other) <= 1e-5 * size).all()
+        assert np.array_equal(one.gaussians.rotation[d.fixed], model.gaussians.rotation[d.fixed])
+        if model.gaussians.sh_rest is not None:
+            assert np.abs(one.gaussians.sh_rest - stored.gaussians.sh_rest).max() <= 1e-4
+
+
+def test_handle_beyond_rings_gets_t_exactly(scans):
+    """Handle points beyond the rings move by the 4x4 map T itself on the one-shot path."""
+    model, d, one = _deform(scans, "handle", "bar.ply", "numpy", stored=False)
+    cfg = dict(_handle_cfg(()), input="bar.ply", output="unused.ply", backend="numpy")
+    plan = plan_edit(cfg, scans)
+    _, matrix = plain.control_displacement(plan.cfg, model, d)
+    handle = d.moving_idx
+    want = sd.deform.apply_affine(matrix, model.positions[handle])
+    assert np.array_equal(one.positions[handle], want.astype(one.positions.dtype))
