@@ -13,7 +13,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
-from test_editor_hostile_requests import Client, _raw
+from editor_client import Client, raw
 
 import splatdeform as sd
 from data_tools.synth import bumpy_bar
@@ -42,7 +42,7 @@ def _status(answer: bytes) -> int:
 def _get(server: EditorHTTPServer, path: str, *headers: str) -> bytes:
     port = server.server_address[1]
     head = "".join(f"{h}\r\n" for h in headers)
-    return _raw(port, f"GET {path} HTTP/1.1\r\n{head}Connection: close\r\n\r\n".encode())
+    return raw(port, f"GET {path} HTTP/1.1\r\n{head}Connection: close\r\n\r\n".encode())
 
 
 @pytest.mark.parametrize("origin", ["http://127.0.0.1:abc", "http://127.0.0.1:99999",

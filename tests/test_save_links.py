@@ -19,7 +19,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
-from test_editor_hostile_requests import Client
+from editor_client import Client
 
 import splatdeform as sd
 from data_tools.synth import bumpy_bar
