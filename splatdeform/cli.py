@@ -243,6 +243,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--backend", choices=BACKENDS, help="basis backend (default: the field's)")
     p.add_argument("--memory-budget", metavar="SIZE",
                    help="a cap: over it, binary PLY and LAS/LAZ stream in chunks (e.g. 1GB)")
+    p.add_argument("--extrapolate", action="store_true",
+                   help="apply the field to a model entirely outside its support (the box of "
+                        "its constraints and fitted model), which is otherwise refused")
     p.set_defaults(func=cmd_apply)
 
     p = sub.add_parser(

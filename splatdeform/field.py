@@ -1,18 +1,26 @@
 """A fitted deformation as a file (``deform --save-field FIELD.npz``) and its use on any model
 (``splatdeform apply FIELD.npz MODEL -o OUT``, ``sd.Field.load(path)``).
 
-The file is an ``.npz`` (no pickles), kilobytes, independent of the model's size:
+The file is an ``.npz`` (no pickles), kilobytes, independent of the model's size; its members
+and the JSON ``meta`` are listed, with their bounds, in :mod:`splatdeform.field_schema`, which
+reads a field as untrusted input (every member checked before use, one line naming the file
+and the member for anything else):
 
 - ``centers`` (n, 3) normalised, ``weights`` (4 + n, k): rows [1, x, y, z, phi_j];
   ``norm_center`` (3,), ``norm_scale`` (): model -> normalised coordinates;
 - ``delta_c`` (k, 3): the applied control displacement (the field is d(x) = b(x) delta_c);
 - ``frames`` (h, 4, 4) / ``inverses`` (h, 4, 4) / ``matrices`` (h, 4, 4): each handle's affine
   frame (rows 0..3 of ``frames`` hold C (4, 3) in columns 0..2) and its 4x4 transform;
-- ``meta``: JSON: format, version, the regions' selectors in model units (relative units
-  resolved: boxes and planes carry their frame), each handle's name, columns and selectors,
-  the basis backend and the splat settings (``gaussians``), and for ``indices`` selectors
-  (which do not transfer) the point count and a digest of the saved model's positions;
-  ``fixed_idx`` / ``handle_idx_<j>`` then hold the indices.
+- ``support`` (2, 3): the box of the fit's constraints and of the model it was fitted on
+  (model units: where the field was fitted and ``deform`` evaluated it); ``apply`` counts
+  the points it moves outside it and refuses a model entirely outside (unless
+  ``--extrapolate``; :mod:`splatdeform.field_apply`);
+- ``meta``: JSON: format, version, the regions' selectors in model units stored by kind name
+  (:mod:`splatdeform.edit.selectors.stored`; relative units resolved: boxes and planes carry
+  their frame), each handle's name, columns and selectors, the basis backend and the splat
+  settings (``gaussians``); an ``indices`` selector (which does not transfer) is stored as its
+  region's indices (``fixed_idx`` / ``handle_idx_<j>``, never a file name) with the point
+  count and a digest of the saved model's positions.
 
 Why not the ``--reuse`` cache's format: the cache holds the per-point basis of one model (size
 grows with the model) keyed by the edit; a field holds only what re-evaluates on any model.
@@ -28,64 +36,21 @@ the curve within the fit's tolerance).
 
 from __future__ import annotations
 
-import dataclasses
 import hashlib
-import importlib
 import json
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from splatdeform.errors import InputError
+from splatdeform.field_schema import FORMAT, VERSION, read_field
 from splatdeform.model import PointModel
 from splatdeform.rbf.result import Normalization, RbfFit
 
-FORMAT = "splatdeform-field"
-VERSION = 1
-MAX_FIELD_BYTES = 512 * 2**20  # a field file (12 floats per center and column: far below)
-_SELECTOR_MODULES = "splatdeform.edit.selectors."
+if TYPE_CHECKING:
+    from splatdeform.field_apply import SupportStats
 
-
-def _encode(value: Any) -> Any:
-    """A plain selector (a frozen dataclass, nested ones too) as JSON data."""
-    if dataclasses.is_dataclass(value) and not isinstance(value, type):
-        cls = type(value)
-        out = {"__selector__": f"{cls.__module__}:{cls.__qualname__}"}
-        out.update({f.name: _encode(getattr(value, f.name)) for f in dataclasses.fields(value)})
-        return out
-    if isinstance(value, (list, tuple)):
-        return [_encode(v) for v in value]
-    if isinstance(value, np.ndarray):
-        return value.tolist()
-    if isinstance(value, (np.floating, np.integer)):
-        return value.item()
-    if isinstance(value, Path):
-        return str(value)
-    return value
-
-
-def _decode(value: Any, path: Path) -> Any:
-    if isinstance(value, dict) and "__selector__" in value:
-        module, _, name = str(value["__selector__"]).partition(":")
-        if not module.startswith(_SELECTOR_MODULES):
-            raise InputError(f"{path}: unknown selector {value['__selector__']!r}")
-        cls = getattr(importlib.import_module(module), name, None)
-        if cls is None or not dataclasses.is_dataclass(cls):
-            raise InputError(f"{path}: unknown selector {value['__selector__']!r}")
-        fields = {f.name for f in dataclasses.fields(cls)}
-        args = {k: _decode(v, path) for k, v in value.items() if k in fields}
-        return cls(**{k: tuple(v) if isinstance(v, list) and k not in ("selectors",) else v
-                      for k, v in args.items()})
-    if isinstance(value, list):
-        return [_decode(v, path) for v in value]
-    return value
-
-
-def _has_indices(selectors: list) -> bool:
-    from splatdeform.edit.selectors import Indices, leaves
-
-    return any(isinstance(leaf, Indices) for s in selectors for leaf in leaves(s))
 
 
 def positions_digest(positions: np.ndarray) -> str:
@@ -147,6 +112,7 @@ class Field:
                  path: Path | None = None) -> None:
         self.fit, self.delta_c, self.meta, self.arrays = fit, delta_c, meta, arrays
         self.path = path
+        self.support_note = ""  # how the support was found when the file did not store it
 
     # --- as a function of space
     def __call__(self, points: np.ndarray) -> np.ndarray:
@@ -179,45 +145,36 @@ class Field:
 
     @staticmethod
     def load(path: str | Path) -> Field:
-        """Read a field file; InputError (one line naming it) for anything else."""
-        import io
-        import zipfile
-
-        from splatdeform.io.regular import read_regular
-
+        """Read a field file, every member checked (:func:`splatdeform.field_schema.read_field`);
+        FormatError (one line naming the file and the member) for anything else."""
         path = Path(path)
-        raw = read_regular(path, max_bytes=MAX_FIELD_BYTES, what="field file")
-        try:
-            with np.load(io.BytesIO(raw), allow_pickle=False) as z:
-                data = {k: z[k] for k in z.files}
-            meta = json.loads(str(data.pop("meta")))
-        except (OSError, ValueError, KeyError, zipfile.BadZipFile) as exc:
-            raise InputError(f"{path}: not a field file written by deform --save-field "
-                             f"({exc})") from None
-        if not isinstance(meta, dict) or meta.get("format") != FORMAT:
-            raise InputError(f"{path}: not a field file written by deform --save-field")
-        if meta.get("version") != VERSION:
-            raise InputError(f"{path}: field version {meta.get('version')}; this splatdeform "
-                             f"reads version {VERSION}")
-        try:
-            centers, weights = data.pop("centers"), data.pop("weights")
-            delta = data.pop("delta_c")
-            norm = Normalization(data.pop("norm_center").astype(np.float64),
-                                 float(data.pop("norm_scale")))
-        except KeyError as exc:
-            raise InputError(f"{path}: field file lacks {exc}") from None
-        if weights.shape != (4 + centers.shape[0], delta.shape[0]) or delta.shape[1:] != (3,):
-            raise InputError(f"{path}: inconsistent field arrays (weights {weights.shape}, "
-                             f"centers {centers.shape}, delta_c {delta.shape})")
+        arrays, meta = read_field(path)
+        old = "support" not in arrays
+        centers, weights = arrays.pop("centers"), arrays.pop("weights")
+        delta = arrays.pop("delta_c")
+        norm = Normalization(arrays.pop("norm_center"), float(arrays.pop("norm_scale")))
         fit = RbfFit(centers=centers, weights=weights, normalization=norm,
                      residuals=np.zeros((1, weights.shape[1])), converged=True,
-                     tolerance=0.0, method=str(meta.get("method", "exact")))
-        return Field(fit, delta, meta, data, path)
+                     tolerance=0.0, method=meta["method"])
+        if old:  # version 1: the box the fit normalised (a cube about it)
+            half = norm.scale / 2.0
+            arrays["support"] = np.vstack([norm.center - half, norm.center + half])
+        field = Field(fit, delta, meta, arrays, path)
+        if old:
+            field.support_note = " (a version 1 field: the cube of its normalisation)"
+        return field
+
+    @property
+    def support(self) -> np.ndarray:
+        """(2, 3) float64: the low and high corner of the box of the fit's constraints (model
+        units), where the field was fitted."""
+        return self.arrays["support"]
 
     # --- on a model
     def _regions(self, model: PointModel) -> tuple[np.ndarray, list[np.ndarray]]:
-        """(fixed (N,) bool, one (N,) bool per handle) re-evaluated on ``model``."""
-        from splatdeform.edit.selectors import select
+        """(fixed (N,) bool, one (N,) bool per handle) re-evaluated on ``model``; a region with
+        an indices selector is the indices the field stores (never a file it names)."""
+        from splatdeform.edit.selectors import select, stored
 
         name = self.path or "field"
         n = model.n_points
@@ -229,16 +186,19 @@ class Field:
                                  "transfer to another model; apply it to the model it was saved "
                                  "from, or use box/sphere/plane/property selectors")
 
-        def mask(selectors: list, stored: str) -> np.ndarray:
-            if stored in self.arrays:
+        def mask(selectors: list, member: str, key: str) -> np.ndarray:
+            if member in self.arrays:
                 m = np.zeros(n, dtype=bool)
-                m[self.arrays[stored]] = True
+                m[self.arrays[member]] = True
                 return m
-            return select(model, _decode(selectors, Path(str(name))), "model") if selectors \
-                else np.zeros(n, dtype=bool)
+            sels = stored.decode(selectors, key)
+            if stored.has_indices(sels):
+                raise InputError(f"field {name}: member {member!r}: missing (its region has an "
+                                 "indices selector)")
+            return select(model, sels, "model") if sels else np.zeros(n, dtype=bool)
 
-        fixed = mask(self.meta["fixed"], "fixed_idx")
-        handles = [mask(h["selectors"], f"handle_idx_{j}")
+        fixed = mask(self.meta["fixed"], "fixed_idx", "fixed")
+        handles = [mask(h["selectors"], f"handle_idx_{j}", f"handles[{j}].selectors")
                    for j, h in enumerate(self.meta["handles"])]
         return fixed, handles
 
@@ -282,11 +242,15 @@ class Field:
                            constraint_rhs=np.empty((0, k)), control_points=np.zeros((k, 3)),
                            fit=self.fit, basis=basis, groups=groups)
 
-    def apply(self, model: PointModel, backend: str | None = None) -> PointModel:
-        """The deformed copy of ``model`` (as ``deform`` makes it; see the module)."""
+    def apply(self, model: PointModel, backend: str | None = None,
+              support: SupportStats | None = None) -> PointModel:
+        """The deformed copy of ``model`` (as ``deform`` makes it; see the module);
+        ``support``: counts the points the field moves outside :attr:`support` (adds to it)."""
         from splatdeform import deform as df
 
         deformation = self.deformation(model, backend)
+        if support is not None:
+            support.add(model.positions, deformation.free_idx, self.support)
         matrices = list(self.arrays["matrices"]) if self.meta["handles"] else None
         return df.apply(deformation, model, self.delta_c, moving_matrix=matrices,
                         covariance=self.meta.get("gaussians", {}).get("covariance", "jacobian"))
@@ -297,6 +261,7 @@ def field_of_edit(result, cfg, base_dir: Path) -> Field:
     from splatdeform.basis import resolve_backend
     from splatdeform.edit.metaphors import Context
     from splatdeform.edit.metaphors.handle import entries as handle_entries
+    from splatdeform.edit.selectors.stored import encode, has_indices
 
     model, deformation = result.model, result.deformation
     if model is None:
@@ -315,12 +280,12 @@ def field_of_edit(result, cfg, base_dir: Path) -> Field:
     for j, ((_key, entry), group) in enumerate(zip(entries, hgroups, strict=True)):
         sels = plain(entry[1])
         handles.append({"name": group.name, "columns": list(group.columns),
-                        "selectors": _encode(sels)})
+                        "selectors": [encode(sel) for sel in sels]})
         frame = np.zeros((4, 4))
         frame[:4, :3] = group.frame.control_points
         frames.append(frame)
         inverses.append(group.frame.inverse)
-        if _has_indices(sels):
+        if has_indices(sels):
             arrays[f"handle_idx_{j}"] = deformation.moving_idx[group.rows]
     matrix = result.matrix
     matrices = [] if matrix is None else [matrix] if isinstance(matrix, np.ndarray) and \
@@ -328,11 +293,12 @@ def field_of_edit(result, cfg, base_dir: Path) -> Field:
     arrays["frames"] = np.array(frames).reshape(-1, 4, 4)
     arrays["inverses"] = np.array(inverses).reshape(-1, 4, 4)
     arrays["matrices"] = np.array(matrices, dtype=np.float64).reshape(-1, 4, 4)
-    transferable = not (_has_indices(fixed_sel) or any(f"handle_idx_{j}" in arrays
-                                                       for j in range(len(handles))))
-    if _has_indices(fixed_sel):
+    arrays["support"] = support_box(deformation.constraint_points, model.positions)
+    transferable = not (has_indices(fixed_sel) or any(f"handle_idx_{j}" in arrays
+                                                      for j in range(len(handles))))
+    if has_indices(fixed_sel):
         arrays["fixed_idx"] = np.flatnonzero(deformation.fixed)
-    meta = {"format": FORMAT, "version": VERSION, "fixed": _encode(fixed_sel),
+    meta = {"format": FORMAT, "version": VERSION, "fixed": [encode(sel) for sel in fixed_sel],
             "handles": handles, "backend": resolve_backend(cfg.backend, cfg.device),
             "gaussians": cfg.gaussians.model_dump(), "method": deformation.fit.method,
             "transferable": transferable, "input": str(cfg.input)}
@@ -341,48 +307,16 @@ def field_of_edit(result, cfg, base_dir: Path) -> Field:
     return Field(deformation.fit, np.asarray(result.delta_c, dtype=np.float64), meta, arrays)
 
 
-def apply_file(field_path: str | Path, model_path: str | Path, out: str | Path, *,
-               backend: str | None = None, budget: int | None = None) -> tuple[Path, bool]:
-    """``splatdeform apply``: (the output, streamed). In memory when the model's in-memory
-    estimate fits the budget (:func:`splatdeform.memory.choose`), else streamed in chunks
-    (binary PLY, LAS/LAZ: :func:`splatdeform.io.open_chunks`); ``budget`` None: half the RAM.
-    Refused (one line) when the output is an input, when a field with ``indices`` selectors
-    would stream (its indices are global)."""
-    from splatdeform.io import STREAMABLE, SUPPORTED, extension_of, load, open_chunks, save
-    from splatdeform.io.atomic import check_io_paths
-    from splatdeform.memory import choose, deform_peak, file_cost
-
-    out = Path(out)
-    check_io_paths([("field", Path(field_path)), ("model", Path(model_path))],
-                   [("-o/--output", out)])
-    if extension_of(out) not in SUPPORTED:
-        raise InputError(f"{out}: unknown output extension {extension_of(out) or '(none)'!r}; "
-                         f"expected one of {', '.join(SUPPORTED)}")
-    field = Field.load(field_path)
-    cost = file_cost(model_path)
-    same_format = extension_of(out) == extension_of(Path(model_path))
-    streamable = extension_of(Path(model_path)) in STREAMABLE and same_format and \
-        bool(field.meta.get("transferable", True))
-    choice = choose(deform_peak(cost, max_centers=0), budget, streamable=streamable,
-                    name=model_path, why_not="it cannot stream (format, output format or "
-                    "indices selectors)")
-    if choice.mode == "refuse":
-        raise InputError(choice.message)
-    if choice.mode == "memory":
-        save(field.apply(load(model_path), backend), out)
-        return out, False
-    from splatdeform.edit.stream.run import ChunkWriter
-    from splatdeform.io.atomic import atomic_path
-    from splatdeform.memory import stream_chunk
-
-    src = open_chunks(model_path)
-    chunk = stream_chunk(choice.budget, src.record_bytes,
-                         int(getattr(cost, "reader_bytes", 0)) + 160 * 2**20)
-    with atomic_path(out) as tmp:
-        writer = ChunkWriter(src, tmp)
-        for a in range(0, src.n_points, chunk):
-            part = field.apply(src.read(a, min(a + chunk, src.n_points)), backend)
-            rows, props = src.encode(part)
-            writer.write(rows, props)
-        writer.close()
-    return out, True
+def support_box(constraints: np.ndarray, positions: np.ndarray) -> np.ndarray:
+    """(2, 3) float64, low corner then high corner: the box of the fit's constraint points
+    (m, 3) and of the model's points (N, 3) it was fitted on (the box its normalisation
+    spans), in model units: where the field was fitted and ``deform`` evaluated it."""
+    lows, highs = [], []
+    for pts in (constraints, positions):
+        pts = np.asarray(pts).reshape(-1, 3)
+        if len(pts):
+            lows.append(pts.min(axis=0).astype(np.float64))
+            highs.append(pts.max(axis=0).astype(np.float64))
+    if not lows:
+        return np.zeros((2, 3))
+    return np.vstack([np.min(lows, axis=0), np.max(highs, axis=0)])

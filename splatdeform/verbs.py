@@ -26,15 +26,16 @@ def cmd_info(args: argparse.Namespace) -> int:
 
 
 def cmd_apply(args: argparse.Namespace) -> int:
-    """``apply FIELD.npz MODEL -o OUT`` (:func:`splatdeform.field.apply_file`)."""
-    from .field import apply_file
+    """``apply FIELD.npz MODEL -o OUT`` (:func:`splatdeform.field_apply.apply_file`)."""
+    from .field_apply import apply_file
     from .io import READ_ONLY, check_writable, extension_of
     from .memory import budget_bytes
 
     if extension_of(args.output) in READ_ONLY:   # before the field is read or a folder made
         check_writable(args.output)
     out, streamed = apply_file(args.field, args.model, args.output, backend=args.backend,
-                               budget=budget_bytes(args.memory_budget))
+                               budget=budget_bytes(args.memory_budget),
+                               extrapolate=args.extrapolate)
     print(f"wrote {out}" + (" (streamed within the memory budget)" if streamed else ""))
     return 0
 

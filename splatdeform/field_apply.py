@@ -1,0 +1,167 @@
+"""``splatdeform apply FIELD.npz MODEL -o OUT``: a saved field on a model, knowing where it was
+fitted.
+
+A field is fitted on one model: its ``support`` (:attr:`splatdeform.field.Field.support`) is
+the box of its constraints and of that model. Applied elsewhere it extrapolates: the points
+it moves that lie outside the support are counted (:class:`SupportStats`) and said in one
+warning line naming the output (how many, and the largest distance from the box in model
+units); a model whose box does not overlap the support at all is refused (exit 2) unless
+``--extrapolate`` is given (a field fitted on one LiDAR tile moved a tile 636 km away by
+20 km without a word).
+
+Warnings raised while the output is written (a LAS writer moving its offset) name the output,
+never the temporary file beside it.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import re
+import warnings
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from splatdeform.errors import InputError
+
+
+@dataclass
+class SupportStats:
+    """What the field met outside its support, added up chunk by chunk: ``points`` seen,
+    ``moved`` by the field (neither fixed nor a handle), ``outside`` of those beyond the
+    support box, ``distance`` the largest of their distances to it (model units), and the
+    model's box ``lo`` / ``hi`` (3,) (None before any point)."""
+
+    points: int = 0
+    moved: int = 0
+    outside: int = 0
+    distance: float = 0.0
+    lo: np.ndarray | None = field(default=None, repr=False)
+    hi: np.ndarray | None = field(default=None, repr=False)
+
+    def add(self, positions: np.ndarray, moved_idx: np.ndarray, box: np.ndarray) -> None:
+        """Count ``positions`` (N, 3), of which ``moved_idx`` (M,) move by the field, against
+        the support ``box`` (2, 3)."""
+        n = len(positions)
+        self.points += n
+        if n == 0:
+            return
+        lo, hi = positions.min(axis=0).astype(np.float64), positions.max(axis=0).astype(
+            np.float64)
+        self.lo = lo if self.lo is None else np.minimum(self.lo, lo)
+        self.hi = hi if self.hi is None else np.maximum(self.hi, hi)
+        self.moved += int(moved_idx.size)
+        for a in range(0, moved_idx.size, 1 << 20):
+            p = positions[moved_idx[a:a + (1 << 20)]].astype(np.float64)
+            gap = np.maximum(np.maximum(box[0] - p, p - box[1]), 0.0)
+            far = np.einsum("ij,ij->i", gap, gap)
+            beyond = far > 0
+            self.outside += int(beyond.sum())
+            if beyond.any():
+                self.distance = max(self.distance, float(np.sqrt(far.max())))
+
+    def overlaps(self, box: np.ndarray) -> bool:
+        """Whether the model's box meets the support ``box`` (2, 3) (touching counts)."""
+        if self.lo is None:
+            return True
+        return bool(np.all(self.lo <= box[1]) and np.all(self.hi >= box[0]))
+
+
+def _box(lo, hi) -> str:
+    return "[" + ", ".join(f"{v:.6g}" for v in lo) + "] .. [" + ", ".join(
+        f"{v:.6g}" for v in hi) + "]"
+
+
+def check_support(stats: SupportStats, field_obj, field_path: Path, model_path: Path,
+                  out: Path, extrapolate: bool) -> None:
+    """Refuse a model entirely outside the field's support (unless ``extrapolate``); warn (one
+    line naming ``out``) when the field moves points outside it."""
+    box = field_obj.support
+    note = field_obj.support_note
+    if not stats.overlaps(box) and not extrapolate:
+        raise InputError(f"{model_path}: lies entirely outside the support of field "
+                         f"{field_path} (the model's box {_box(stats.lo, stats.hi)}, the "
+                         f"field's {_box(box[0], box[1])}{note}); a field applies where it was "
+                         "fitted: give --extrapolate to apply it anyway")
+    if stats.outside:
+        warnings.warn(f"{out}: {stats.outside:,} of the {stats.moved:,} points the field moves "
+                      f"lie outside its support (the box {_box(box[0], box[1])} of its "
+                      f"constraints and fitted model{note}), up to {stats.distance:.6g} model "
+                      "units from it: the field extrapolates there", stacklevel=2)
+
+
+@contextlib.contextmanager
+def naming_output(out: Path) -> Iterator[None]:
+    """Warnings raised inside (e.g. by a writer) name ``out`` where they named its temporary
+    file (``.NAME.<pid>-<random>.tmp.EXT``, :func:`splatdeform.io.atomic.atomic_path`); they are
+    shown when the block ends (also when it raises)."""
+    temp = re.compile(r"(?:[^\s'\"]*/)?\." + re.escape(out.stem) + r"\.[1-9][0-9]{0,9}-"
+                      r"[a-z0-9_]{8}\.tmp" + re.escape(out.suffix))
+    caught: list = []
+    try:
+        with warnings.catch_warnings(record=True) as caught:
+            yield
+    finally:
+        for w in caught:
+            text = temp.sub(lambda _m: str(out), str(w.message))
+            warnings.warn_explicit(text, w.category, w.filename, w.lineno)
+
+
+def apply_file(field_path: str | Path, model_path: str | Path, out: str | Path, *,
+               backend: str | None = None, budget: int | None = None,
+               extrapolate: bool = False) -> tuple[Path, bool]:
+    """``splatdeform apply``: (the output, streamed). In memory when the model's in-memory
+    estimate fits the budget (:func:`splatdeform.memory.choose`),
+    else streamed in chunks (binary PLY, LAS/LAZ: :func:`splatdeform.io.open_chunks`);
+    ``budget`` None: half the RAM. Refused (one line) when the output is an input, when a field
+    with ``indices`` selectors would stream (its indices are global), when the model lies
+    entirely outside the field's support and not ``extrapolate`` (see the module)."""
+    from splatdeform.field import Field
+    from splatdeform.io import STREAMABLE, SUPPORTED, extension_of, load, open_chunks, save
+    from splatdeform.io.atomic import check_io_paths
+    from splatdeform.memory import choose, deform_peak, file_cost
+
+    out, field_path, model_path = Path(out), Path(field_path), Path(model_path)
+    check_io_paths([("field", field_path), ("model", model_path)], [("-o/--output", out)])
+    if extension_of(out) not in SUPPORTED:
+        raise InputError(f"{out}: unknown output extension {extension_of(out) or '(none)'!r}; "
+                         f"expected one of {', '.join(SUPPORTED)}")
+    fld = Field.load(field_path)
+    cost = file_cost(model_path)
+    same_format = extension_of(out) == extension_of(model_path)
+    streamable = extension_of(model_path) in STREAMABLE and same_format and \
+        bool(fld.meta.get("transferable", True))
+    choice = choose(deform_peak(cost, max_centers=0), budget, streamable=streamable,
+                    name=model_path, why_not="it cannot stream (format, output format or "
+                    "indices selectors)")
+    if choice.mode == "refuse":
+        raise InputError(choice.message)
+    stats = SupportStats()
+    if choice.mode == "memory":
+        model = load(model_path)
+        whole = SupportStats()  # the model's box first: a model entirely outside is refused
+        whole.add(model.positions, np.empty(0, dtype=np.int64), fld.support)
+        check_support(whole, fld, field_path, model_path, out, extrapolate)
+        moved = fld.apply(model, backend, support=stats)
+        check_support(stats, fld, field_path, model_path, out, extrapolate)
+        with naming_output(out):
+            save(moved, out)
+        return out, False
+    from splatdeform.edit.stream.run import ChunkWriter
+    from splatdeform.io.atomic import atomic_path
+    from splatdeform.memory import stream_chunk
+
+    src = open_chunks(model_path)
+    chunk = stream_chunk(choice.budget, src.record_bytes,
+                         int(getattr(cost, "reader_bytes", 0)) + 160 * 2**20)
+    with naming_output(out), atomic_path(out) as tmp:
+        writer = ChunkWriter(src, tmp)
+        for a in range(0, src.n_points, chunk):
+            part = fld.apply(src.read(a, min(a + chunk, src.n_points)), backend, support=stats)
+            rows, props = src.encode(part)
+            writer.write(rows, props)
+        check_support(stats, fld, field_path, model_path, out, extrapolate)  # before the rename
+        writer.close()
+    return out, True
