@@ -215,8 +215,12 @@ def _over_budget(job: Job, budget: float | None) -> str | None:
     """An archive member whose header-based estimate exceeds the per-worker budget is refused
     before it is extracted or sent to a worker (members are not streamed; a scan file's
     stream-or-not is the worker's pre-flight, :func:`splatdeform.edit.plan.plan_edit`)."""
+    from ..memory import choose
+
     need = job.scan.need
-    if budget is None or need is None or need <= budget:
+    if budget is None or need is None:
+        return None
+    if choose(need, int(budget), streamable=False, name=job.scan.name).mode != "refuse":
         return None
     return (f"{job.scan.name}: needs about {need / 2**20:.0f} MiB (estimated from its header "
             f"and size), more than the {budget / 2**20:.0f} MiB per worker; use fewer workers "

@@ -79,23 +79,11 @@ def estimate_memory(p: Probe, max_centers: int = DEFAULT_MAX_CENTERS) -> int:
     return deform_peak(p.cost, max_centers=max_centers)
 
 
-def check(name: str, p: Probe, budget: float | None, available: float | None = None,
-          max_centers: int = DEFAULT_MAX_CENTERS) -> None:
-    """Refuse a scan larger than its header allows, or one that does not fit the memory budget.
-
-    ``budget``: bytes per worker (None: no budget set; then the estimate must fit in
-    ``available`` bytes). Raises InputError with one line naming the scan."""
-    mib = 2**20
+def check(name: str, p: Probe) -> None:
+    """Refuse a scan larger than its header allows (one InputError line naming it). Whether it
+    fits the memory budget is the one budget rule's (:func:`splatdeform.memory.choose`, asked by
+    the runner and the worker)."""
     if p.max_size is not None and p.size > p.max_size:
         raise InputError(f"{name}: the file is {p.size:,} bytes but its PLY header declares at "
                          f"most {p.max_size:,} (header, element counts and 1 MiB of slack); "
                          "refusing to read it")
-    need = estimate_memory(p, max_centers)
-    if budget is not None:
-        if need > budget:
-            raise InputError(f"{name}: needs about {need / mib:.0f} MiB for {p.points:,} points "
-                             f"in {p.size / mib:.1f} MiB, more than the {budget / mib:.0f} MiB "
-                             "per worker; use fewer workers or set memory_per_worker_mb")
-    elif available is not None and need > available:
-        raise InputError(f"{name}: a {p.size / mib:.1f} MiB file needs about {need / mib:.0f} "
-                         f"MiB, more than the {available / mib:.0f} MiB available on this worker")

@@ -211,7 +211,7 @@ def _vet_head(name: str, head: bytes, size: int) -> tuple[str | None, int | None
 
     try:
         p = probe(name, head, size)
-        check(name, p, None)
+        check(name, p)
     except SplatdeformError as exc:
         return error_line(exc, limit=PROBLEM_CHARS), None
     return None, estimate_memory(p)

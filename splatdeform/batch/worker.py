@@ -87,7 +87,7 @@ def process_scan(job: Job) -> dict[str, Any]:
         fit = job.edit.get("fit") if isinstance(job.edit.get("fit"), dict) else {}
         centers = fit.get("max_centers", DEFAULT_MAX_CENTERS)
         centers = centers if isinstance(centers, int) else DEFAULT_MAX_CENTERS
-        check(job.scan.name, p, None, None)   # the header against the size
+        check(job.scan.name, p)   # the header against the size
         if job.scan.member is not None or scan_budget(job)[0] < MIN_BUDGET:
             budget_check(job, estimate_memory(p, centers), p)
 
