@@ -235,21 +235,13 @@ def convert(src: str | Path, dst: str | Path, sim: Similarity | None = None, *,
 
 
 def _stream(src: Path, dst: Path, sim: Similarity, budget: int) -> None:
-    """Chunk by chunk through the input format's chunk reader and writer (same format)."""
-    from .io import atomic_path, open_chunks
+    """Chunk by chunk through the input format's chunk reader and writer (same format), by
+    the one chunk loop (:func:`splatdeform.io.chunks.map_chunks`)."""
+    from .io import open_chunks
+    from .io.chunks import map_chunks
     from .memory import BASE_BYTES, stream_chunk
 
     chunks = open_chunks(src)
-    step = stream_chunk(budget, chunks.record_bytes, BASE_BYTES)
-    with atomic_path(dst) as tmp:
-        writer = None
-        for start in range(0, chunks.n_points, step):
-            stop = min(start + step, chunks.n_points)
-            rows, props = chunks.encode(transform_model(chunks.read(start, stop), sim))
-            if writer is None:
-                writer = chunks.writer(tmp, props)
-            writer.write(rows)
-        if writer is None:   # no points: the header (and other elements) alone
-            _, props = chunks.encode(chunks.read(0, 0))
-            writer = chunks.writer(tmp, props)
-        writer.close()
+    map_chunks(chunks, dst,
+               lambda a, b: chunks.encode(transform_model(chunks.read(a, b), sim)),
+               stream_chunk(budget, chunks.record_bytes, BASE_BYTES))

@@ -5,15 +5,30 @@ A :class:`ChunkFile` reads points [start, stop) as a chunk :class:`PointModel` (
 recognition as a whole-file load, applied to the chunk's rows) and serialises a deformed chunk
 model back to the records the output holds. Reads use explicit file reads into fresh buffers
 (not a memory map), so resident memory stays bounded by the chunk size.
+
+:func:`map_chunks` is the one chunk loop of ``convert``, ``apply`` and a streamed ``deform``:
+read a range, turn it into output records, write them through :class:`ChunkWriter` into a
+temporary file renamed over the output at the end (:func:`splatdeform.io.atomic.atomic_path`).
+A :class:`ChunkFile` is a context manager: leaving it closes what its reader keeps open.
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import numpy as np
 
 from ..model import PointModel
+
+#: (start, stop) -> (output records, PLY vertex properties or None) of points [start, stop)
+ChunkFn = Callable[[int, int], tuple[np.ndarray, "list | None"]]
+
+
+def chunk_ranges(n: int, chunk: int) -> Iterator[tuple[int, int]]:
+    """[start, stop) ranges of at most ``chunk`` points covering ``n`` points."""
+    for start in range(0, n, max(1, int(chunk))):
+        yield start, min(start + int(chunk), n)
 
 
 class ChunkFile:
@@ -54,3 +69,57 @@ class ChunkFile:
         """An open writer of ``out`` in this file's format (``write(records)``, ``close()``),
         the input's header and other elements kept; ``props``: :meth:`encode`'s properties."""
         raise NotImplementedError
+
+    def close(self) -> None:
+        """Close what the reader keeps open between reads (nothing by default; reopened when
+        read again)."""
+
+    def __enter__(self) -> ChunkFile:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+class ChunkWriter:
+    """Writes chunks' records into ``tmp`` in ``src``'s format (PLY: header, rows, other
+    elements verbatim; LAS/LAZ: the input's header, VLRs and EVLRs), opened at the first chunk
+    (which gives the output properties); a file of no points gets the header alone."""
+
+    def __init__(self, src: ChunkFile, tmp: Path) -> None:
+        self.src, self.tmp = src, tmp
+        self.out = None
+
+    def write(self, rows: np.ndarray, props: list | None) -> None:
+        if self.out is None:
+            self.out = self.src.writer(self.tmp, props)
+        self.out.write(rows)
+
+    def close(self) -> None:
+        if self.out is None:   # no points: the header (and other elements) alone
+            _, props = self.src.encode(self.src.read(0, 0))
+            self.out = self.src.writer(self.tmp, props)
+        self.out.close()
+
+
+def map_chunks(src: ChunkFile, dst: str | Path, fn: ChunkFn, chunk: int, *,
+               progress: Callable[[int], None] | None = None,
+               before_rename: Callable[[], None] | None = None) -> Path:
+    """The one chunk loop: ``fn(start, stop)`` for every range of ``chunk`` points of ``src``,
+    its records written in ``src``'s format to ``dst`` atomically (a temporary file beside it,
+    renamed at the end; removed on any error). ``progress(n)``: told after each chunk;
+    ``before_rename``: a last check that may still refuse (nothing is replaced then).
+    ``src`` is closed at the end. Returns ``dst``."""
+    from .atomic import atomic_path
+
+    dst = Path(dst)
+    with src, atomic_path(dst) as tmp:
+        writer = ChunkWriter(src, tmp)
+        for start, stop in chunk_ranges(src.n_points, chunk):
+            writer.write(*fn(start, stop))
+            if progress is not None:
+                progress(stop - start)
+        if before_rename is not None:
+            before_rename()
+        writer.close()
+    return dst
