@@ -289,22 +289,25 @@ def _spz_bomb(count: int, fill_chunks: int, isize: int | None = None) -> bytes:
 
 
 def test_spz_gzip_bomb_is_refused_with_bounded_memory(tmp_path):
-    """A 1 MB .spz declaring 10M splats (200 MB) whose stream inflates to 1 GB: refused
-    before the stream passes the declared size (a counting pass, one chunk of memory)."""
+    """A 1 MB .spz declaring 4M splats (80 MB: within the 64x + 16 MiB a splat file may
+    declare) whose stream inflates to 1 GB: refused before the stream passes the declared size
+    (a counting pass, one chunk of memory). More splats are refused from the file size."""
     path = tmp_path / "bomb.spz"
-    path.write_bytes(_spz_bomb(10_000_000, 64))
+    path.write_bytes(_spz_bomb(4_000_000, 64))
     assert path.stat().st_size < 1.2 * MB
-    refused(path, cwd=tmp_path, needles=("longer than the 10,000,000 splats",),
+    refused(path, cwd=tmp_path, needles=("longer than the 4,000,000 splats",),
             commands=("info", "render"))
 
 
 def test_spz_gzip_bomb_with_a_forged_trailer_stops_at_the_declared_size(tmp_path):
     """The trailer claims the declared size: one pass, into a buffer of the declared size,
-    refused at its first byte past it (peak: the declared 200 MB + the interpreter)."""
-    count = 10_000_000
+    refused at its first byte past it (peak: the declared 80 MB + the interpreter)."""
+    count = 4_000_000
     path = tmp_path / "forged.spz"
     path.write_bytes(_spz_bomb(count, 64, isize=spz.HEADER.size + spz.body_size(count, 0, 3)))
-    refused(path, cwd=tmp_path, needles=("longer than the 10,000,000 splats",))
+    refused(path, cwd=tmp_path, needles=("longer than the 4,000,000 splats",))
+    path.write_bytes(_spz_bomb(10_000_000, 64))   # 200 MB from 1 MB: not even inflated
+    refused(path, cwd=tmp_path, needles=("10,000,000 splats", "compresses at most 64x"))
 
 
 def test_spz_declaring_2e8_splats_is_refused_from_the_file_size(tmp_path):
@@ -321,7 +324,9 @@ def test_spz_blob_decoder_is_bounded_in_process(good):
     blob = good["spz"].read_bytes()
     fields, info = spz.decode_blob("x.glb", blob)
     assert fields.count == info["count"] == 200
-    with pytest.raises(FormatError, match="x.glb: .*longer than the 10,000,000 splats"):
+    with pytest.raises(FormatError, match="x.glb: .*longer than the 1,500,000 splats"):
+        spz.gunzip_blob("x.glb", _spz_bomb(1_500_000, 16))
+    with pytest.raises(FormatError, match="x.glb: .*10,000,000 splats.*compresses at most"):
         spz.gunzip_blob("x.glb", _spz_bomb(10_000_000, 16))
     with pytest.raises(FormatError, match="x.glb: .*compressed bytes can hold"):
         spz.gunzip_blob("x.glb", gzip.compress(spz.HEADER.pack(spz.MAGIC, 3, 2 * 10**8, 3, 12,

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from ..errors import FormatError, InputError
+from ..errors import FormatError, InputError, ProcessingError
 from ..model import PointModel
 from .atomic import atomic_path, atomic_write, check_output_path
 from .chunks import ChunkFile
@@ -190,6 +190,27 @@ def load(path: str | Path, *, drop_nonfinite: bool = False) -> PointModel:
         raise
     except (ValueError, IndexError, KeyError, OSError) as exc:
         raise FormatError(f"{path}: cannot read it: {exc}") from exc
+    except MemoryError:
+        raise ProcessingError(f"{path}: out of memory reading it "
+                              f"({_declared(path)})") from None
+
+
+def _declared(path: Path) -> str:
+    """What ``path``'s header declares, for an out-of-memory line (its probe's count and load
+    estimate), or why it could not be said."""
+    import os
+
+    from .regular import open_regular
+
+    try:
+        with open_regular(path) as fh:
+            size = os.fstat(fh.fileno()).st_size
+            head = fh.read(HEAD_BYTES)
+        cost = header_cost(path, head, size, file=path)
+    except Exception:  # noqa: BLE001 - the line is said whatever the probe meets
+        return f"a {path.stat().st_size:,}-byte file"
+    return (f"a {cost.size:,}-byte file declaring {cost.points:,} points, an estimated "
+            f"{cost.load_bytes / 2**20:,.0f} MB to load")
 
 
 def save(model: PointModel, path: str | Path, *, text: bool | None = None) -> Path:

@@ -36,3 +36,37 @@ def infinite_opacity_ok(data: np.ndarray, bad: np.ndarray, names: list[str]) -> 
     out = bad.copy()
     out[rows[ok]] = False
     return out
+
+
+def check_fits(what: str, values: np.ndarray, dtype: np.dtype | str, fmt: str = "") -> None:
+    """Refuse (one FormatError line; the writer's caller names the output) writing ``values``
+    into a column of ``dtype`` that cannot hold them, so that what a writer writes its reader
+    reads back: a finite value beyond a float type's range (it would become inf), or a value
+    outside an integer type's range (it would wrap). NaN and inf are the caller's business.
+    ``what``: the field's name; ``fmt``: the format, for the message."""
+    dtype = np.dtype(dtype)
+    values = np.asarray(values)
+    if values.size == 0 or dtype.kind not in "fiu" or values.dtype.kind not in "fiu":
+        return
+    if dtype.kind == "f":
+        if values.dtype.kind == "f" and values.dtype.itemsize <= dtype.itemsize:
+            return
+        top = float(np.finfo(dtype).max)
+        with np.errstate(invalid="ignore"):
+            big = np.abs(values.astype(np.float64, copy=False)) > top
+        big &= np.isfinite(values)
+        if big.any():
+            first = float(values.reshape(-1)[np.flatnonzero(big.reshape(-1))[0]])
+            raise FormatError(f"{what} value {first:g} does not fit {fmt + ' ' if fmt else ''}"
+                              f"{dtype.name} (at most {top:.3g} in magnitude); "
+                              f"{int(big.sum()):,} such value(s)")
+        return
+    info = np.iinfo(dtype)
+    v = values.astype(np.float64, copy=False) if values.dtype.kind == "f" else values
+    with np.errstate(invalid="ignore"):
+        bad = (v < info.min) | (v > info.max)
+    if bad.any():
+        first = values.reshape(-1)[np.flatnonzero(bad.reshape(-1))[0]]
+        raise FormatError(f"{what} value {first:g} does not fit {fmt + ' ' if fmt else ''}"
+                          f"{dtype.name} ({info.min}..{info.max}); {int(bad.sum()):,} such "
+                          "value(s)")

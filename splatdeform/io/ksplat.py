@@ -146,8 +146,11 @@ def _bucket_of(path: str | Path, data, s: dict) -> np.ndarray:
     if in_full + int(lengths.sum()) < n:
         raise FormatError(f"{path}: .ksplat buckets hold {in_full + int(lengths.sum()):,} "
                           f"splats of the section's {n:,}")
+    # the partial buckets' lengths are clipped to the splats left (a length may declare far
+    # more splats than the section holds: never expand what the file does not hold)
+    ends = np.minimum(np.cumsum(lengths), n - in_full)
     first = np.arange(in_full) // max(size, 1)
-    rest = np.repeat(np.arange(full, full + len(lengths)), lengths)[:n - in_full]
+    rest = np.repeat(np.arange(full, full + len(lengths)), np.diff(ends, prepend=0))
     return np.concatenate([first, rest])
 
 

@@ -14,7 +14,6 @@ did not change keep their original text. Packed ``rgb``/``rgba`` floats are kept
 
 from __future__ import annotations
 
-import bisect
 import io
 import os
 import re
@@ -29,7 +28,8 @@ import numpy as np
 
 from ..errors import FormatError, InputError
 from ..model import PlyElementData, PlyProperty, PlySource, PointModel, classify
-from .checks import nonfinite_points
+from .checks import check_fits, nonfinite_points
+from .inflate import check_declared
 from .ply_format import shortest_text
 from .regular import open_regular
 
@@ -213,6 +213,7 @@ def _check_block(path, raw: bytes, at: int, points: int, itemsize: int, size: in
     if at + 8 + packed > size:
         raise FormatError(f"{path}: PCD binary_compressed block of {packed:,} bytes runs "
                           "past the end of the file")
+    check_lzf_sizes(path, packed, raw_size)
     return packed
 
 
@@ -230,108 +231,61 @@ def read_header(path: str | Path) -> tuple[PcdSource, int, int]:
 
 # ---- LZF (the binary_compressed block) ------------------------------------------------------
 
-def lzf_decompress(path, data: bytes, size: int) -> bytes:
-    out = bytearray(size)
-    i = o = 0
-    n = len(data)
+#: the most an LZF stream can expand: a 3-byte back reference copies at most 264 bytes (88:1);
+#: literals and shorter references expand less
+LZF_MAX_RATIO = 88
+
+
+def check_lzf_sizes(path, packed: int, raw_size: int) -> None:
+    """Refuse a binary_compressed block whose declared raw size its ``packed`` bytes cannot
+    expand to (:data:`LZF_MAX_RATIO`), or whose decoded data (the raw block and the decoded
+    columns: twice the raw size) is more than the machine's memory, before anything is
+    allocated; one line naming the file and what it declared."""
+    if raw_size > LZF_MAX_RATIO * packed:
+        raise FormatError(f"{path}: PCD binary_compressed block declares {raw_size:,} raw bytes "
+                          f"from {packed:,} compressed bytes; LZF expands at most "
+                          f"{LZF_MAX_RATIO}x")
+    check_declared(path, f"PCD binary_compressed block ({raw_size:,} raw bytes declared)",
+                   2 * raw_size)
+
+
+def lzf_decompress(path, data: bytes | memoryview, size: int) -> bytes:
+    """The ``size`` bytes the LZF block ``data`` decodes to (the compiled liblzf through
+    python-lzf, with at most ``size`` bytes of output): one FormatError line naming ``path``
+    when the block is corrupt or decodes to another size. The caller checks ``size`` against
+    the block and the memory first (:func:`check_lzf_sizes`)."""
+    import lzf
+
+    if size == 0:
+        if len(data):
+            raise FormatError(f"{path}: PCD binary_compressed block holds data past its "
+                              "declared 0 raw bytes")
+        return b""
     try:
-        while i < n:
-            ctrl = data[i]
-            i += 1
-            if ctrl < 32:  # a literal run of ctrl + 1 bytes
-                run = ctrl + 1
-                if i + run > n or o + run > size:
-                    raise IndexError
-                out[o:o + run] = data[i:i + run]
-                i += run
-                o += run
-                continue
-            length = ctrl >> 5
-            if length == 7:
-                length += data[i]
-                i += 1
-            back = o - ((ctrl & 31) << 8) - data[i] - 1
-            i += 1
-            length += 2
-            if back < 0 or o + length > size:
-                raise IndexError
-            if back + length <= o:
-                out[o:o + length] = out[back:back + length]
-            else:  # overlapping copy: byte by byte semantics
-                for k in range(length):
-                    out[o + k] = out[back + k]
-            o += length
-    except IndexError:
+        out = lzf.decompress(bytes(data), size)
+    except ValueError:
         raise FormatError(f"{path}: PCD binary_compressed block is corrupt") from None
-    if o != size:
-        raise FormatError(f"{path}: PCD binary_compressed block decodes to {o:,} bytes, its "
-                          f"header says {size:,}")
-    return bytes(out)
+    if out is None:
+        raise FormatError(f"{path}: PCD binary_compressed block is corrupt (it does not "
+                          f"decode within the {size:,} bytes its header says)")
+    if len(out) != size:
+        raise FormatError(f"{path}: PCD binary_compressed block decodes to {len(out):,} bytes, "
+                          f"its header says {size:,}")
+    return out
 
 
-LZF_WINDOW = 8192      # a back reference reaches at most 8192 bytes back (13-bit offset + 1)
-LZF_MAX_MATCH = 264    # and copies at most 264 bytes (3-bit length, 8-bit extension, + 2)
-LZF_MAX_LITERAL = 32   # a literal run holds at most 32 bytes (5-bit count + 1)
+def lzf_compress(data: bytes | memoryview) -> bytes:
+    """``data`` as an LZF stream (liblzf's format and compressor, which PCL's binary_compressed
+    uses), through python-lzf; incompressible data costs at most a byte in 32 more."""
+    import lzf
 
-
-def _previous_triples(src: np.ndarray) -> np.ndarray:
-    """(n,) int64: for each position i the last j < i whose 3 bytes equal those at i, within
-    the LZF window; -1 where none (and for the last two positions)."""
-    n = len(src)
-    prev = np.full(n, -1, dtype=np.int64)
-    if n < 3:
-        return prev
-    s = src.astype(np.uint32)
-    key = (s[:-2] << 16) | (s[1:-1] << 8) | s[2:]
-    order = np.argsort(key, kind="stable")   # equal keys stay in position order
-    same = key[order[1:]] == key[order[:-1]]
-    prev[order[1:][same]] = order[:-1][same]
-    prev[np.arange(n) - prev > LZF_WINDOW] = -1
-    return prev
-
-
-def _literals(out: list, data: bytes, start: int, stop: int) -> None:
-    for at in range(start, stop, LZF_MAX_LITERAL):
-        run = data[at:min(at + LZF_MAX_LITERAL, stop)]
-        out.append(bytes((len(run) - 1,)))
-        out.append(run)
-
-
-def lzf_compress(data: bytes) -> bytes:
-    """``data`` as an LZF stream (liblzf's format, which PCL's binary_compressed uses): greedy
-    back references to the latest earlier occurrence of each 3-byte sequence within 8 KiB,
-    extended as far as they match (up to 264 bytes), literal runs of up to 32 bytes between."""
     data = bytes(data)
-    n = len(data)
-    prev = _previous_triples(np.frombuffer(data, dtype=np.uint8))
-    candidates = np.flatnonzero(prev >= 0)
-    refs = prev[candidates].tolist()
-    candidates = candidates.tolist()
-    out: list[bytes] = []
-    i = lit = 0
-    c = 0
-    while c < len(candidates):
-        i = candidates[c]
-        ref = refs[c]
-        limit = min(LZF_MAX_MATCH, n - i)
-        length = 3
-        while length + 8 <= limit and data[i + length:i + length + 8] == \
-                data[ref + length:ref + length + 8]:
-            length += 8
-        while length < limit and data[i + length] == data[ref + length]:
-            length += 1
-        _literals(out, data, lit, i)
-        off = i - ref - 1
-        code = length - 2
-        if code < 7:
-            out.append(bytes(((code << 5) | (off >> 8), off & 0xFF)))
-        else:
-            out.append(bytes(((7 << 5) | (off >> 8), code - 7, off & 0xFF)))
-        i += length
-        lit = i
-        c = bisect.bisect_left(candidates, i, c + 1)
-    _literals(out, data, lit, n)
-    return b"".join(out)
+    if not data:
+        return b""
+    out = lzf.compress(data, len(data) + len(data) // 16 + 64)
+    if out is None:  # pragma: no cover - liblzf's worst case is n + n/32 + 1
+        raise FormatError("LZF compression produced more than its worst case")
+    return out
 
 
 # ---- reading --------------------------------------------------------------------------------
@@ -487,7 +441,10 @@ def _source_for_save(model: PointModel) -> PcdSource:
         if model.normals is not None:
             names += ["normal_x", "normal_y", "normal_z"]
             cols += [model.normals[:, i] for i in range(3)]
-        data = np.empty(model.n_points, dtype=[(n, "<f4") for n in names]
+        # float32 unless a value needs float64 (beyond float32's range: it would become inf)
+        wide = {n for n, c in zip(names, cols, strict=True)
+                if np.abs(c[np.isfinite(c)]).max(initial=0.0) > np.finfo(np.float32).max}
+        data = np.empty(model.n_points, dtype=[(n, "<f8" if n in wide else "<f4") for n in names]
                         + ([("rgb", "<f4")] if model.colors is not None else []))
         for n, c in zip(names, cols, strict=True):
             data[n] = c
@@ -495,8 +452,9 @@ def _source_for_save(model: PointModel) -> PcdSource:
             c = model.colors.astype(np.uint32)
             data["rgb"] = ((c[:, 0] << 16) | (c[:, 1] << 8) | c[:, 2]).view(np.float32)
         names = list(data.dtype.names)
+        sizes = [data.dtype[n].itemsize for n in names]
         return PcdSource(header=[("#", "written by splatdeform")], fields=names,
-                         sizes=[4] * len(names), types=["F"] * len(names),
+                         sizes=sizes, types=["F"] * len(names),
                          counts=[1] * len(names), width=model.n_points, height=1,
                          encoding="binary", data=data)
     if len(source.data) != model.n_points:
@@ -511,6 +469,9 @@ def _source_for_save(model: PointModel) -> PcdSource:
     starts = np.cumsum([0, *source.counts])
     for name, values in updates:
         column = data[name]
+        check_fits(f"PCD field {name}", values, column.dtype,
+                   f"its TYPE {source.types[source.fields.index(name)]} SIZE "
+                   f"{column.dtype.itemsize}:")
         new = values.astype(column.dtype)
         changed = new != column
         column[changed] = new[changed]

@@ -42,8 +42,10 @@ passes it or ends short (:func:`gunzip_blob`, :func:`decode_blob` for in-memory 
 from __future__ import annotations
 
 import gzip
+import io
 import os
 import struct
+import warnings
 from collections.abc import Iterator
 from contextlib import contextmanager
 from contextvars import ContextVar
@@ -85,6 +87,17 @@ ZSTD_LEVEL = 12
 ZSTD_MAX_RATIO = 32768
 ZSTD_SLACK = 1 << 17
 EXTENSIONS_FLAG = 0x2
+#: a splat file's decompressed stream may be at most this many times its compressed bytes
+#: (plus :data:`PLAUSIBLE_SLACK`): real scenes compress 1.3-4x (measured: the guitar 1.3x, the
+#: SH3 tile 3.9x; v3 and v4 alike). deflate (1032x) and ZSTD (32768x) could expand far more, so
+#: a small file declaring many splats would otherwise allocate gigabytes before its streams
+#: prove (or fail to prove) what it declares; a writer refuses a scene that compresses beyond
+#: it (what we write, we read back)
+PLAUSIBLE_RATIO = 64
+PLAUSIBLE_SLACK = 16 << 20
+#: extension records kept as source comments (hex text) on read: at most this many bytes of
+#: payload in all (a PLY header holds at most 1 MiB); beyond it they are dropped with a warning
+MAX_KEPT_EXTENSION_BYTES = 64 << 10
 #: the Adobe coordinate-system extension (payload: the frame's code, u8 or u32)
 COORDINATE_SYSTEM = 0xADBE0003
 #: comment prefix keeping an extension record in a model's source
@@ -186,6 +199,18 @@ def stream_size(info: dict) -> int:
     return HEADER.size + body_size(info["count"], info["sh_degree"], info["version"])
 
 
+def check_plausible(path: str | Path, info: dict, compressed: int) -> None:
+    """Refuse (one line naming the file and what it declares) a header whose stream is more
+    than :data:`PLAUSIBLE_RATIO` x the ``compressed`` bytes (+ :data:`PLAUSIBLE_SLACK`): checked
+    before anything is allocated or inflated."""
+    want = stream_size(info)
+    if want > PLAUSIBLE_RATIO * compressed + PLAUSIBLE_SLACK:
+        raise FormatError(f"{path}: SPZ header declares {info['count']:,} splats ({want:,} "
+                          f"bytes of attributes) in {compressed:,} compressed bytes; splat data "
+                          f"compresses at most {PLAUSIBLE_RATIO}x (+{PLAUSIBLE_SLACK >> 20} MiB) "
+                          "here: refused before allocating")
+
+
 def decoded_size(info: dict) -> int:
     """Bytes of the decompressed stream and the float32 table it decodes to (what a read
     holds at its peak, besides small temporaries)."""
@@ -222,6 +247,7 @@ def _inflate(source: BinaryIO | bytes | bytearray | memoryview, path: str | Path
                           "bytes), more than this reader's limit")
     check_declared(path, f"{what} (SPZ header: {info['count']:,} splats)", want, compressed,
                    decoded=decoded_size(info))
+    check_plausible(path, info, compressed)
     isize = int.from_bytes(trailer, "little") if compressed >= 18 else None
     if isize != want % (1 << 32):
         if hasattr(source, "read"):
@@ -315,6 +341,7 @@ def parse_v4(path: str | Path, data: bytes | bytearray | memoryview) -> dict:
     if packed_total != size - at:
         raise FormatError(f"{path}: SPZ table of contents declares {packed_total:,} compressed "
                           f"bytes; the file holds {size - at:,} after it")
+    check_plausible(path, info, size)
     info.update(streams=table, data_offset=at, extensions=records, frame=frame,
                 antialiased=bool(flags & 1))
     return info
@@ -386,10 +413,20 @@ def write_v4(stream: bytes | bytearray, extensions: list[tuple[int, bytes]] = ()
     return b"".join([head, records, *table, *frames])
 
 
-def extension_comments(records: list[tuple[int, bytes]]) -> list[str]:
-    """Source comments keeping extension records (the coordinate-system one is consumed)."""
-    return [f"{EXTENSION_COMMENT} {kind:#010x} {payload.hex()}" for kind, payload in records
-            if kind != COORDINATE_SYSTEM]
+def extension_comments(records: list[tuple[int, bytes]], path: str | Path = "SPZ file"
+                       ) -> list[str]:
+    """Source comments keeping extension records (the coordinate-system one is consumed); more
+    than :data:`MAX_KEPT_EXTENSION_BYTES` of them (8 bytes of record head and the payload
+    each) are dropped, all of them, with one warning naming ``path`` (kept, they would make a
+    header that no PLY reader, ours included, reads back)."""
+    kept = [(kind, payload) for kind, payload in records if kind != COORDINATE_SYSTEM]
+    total = sum(8 + len(payload) for _, payload in kept)
+    if total > MAX_KEPT_EXTENSION_BYTES:
+        warnings.warn(f"{path}: {len(kept):,} SPZ extension records of {total:,} bytes in all "
+                      f"(more than {MAX_KEPT_EXTENSION_BYTES >> 10} KiB) are not kept: an "
+                      "output will not carry them", stacklevel=2)
+        return []
+    return [f"{EXTENSION_COMMENT} {kind:#010x} {payload.hex()}" for kind, payload in kept]
 
 
 def extensions_of(model: PointModel) -> list[tuple[int, bytes]]:
@@ -609,7 +646,7 @@ def read_model(path: str | Path, *, drop_nonfinite: bool = False) -> PointModel:
     decode(raw, path, info.get("frame") or RUB, into=views)  # straight into the float32 table
     del raw
     comments = [f"read from an SPZ v{info['version']} file by splatdeform",
-                *extension_comments(info.get("extensions", []))]
+                *extension_comments(info.get("extensions", []), path)]
     return source_model(table_source(table, comments), path, drop_nonfinite=drop_nonfinite)
 
 
@@ -641,9 +678,17 @@ def write_model(model: PointModel, path: Path, stream, version: int | None = Non
     note_lossy(path, f".spz (v{version})", "positions 24-bit fixed point, opacity, colour, "
                "log scale 8 bits, rotation 10 bits per component, SH rest 5 bits (degree 1) and "
                "4 bits (2-4)", model, sh_kept=3 * ((top + 1) ** 2 - 1))
+    raw = encode(fields, version=version)
     if version == 4:
-        stream.write(write_v4(encode(fields, version=4), extensions_of(model)))
-        return
-    with gzip.GzipFile(filename="", fileobj=stream, mode="wb", compresslevel=GZIP_LEVEL,
-                       mtime=0) as gz:  # no file name in the header: the same bytes each time
-        gz.write(encode(fields, version=version))
+        data = write_v4(raw, extensions_of(model))
+    else:
+        out = io.BytesIO()
+        with gzip.GzipFile(filename="", fileobj=out, mode="wb", compresslevel=GZIP_LEVEL,
+                           mtime=0) as gz:  # no file name in the header: the same bytes each time
+            gz.write(raw)
+        data = out.getvalue()
+    if len(raw) > PLAUSIBLE_RATIO * len(data) + PLAUSIBLE_SLACK:
+        raise FormatError(f"{path}: {fields.count:,} splats compress from {len(raw):,} to "
+                          f"{len(data):,} bytes, more than the {PLAUSIBLE_RATIO}x an SPZ reader "
+                          "here accepts (a scene of near-identical splats); write .ply instead")
+    stream.write(data)

@@ -48,12 +48,14 @@ def _spz_probe(path: Path, head: bytes, size: int, file: Path | None = None) -> 
         info = spz.parse_header(path, head[:spz.HEADER.size])
         check_declared(path, f"SPZ data (SPZ header: {info['count']:,} splats)",
                        spz.stream_size(info), decoded=spz.decoded_size(info))
+        spz.check_plausible(path, info, size)
         return _cost(info["count"], size, 3 * spz.SH_COEFFS[info["sh_degree"]],
                      spz.decoded_size(info))
     spz._refuse_plain(path, head[:spz.HEADER.size])
     info = spz.parse_header(path, Inflater(head, path, "SPZ data").read(spz.HEADER.size))
     check_declared(path, f"SPZ data (SPZ header: {info['count']:,} splats)",
                    spz.stream_size(info), size, decoded=spz.decoded_size(info))
+    spz.check_plausible(path, info, size)
     return _cost(info["count"], size, 3 * spz.SH_COEFFS[info["sh_degree"]],
                  spz.decoded_size(info))
 
