@@ -93,10 +93,13 @@ def test_the_graph_reader_sees_lazy_imports():
 
 
 def import_graph(package: str) -> dict[str, list[str]]:
-    """Module -> the modules of ``package`` it imports when run (lazy imports count; imports
-    under ``if TYPE_CHECKING:`` do not). ``from pkg import sub`` of a submodule is an edge to
-    ``pkg.sub`` only (Python finds a submodule while ``pkg`` is still initialising); of any
-    other name, an edge to ``pkg``."""
+    """Module -> the modules of ``package`` it imports (lazy imports count, and so do imports
+    under ``if TYPE_CHECKING:``: a module that names another's types for its hints depends on
+    it as much, even if Python never runs that import). One exception: a type-only import of
+    the module's own package (``edit/selectors/not_.py`` names the union ``SelectorCfg`` of
+    its package, which imports it: one recursive type). ``from pkg import sub`` of a submodule
+    is an edge to ``pkg.sub`` only (Python finds a submodule while ``pkg`` is still
+    initialising); of any other name, an edge to ``pkg``."""
     names = {module_name(p): p for p in MODULES + [PACKAGE / "__init__.py"]
              if module_name(p) == package or module_name(p).startswith(package + ".")}
 
@@ -107,21 +110,23 @@ def import_graph(package: str) -> dict[str, list[str]]:
 
     def edges(m: str, path: Path) -> set[str]:
         tree = ast.parse(path.read_text())
-        skip = typing_only(tree)
+        typing = typing_only(tree)
         mod = m.split(".")
         base = mod if path.name == "__init__.py" else mod[:-1]
+        own_packages = {".".join(mod[:i]) for i in range(1, len(mod))}
         found = set()
         for node in ast.walk(tree):
-            if node in skip:
-                continue
             if isinstance(node, ast.Import):
-                found.update(a.name for a in node.names)
+                new = {a.name for a in node.names}
             elif isinstance(node, ast.ImportFrom):
                 name = (".".join(base[:len(base) - node.level + 1]
                                  + ([node.module] if node.module else []))
                         if node.level else node.module or "")
                 subs = {f"{name}.{a.name}" for a in node.names}
-                found.update(subs & names.keys() if subs <= names.keys() else subs | {name})
+                new = subs & names.keys() if subs <= names.keys() else subs | {name}
+            else:
+                continue
+            found.update(new - own_packages if node in typing else new)
         return {x for x in found if x in names and x != m}
 
     return {m: sorted(edges(m, p)) for m, p in names.items()}
@@ -148,11 +153,13 @@ def find_cycles(graph: dict[str, list[str]]) -> list[list[str]]:
 
 
 def test_no_import_cycle():
-    """No module of the package imports itself back through others (lazy imports count: a
-    cycle would need one to work at all). edit/run.py decides stream-or-not and calls
-    edit/stream/, which builds its result in edit/result.py; the splat readers build their
-    model in io/splat_model.py above both io/splats.py and io/ply.py; the batch worker owns
-    the messages the runner also reports."""
+    """No module of the package imports itself back through others (lazy and type-only
+    imports count: a cycle would need one to work at all, and a module whose hints name
+    another's types depends on it). editor/saving.py reads the controller through the
+    EditorState protocol it declares, not the controller's class. edit/run.py decides
+    stream-or-not and calls edit/stream/, which builds its result in edit/result.py; the splat
+    readers build their model in io/splat_model.py above both io/splats.py and io/ply.py; the
+    batch worker owns the messages the runner also reports."""
     assert find_cycles(import_graph("splatdeform")) == []
 
 
@@ -163,6 +170,12 @@ def test_the_cycle_finder_finds_cycles():
     graph = import_graph("splatdeform.edit")
     assert "splatdeform.edit.stream" in graph["splatdeform.edit.run"]
     assert "splatdeform.edit.result" in graph["splatdeform.edit.stream"]
+    whole = import_graph("splatdeform")
+    # type-only imports are edges (batch/thumbnails.py names EditResult for its hints only;
+    # editor/saving.py importing editor/controller.py so was the one circle of issue 44) ...
+    assert "splatdeform.edit.result" in whole["splatdeform.batch.thumbnails"]
+    # ... except a module's type-only import of its own package (a recursive type)
+    assert "splatdeform.edit.selectors" not in whole["splatdeform.edit.selectors.not_"]
 
 
 def test_no_module_above_500_lines_but_the_format_readers() -> None:

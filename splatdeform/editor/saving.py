@@ -5,14 +5,15 @@ Everything goes through the pipeline of ``splatdeform deform``: the YAML writer
 (:mod:`splatdeform.edit.writer`), the model writer and the renderer, so the saved YAML
 reproduces the saved model byte for byte. The controller's :meth:`~.controller.EditorController.
 to_yaml_dict`, ``default_paths`` and ``save`` call these functions; they read the controller
-through its public attributes and methods only.
+through its public attributes and methods only, the ones :class:`EditorState` names (so this
+module does not import the controller, which imports it).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
 
@@ -27,7 +28,37 @@ from . import selectors as sl
 from .state import HandleState, StaleFitError
 
 if TYPE_CHECKING:
-    from .controller import EditorController
+    from splatdeform.edit.config import EditConfig
+    from splatdeform.edit.selectors import Selector
+
+    from .curve import CurveState
+
+
+class EditorState(Protocol):
+    """What Save reads of an :class:`~.controller.EditorController`: its public state."""
+
+    model: PointModel
+    model_path: Path
+    config_path: Path | None
+    base_dir: Path
+    units: str
+    settings: EditConfig
+    fixed: list[Selector]
+    handles: list[HandleState]
+    curve: CurveState | None
+    points: Any
+    points_fit: Any
+    deformation: df.Deformation | None
+
+    @property
+    def stale(self) -> bool: ...
+
+    def live_handles(self) -> list[HandleState]: ...
+
+    def check_poses(self) -> None: ...
+
+    def to_config(self, *, output: str | Path | None = None,
+                  config_dir: str | Path | None = None) -> EditConfig: ...
 
 
 @dataclass
@@ -46,7 +77,7 @@ def bare_settings(model_path: Path) -> dict[str, Any]:
             "handle": {"matrix": np.eye(4).tolist()}}
 
 
-def to_yaml_dict(ed: EditorController, *, output: str | Path | None = None,
+def to_yaml_dict(ed: EditorState, *, output: str | Path | None = None,
                  config_dir: str | Path | None = None) -> dict[str, Any]:
     """The edit config mapping of ``ed``'s state (what :func:`save` writes as YAML)."""
     cdir = Path(config_dir).resolve() if config_dir is not None else ed.base_dir
@@ -78,7 +109,7 @@ def to_yaml_dict(ed: EditorController, *, output: str | Path | None = None,
     return data
 
 
-def points_yaml(ed: EditorController, config_dir: Path) -> dict[str, Any]:
+def points_yaml(ed: EditorState, config_dir: Path) -> dict[str, Any]:
     """The ``points:`` mapping as loaded (:func:`splatdeform.edit.writer.points_mapping`)."""
     from splatdeform.edit.writer import points_mapping
 
@@ -97,7 +128,7 @@ def precompute(cfg, model: PointModel, base_dir: Path) -> tuple[df.Deformation, 
     return plain_precompute(cfg, model, base_dir), None
 
 
-def default_paths(ed: EditorController) -> tuple[Path, Path, Path]:
+def default_paths(ed: EditorState) -> tuple[Path, Path, Path]:
     """(model, yaml, png) Save writes by default. From a bare MODEL: MODEL_edited.<ext>,
     MODEL_edit.yaml and MODEL_edit.png beside it; from EDIT.yaml: its output, then
     EDIT_edited.yaml and EDIT_edited.png beside the YAML (inputs are never overwritten)."""
@@ -112,7 +143,7 @@ def default_paths(ed: EditorController) -> tuple[Path, Path, Path]:
             m.with_name(f"{stem}_edit.png"))
 
 
-def deformed_model(ed: EditorController) -> PointModel:
+def deformed_model(ed: EditorState) -> PointModel:
     """The deformed model exactly as ``splatdeform deform`` computes it for ``ed``'s
     :meth:`~.controller.EditorController.to_config` (float64 :func:`splatdeform.deform.apply`).
     StaleFitError without a fit of the current regions."""
@@ -137,7 +168,7 @@ def deformed_model(ed: EditorController) -> PointModel:
     return deformed
 
 
-def save(ed: EditorController, model_path: str | Path | None = None,
+def save(ed: EditorState, model_path: str | Path | None = None,
          config_path: str | Path | None = None, image_path: str | Path | None = None, *,
          image: bool = True, image_size: tuple[int, int] | None = None) -> SaveResult:
     """Write the deformed model (atomic, never over the input), the edit YAML that
@@ -158,7 +189,7 @@ def save(ed: EditorController, model_path: str | Path | None = None,
                      image_size=image_size)
 
 
-def _save(ed: EditorController, model_path: str | Path | None,
+def _save(ed: EditorState, model_path: str | Path | None,
           config_path: str | Path | None, image_path: str | Path | None, *,
           image: bool, image_size: tuple[int, int] | None) -> SaveResult:
     from ..io import atomic_write
@@ -193,7 +224,7 @@ def _save(ed: EditorController, model_path: str | Path | None,
     return SaveResult(written, ypath, png if image else None)
 
 
-def image_view(ed: EditorController, image_size: tuple[int, int] | None = None):
+def image_view(ed: EditorState, image_size: tuple[int, int] | None = None):
     """The view of Save's PNG: ``deform --render``'s for the editor's YAML
     (:func:`splatdeform.edit.images.edit_view`: ``render``'s size, azimuth, elevation, fov,
     zoom, up, roll and camera file, relative to the config's folder); ``image_size`` (both
@@ -211,7 +242,7 @@ def image_view(ed: EditorController, image_size: tuple[int, int] | None = None):
     return view
 
 
-def render_image(ed: EditorController, png: Path, view) -> None:
+def render_image(ed: EditorState, png: Path, view) -> None:
     """The before/after PNG (and its camera file) of ``ed``'s current fit and pose as
     ``deform --render`` draws it: ``render.color``'s colours, the basis deformed on the GPU
     by the control displacement, ``gaussians.covariance``. One image: ``render.frames`` (an
