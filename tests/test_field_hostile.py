@@ -564,3 +564,44 @@ def test_a_streamed_las_apply_names_the_output(tmp_path, capsys):
     err = capsys.readouterr().err
     assert err and ".tmp" not in err
     assert all(line.startswith(f"splatdeform: warning: {out}:") for line in err.splitlines())
+
+
+# ------------------------------------------------------------------ the stored-form table
+
+def test_every_registered_selector_has_a_stored_form():
+    """The fixed table holds one builder per registry name, and each selector survives the
+    round trip through its stored form (relative-unit frames included)."""
+    import splatdeform as sd
+    from splatdeform.edit.selectors import REGISTRY, All, Not, stored
+
+    assert set(stored.KINDS) == set(REGISTRY)
+    box = sd.Box((0, 0, 0), (1, 1, 0.5), origin=(1.0, 2.0, 3.0), scale=(2.0, 2.0, 2.0))
+    sels = [box, sd.Sphere((1, 2, 3), 0.5), sd.Plane((0, 0, 0), (0, 0, 2), (0, 0, 0), (1, 1, 1)),
+            sd.Property("classification", values=(2.0, 6.0), max=9.0),
+            All((box, Not(sd.Sphere((0, 0, 0), 1.0))))]
+    form = json.loads(json.dumps([stored.encode(s) for s in sels]))
+    assert stored.decode(form, "fixed") == sels
+    assert stored.encode(sd.Indices(file="/etc/passwd")) == {"indices": "stored"}
+
+
+def test_a_reuse_cache_is_read_by_the_same_bounded_reader(tmp_path):
+    """--reuse-file caches go through the one .npz reader: an object member or a member
+    declaring far more than the file holds is refused with one line before numpy reads it."""
+    from splatdeform.edit.cache import load_deformation
+    from splatdeform.errors import InputError
+
+    model = PointModel(positions=np.zeros((4, 3)))
+    with open(tmp_path / "obj.npz", "wb") as fh:
+        np.savez(fh, key=np.array("k"), n_points=np.array(4),
+                 values=np.array([object()], dtype=object))
+    with pytest.raises(InputError, match="precomputed deformation.*object"):
+        load_deformation(tmp_path / "obj.npz", "k", model)
+    with zipfile.ZipFile(tmp_path / "big.npz", "w") as zf:
+        zf.writestr("key.npy", _npy(np.array("k")))
+        info = zipfile.ZipInfo("values.npy")
+        info.compress_type = zipfile.ZIP_DEFLATED
+        with zf.open(info, "w", force_zip64=True) as f:
+            for _ in range(400):
+                f.write(bytes(1 << 20))
+    with pytest.raises(InputError, match="precomputed deformation.*declares"):
+        load_deformation(tmp_path / "big.npz", "k", model)

@@ -108,24 +108,28 @@ def save_deformation(path: str | Path, key: str, d: Deformation) -> Path:
 
 MAX_EXPANSION = 10  # np.savez stores members uncompressed: their sum is about the file size
 MAX_EXTRA_BYTES = 300 * 2**20
+MAX_CACHE_BYTES = 1 << 40  # no cap of its own: the members' declared sizes are bounded instead
+MAX_MEMBERS = 64  # save_deformation writes about 35
 
 
-def _check_archive(path: Path) -> None:
-    """Refuse, before numpy reads it, a file that is not a zip or whose members would expand
-    beyond 10x the file + 300 MB (a hostile or foreign cache)."""
-    size = path.stat().st_size
+def _read(path: Path, names: tuple[str, ...] | None = None) -> dict[str, np.ndarray]:
+    """The members of a cache file (``names`` only, when given) through the one bounded .npz
+    reader (:func:`splatdeform.io.npz.read_npz`): refused, before numpy reads anything, when it
+    is not a zip, when its members would expand beyond 10x the file + 300 MB, or when a
+    member holds objects (a hostile or foreign cache)."""
+    from splatdeform.errors import FormatError
+    from splatdeform.io.npz import read_npz
+
     try:
-        with zipfile.ZipFile(path) as zf:
-            total = sum(max(info.file_size, 0) for info in zf.infolist())
-    except (zipfile.BadZipFile, zipfile.LargeZipFile, EOFError, ValueError) as exc:
-        raise InputError(f"{path}: not a splatdeform precomputed deformation (not a zip/.npz "
-                         f"file: {' '.join(str(exc).split())[:80]}); delete it or choose "
-                         "another --reuse-file") from None
-    if total > MAX_EXPANSION * size + MAX_EXTRA_BYTES:
-        raise InputError(f"{path}: not a splatdeform precomputed deformation (its members "
-                         f"declare {total} bytes, more than {MAX_EXPANSION}x the "
-                         f"{size}-byte file + {MAX_EXTRA_BYTES >> 20} MB); delete it or choose "
-                         "another --reuse-file")
+        return read_npz(path, label=str(path), max_bytes=MAX_CACHE_BYTES,
+                        max_members=MAX_MEMBERS, allowed=lambda _name: True,
+                        header=lambda *_: None, max_expansion=MAX_EXPANSION,
+                        extra_bytes=MAX_EXTRA_BYTES, what="precomputed deformation",
+                        names=names)
+    except FormatError as exc:
+        reason = " ".join(str(exc).removeprefix(f"{path}: ").split())[:160]
+        raise InputError(f"{path}: not a splatdeform precomputed deformation ({reason}); "
+                         "delete it or choose another --reuse-file") from None
 
 
 def load_deformation(path: str | Path, key: str, model: PointModel) -> Deformation | None:
@@ -136,11 +140,11 @@ def load_deformation(path: str | Path, key: str, model: PointModel) -> Deformati
                          "(.npz) or a path to create one")
     if not path.is_file():
         return None
-    _check_archive(path)
     try:
-        z = np.load(path, allow_pickle=False)
-        if str(z["key"]) != key or int(z["n_points"]) != model.n_points:
+        head = _read(path, ("key", "n_points"))
+        if str(head["key"]) != key or int(head["n_points"]) != model.n_points:
             return None
+        z = _read(path)
         fit = RbfFit(centers=z["centers"], weights=z["weights"],
                      normalization=Normalization(z["norm_center"], float(z["norm_scale"])),
                      residuals=z["residuals"], converged=bool(z["converged"]),
@@ -156,6 +160,8 @@ def load_deformation(path: str | Path, key: str, model: PointModel) -> Deformati
             basis=Basis(z["values"], grads if grads.size else None),
             ring_sizes=(list(z["ring_fixed"]), list(z["ring_moving"])),
             groups=_groups_from(z), kept=z["kept"] if z["kept"].size else None)
+    except InputError:
+        raise
     except (OSError, KeyError, ValueError, EOFError, zipfile.BadZipFile) as exc:
         reason = "missing " + str(exc) if isinstance(exc, KeyError) else \
             "not an .npz written by splatdeform" if "pickle" in str(exc) or not str(exc) else \

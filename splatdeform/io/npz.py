@@ -25,7 +25,7 @@ import os
 import re
 import struct
 import zipfile
-from collections.abc import Callable
+from collections.abc import Callable, Collection
 from pathlib import Path
 
 import numpy as np
@@ -36,6 +36,7 @@ from .regular import open_regular
 MAX_DIRECTORY_BYTES = 1 << 20  # a central directory (about 100 bytes per member)
 EXTRA_BYTES = 1 << 20  # declared sizes beyond max_expansion x the file
 MAX_HEADER_BYTES = 10_000  # an .npy header (numpy's own default limit)
+READ_BLOCK = 1 << 20
 _EOCD = b"PK\x05\x06"
 _NAME = re.compile(r"^([A-Za-z_][A-Za-z0-9_]{0,63})\.npy$")
 
@@ -95,20 +96,33 @@ def _read_member(zf: zipfile.ZipFile, info: zipfile.ZipInfo, name: str, label: s
         if f.tell() + nbytes != info.file_size:
             raise FormatError(f"{where}: its header declares {nbytes:,} bytes of data, the "
                               f"archive {info.file_size - f.tell():,}")
-        data = f.read(nbytes)
-    if len(data) != nbytes:
-        raise FormatError(f"{where}: truncated ({len(data):,} of {nbytes:,} bytes)")
+        data = bytearray(nbytes)  # filled a block at a time: no second copy of the member
+        view, pos = memoryview(data), 0
+        while pos < nbytes:
+            block = f.read(min(READ_BLOCK, nbytes - pos))
+            if not block:
+                break
+            view[pos:pos + len(block)] = block
+            pos += len(block)
+    if pos != nbytes:
+        raise FormatError(f"{where}: truncated ({pos:,} of {nbytes:,} bytes)")
     array = np.frombuffer(data, dtype=dtype, count=count)
-    return np.array(array.reshape(shape, order="F" if fortran else "C"), order="C")
+    if fortran:
+        return np.ascontiguousarray(array.reshape(shape, order="F"))
+    return array.reshape(shape)
 
 
 def read_npz(path: str | Path, *, label: str, max_bytes: int, max_members: int,
              allowed: Callable[[str], bool], header: HeaderCheck,
-             max_expansion: float = 4.0, what: str = "file") -> dict[str, np.ndarray]:
+             max_expansion: float = 4.0, extra_bytes: int = EXTRA_BYTES,
+             what: str = "file", names: Collection[str] | None = None
+             ) -> dict[str, np.ndarray]:
     """The members of the ``.npz`` at ``path`` as arrays (name without ``.npy`` -> array),
     each checked as the module says before it is read; ``label`` starts every error line
     (``"field F.npz"``). ``allowed(name)``: whether a member of that name may be there;
-    ``header(name, shape, dtype)`` raises for a member it refuses (before its data is read)."""
+    ``header(name, shape, dtype)`` raises for a member it refuses (before its data is read);
+    the declared sizes may sum to ``max_expansion`` x the file + ``extra_bytes``; ``names``:
+    read only these members (the others' directory entries are still checked)."""
     path = Path(path)
     try:
         fh = open_regular(path, what=what)
@@ -135,19 +149,21 @@ def read_npz(path: str | Path, *, label: str, max_bytes: int, max_members: int,
             if len(infos) > max_members:
                 raise FormatError(f"{label}: {len(infos)} members; a {what} has at most "
                                   f"{max_members}")
-            names = [_member_name(info, label, allowed) for info in infos]
-            if len(set(names)) != len(names):
-                dup = next(n for n in names if names.count(n) > 1)
+            members = [_member_name(info, label, allowed) for info in infos]
+            if len(set(members)) != len(members):
+                dup = next(n for n in members if members.count(n) > 1)
                 raise FormatError(f"{label}: member {dup!r}: stored twice")
             declared = sum(max(info.file_size, 0) for info in infos)
-            limit = int(max_expansion * size) + EXTRA_BYTES
+            limit = int(max_expansion * size) + extra_bytes
             if declared > limit:
                 big = max(infos, key=lambda i: i.file_size)
-                raise FormatError(f"{label}: member {names[infos.index(big)]!r}: declares "
+                raise FormatError(f"{label}: member {members[infos.index(big)]!r}: declares "
                                   f"{big.file_size:,} bytes; the members of a {size:,}-byte "
                                   f"{what} may declare at most {limit:,}")
             out = {}
-            for info, name in zip(infos, names, strict=True):
+            for info, name in zip(infos, members, strict=True):
+                if names is not None and name not in names:
+                    continue
                 try:
                     out[name] = _read_member(zf, info, name, label, header)
                 except (zipfile.BadZipFile, EOFError, OSError, zipfile.LargeZipFile) as exc:
