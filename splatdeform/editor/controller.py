@@ -122,12 +122,10 @@ class EditorController:
         ed = cls(model, model_path=base / cfg.input, base_dir=base, config=cfg,
                  config_path=path, units=cfg.regions.units)
         ed.fixed = [s.to_selector() for s in cfg.regions.fixed]
-        if cfg.handles:
-            entries = [(f"handles[{i}]", h, h.region) for i, h in enumerate(cfg.handles)]
-        elif cfg.handle is not None:
-            entries = [("handle", cfg.handle, cfg.regions.handle or [])]
-        else:  # a curve alone
-            entries = []
+        from splatdeform.edit.metaphors import handle as handle_kind
+
+        # (key, handle config, region selectors) of every handle (none for a curve alone)
+        entries = [(key, h, region) for key, (h, region, _) in handle_kind.entries(cfg)]
         ed.handles = [HandleState([s.to_selector() for s in region])
                       for _, _, region in entries] or [HandleState()]
         ed.curve = None if cfg.curve is None else CurveState.from_config(cfg.curve)
