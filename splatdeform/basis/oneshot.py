@@ -34,6 +34,9 @@ from .result import Basis
 #: points per one-shot chunk: bounds the float64 Jacobians and the apply's temporaries
 #: (262,144 points: 19 MB of J) while keeping kernel launches few
 ONESHOT_CHUNK = 1 << 18
+#: the numpy path's (rows, centers) float64 temporaries per block (the reference's own default
+#: is 256 MB; 16 MB measured 30 % less CPU, blocks in cache, and a lower peak)
+NUMPY_TEMP_BYTES = 16 << 20
 
 
 def combined_fit(fit: RbfFit, delta_c: np.ndarray) -> RbfFit:
@@ -88,7 +91,8 @@ def oneshot_chunks(points: np.ndarray, fit: RbfFit, delta_c: np.ndarray, *,
 
     for lo in range(0, arr.shape[0], chunk):
         hi = min(lo + chunk, arr.shape[0])
-        b = compute_basis(arr[lo:hi], both, gradients=gradients)
+        b = compute_basis(arr[lo:hi], both, gradients=gradients,
+                          max_chunk_bytes=NUMPY_TEMP_BYTES)
         yield lo, hi, b.values, b.gradients
 
 

@@ -43,7 +43,7 @@ class Deformation:
     constraint_rhs: (m, k) float64 (M, 0 rows for F).
     control_points: (k, 3) float64 (C). groups: one per metaphor, in column order (each
     handle's affine frame with it).
-    fit: the RBF fit; basis: b and grad b for the free points (Nf rows).
+    fit: the RBF fit; basis: b, grad b of the free points (Nf rows; a DeferredBasis: one-shot).
     timings: seconds per stage. rings: ring sizes (fixed, moving).
     kept: (m,) bool over the constraints: the thinned subset the incremental fit was given
     (None: every constraint). Dropped ring points are still fixed or moving points, so they
