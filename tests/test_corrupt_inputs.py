@@ -1,4 +1,5 @@
-"""Hostile inputs, round two: every case of the issue as a regression test on the real CLI.
+"""Corrupt and hostile inputs on the real CLI (LAS/LAZ headers and bodies, model values, links,
+worker flags, camera files, configs, list-heavy PLYs), each a regression test.
 
 Each case runs ``python -m splatdeform.cli`` in a subprocess (with a timeout, so a hang fails)
 and checks one error line, the exit code, and that no file but the output was touched.
