@@ -36,10 +36,10 @@ the curve within the fit's tolerance).
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import json
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -48,14 +48,53 @@ from splatdeform.field_schema import FORMAT, VERSION, read_field
 from splatdeform.model import PointModel
 from splatdeform.rbf.result import Normalization, RbfFit
 
-if TYPE_CHECKING:
-    from splatdeform.field_apply import SupportStats
-
-
 
 def positions_digest(positions: np.ndarray) -> str:
     return hashlib.sha256(np.ascontiguousarray(positions, dtype=np.float64).tobytes()
                           ).hexdigest()
+
+
+@dataclasses.dataclass
+class SupportStats:
+    """What the field met outside its support, added up chunk by chunk: ``points`` seen,
+    ``moved`` by the field (neither fixed nor a handle), ``outside`` of those beyond the
+    support box, ``distance`` the largest of their distances to it (model units), and the
+    model's box ``lo`` / ``hi`` (3,) (None before any point)."""
+
+    points: int = 0
+    moved: int = 0
+    outside: int = 0
+    distance: float = 0.0
+    lo: np.ndarray | None = dataclasses.field(default=None, repr=False)
+    hi: np.ndarray | None = dataclasses.field(default=None, repr=False)
+
+    def add(self, positions: np.ndarray, moved_idx: np.ndarray, box: np.ndarray) -> None:
+        """Count ``positions`` (N, 3), of which ``moved_idx`` (M,) move by the field, against
+        the support ``box`` (2, 3)."""
+        n = len(positions)
+        self.points += n
+        if n == 0:
+            return
+        lo, hi = positions.min(axis=0).astype(np.float64), positions.max(axis=0).astype(
+            np.float64)
+        self.lo = lo if self.lo is None else np.minimum(self.lo, lo)
+        self.hi = hi if self.hi is None else np.maximum(self.hi, hi)
+        self.moved += int(moved_idx.size)
+        for a in range(0, moved_idx.size, 1 << 20):
+            p = positions[moved_idx[a:a + (1 << 20)]].astype(np.float64)
+            gap = np.maximum(np.maximum(box[0] - p, p - box[1]), 0.0)
+            far = np.einsum("ij,ij->i", gap, gap)
+            beyond = far > 0
+            self.outside += int(beyond.sum())
+            if beyond.any():
+                self.distance = max(self.distance, float(np.sqrt(far.max())))
+
+    def overlaps(self, box: np.ndarray) -> bool:
+        """Whether the model's box meets the support ``box`` (2, 3) (touching counts)."""
+        if self.lo is None:
+            return True
+        return bool(np.all(self.lo <= box[1]) and np.all(self.hi >= box[0]))
+
 
 
 class Field:

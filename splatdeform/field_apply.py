@@ -3,11 +3,11 @@ fitted.
 
 A field is fitted on one model: its ``support`` (:attr:`splatdeform.field.Field.support`) is
 the box of its constraints and of that model. Applied elsewhere it extrapolates: the points
-it moves that lie outside the support are counted (:class:`SupportStats`) and said in one
-warning line naming the output (how many, and the largest distance from the box in model
-units); a model whose box does not overlap the support at all is refused (exit 2) unless
-``--extrapolate`` is given (a field fitted on one LiDAR tile moved a tile 636 km away by
-20 km without a word).
+it moves that lie outside the support are counted (:class:`~splatdeform.field.SupportStats`)
+and said in one warning line naming the output (how many, and the largest distance from the
+box in model units); a model whose box does not overlap the support at all is refused
+(exit 2) unless ``--extrapolate`` is given (a field fitted on one LiDAR tile moved a tile
+636 km away by 20 km without a word).
 
 Warnings raised while the output is written (a LAS writer moving its offset) name the output,
 never the temporary file beside it.
@@ -19,54 +19,12 @@ import contextlib
 import re
 import warnings
 from collections.abc import Iterator
-from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from splatdeform.errors import InputError
-
-
-@dataclass
-class SupportStats:
-    """What the field met outside its support, added up chunk by chunk: ``points`` seen,
-    ``moved`` by the field (neither fixed nor a handle), ``outside`` of those beyond the
-    support box, ``distance`` the largest of their distances to it (model units), and the
-    model's box ``lo`` / ``hi`` (3,) (None before any point)."""
-
-    points: int = 0
-    moved: int = 0
-    outside: int = 0
-    distance: float = 0.0
-    lo: np.ndarray | None = field(default=None, repr=False)
-    hi: np.ndarray | None = field(default=None, repr=False)
-
-    def add(self, positions: np.ndarray, moved_idx: np.ndarray, box: np.ndarray) -> None:
-        """Count ``positions`` (N, 3), of which ``moved_idx`` (M,) move by the field, against
-        the support ``box`` (2, 3)."""
-        n = len(positions)
-        self.points += n
-        if n == 0:
-            return
-        lo, hi = positions.min(axis=0).astype(np.float64), positions.max(axis=0).astype(
-            np.float64)
-        self.lo = lo if self.lo is None else np.minimum(self.lo, lo)
-        self.hi = hi if self.hi is None else np.maximum(self.hi, hi)
-        self.moved += int(moved_idx.size)
-        for a in range(0, moved_idx.size, 1 << 20):
-            p = positions[moved_idx[a:a + (1 << 20)]].astype(np.float64)
-            gap = np.maximum(np.maximum(box[0] - p, p - box[1]), 0.0)
-            far = np.einsum("ij,ij->i", gap, gap)
-            beyond = far > 0
-            self.outside += int(beyond.sum())
-            if beyond.any():
-                self.distance = max(self.distance, float(np.sqrt(far.max())))
-
-    def overlaps(self, box: np.ndarray) -> bool:
-        """Whether the model's box meets the support ``box`` (2, 3) (touching counts)."""
-        if self.lo is None:
-            return True
-        return bool(np.all(self.lo <= box[1]) and np.all(self.hi >= box[0]))
+from splatdeform.field import Field, SupportStats
 
 
 def _box(lo, hi) -> str:
@@ -74,7 +32,7 @@ def _box(lo, hi) -> str:
         f"{v:.6g}" for v in hi) + "]"
 
 
-def check_support(stats: SupportStats, field_obj, field_path: Path, model_path: Path,
+def check_support(stats: SupportStats, field_obj: Field, field_path: Path, model_path: Path,
                   out: Path, extrapolate: bool) -> None:
     """Refuse a model entirely outside the field's support (unless ``extrapolate``); warn (one
     line naming ``out``) when the field moves points outside it."""
@@ -118,7 +76,6 @@ def apply_file(field_path: str | Path, model_path: str | Path, out: str | Path, 
     ``budget`` None: half the RAM. Refused (one line) when the output is an input, when a field
     with ``indices`` selectors would stream (its indices are global), when the model lies
     entirely outside the field's support and not ``extrapolate`` (see the module)."""
-    from splatdeform.field import Field
     from splatdeform.io import STREAMABLE, SUPPORTED, extension_of, load, open_chunks, save
     from splatdeform.io.atomic import check_io_paths
     from splatdeform.memory import choose, deform_peak, file_cost
