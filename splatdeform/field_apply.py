@@ -50,6 +50,27 @@ def check_support(stats: SupportStats, field_obj: Field, field_path: Path, model
                       "units from it: the field extrapolates there", stacklevel=2)
 
 
+def _finite(model, field_path: Path, model_path: Path):
+    """``model`` when its positions are finite; else InputError: finite but huge weights or
+    displacements in the field overflowed (nothing is written)."""
+    if not np.isfinite(model.positions).all():
+        raise InputError(f"field {field_path}: moves points of {model_path} to infinite or NaN "
+                         "positions (its weights or displacements overflow); nothing written")
+    return model
+
+
+@contextlib.contextmanager
+def _naming_field(field_path: Path, model_path: Path) -> Iterator[None]:
+    """An error raised while the field is evaluated names the field (a field of finite but
+    huge weights overflows in the evaluation, whose own line names no file)."""
+    try:
+        yield
+    except InputError as exc:
+        if str(field_path) in str(exc) or str(model_path) in str(exc):
+            raise  # it names what it is about
+        raise InputError(f"field {field_path}: on {model_path}: {exc}") from None
+
+
 @contextlib.contextmanager
 def naming_output(out: Path) -> Iterator[None]:
     """Warnings raised inside (e.g. by a writer) name ``out`` where they named its temporary
@@ -101,7 +122,8 @@ def apply_file(field_path: str | Path, model_path: str | Path, out: str | Path, 
         whole = SupportStats()  # the model's box first: a model entirely outside is refused
         whole.add(model.positions, np.empty(0, dtype=np.int64), fld.support)
         check_support(whole, fld, field_path, model_path, out, extrapolate)
-        moved = fld.apply(model, backend, support=stats)
+        with _naming_field(field_path, model_path):
+            moved = _finite(fld.apply(model, backend, support=stats), field_path, model_path)
         check_support(stats, fld, field_path, model_path, out, extrapolate)
         with naming_output(out):
             save(moved, out)
@@ -113,10 +135,11 @@ def apply_file(field_path: str | Path, model_path: str | Path, out: str | Path, 
     src = open_chunks(model_path)
     chunk = stream_chunk(choice.budget, src.record_bytes,
                          int(getattr(cost, "reader_bytes", 0)) + 160 * 2**20)
-    with naming_output(out), atomic_path(out) as tmp:
+    with naming_output(out), _naming_field(field_path, model_path), atomic_path(out) as tmp:
         writer = ChunkWriter(src, tmp)
         for a in range(0, src.n_points, chunk):
-            part = fld.apply(src.read(a, min(a + chunk, src.n_points)), backend, support=stats)
+            part = _finite(fld.apply(src.read(a, min(a + chunk, src.n_points)), backend,
+                                     support=stats), field_path, model_path)
             rows, props = src.encode(part)
             writer.write(rows, props)
         check_support(stats, fld, field_path, model_path, out, extrapolate)  # before the rename

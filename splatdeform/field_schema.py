@@ -19,11 +19,12 @@ member             dtype                  shape
 ``meta``           unicode                () JSON, at most :data:`MAX_META_CHARS`
 =================  =====================  ==================================================
 
-with h handles (at most :data:`MAX_HANDLES`) and every float finite. The bounds are what a
-``deform`` can make: ``fit.max_centers`` is at most 20,000 (the exact fit 12,000), and an
-edit has at most 32 handles of 4 columns, one curve of at most 128 control points and 3
-columns for ``points:`` (259); :data:`MAX_COLUMNS` leaves room for the editor's 64 handles.
-Beyond them the evaluation alone would cost minutes and gigabytes on a modest model.
+with h handles (at most :data:`MAX_HANDLES`), every float finite and within :data:`BOUNDS`.
+The size bounds are what a ``deform`` can make: ``fit.max_centers`` is at most 20,000 (the
+exact fit 12,000), and an edit has at most 32 handles of 4 columns, one curve of at most 128
+control points and 3 columns for ``points:`` (259); :data:`MAX_COLUMNS` leaves room for the
+editor's 64 handles. Beyond them the evaluation alone would cost minutes and gigabytes on a
+modest model (200,000 centers on a 90,000-point model ran past a minute).
 
 ``meta`` (JSON) holds exactly: ``format``, ``version``, ``fixed`` (stored selectors,
 :mod:`splatdeform.edit.selectors.stored`), ``handles`` (each ``name``, ``columns`` [a, a + 4]
@@ -59,6 +60,10 @@ MAX_MEMBERS = 12 + MAX_HANDLES
 FLOATS = (np.dtype(np.float64), np.dtype(np.float32))
 INTS = (np.dtype(np.int64), np.dtype(np.int32))
 MAX_POINTS = 2**40  # a model's point count, as the meta may state it
+#: largest magnitudes: centers are normalised by the fitted model's box (pairs may lie half a
+#: diagonal outside it), model coordinates stay within what the LAS reader takes (1e15)
+BOUNDS = {"centers": 1e3, "norm_center": 1e15, "norm_scale": 1e16, "support": 1e15,
+          "frames": 1e15, "matrices": 1e15}
 _BACKENDS = ("auto", "numpy", "opencl")
 _METHOD = re.compile(r"^[a-z][a-z0-9_-]{0,31}$")
 _DIGEST = re.compile(r"^[0-9a-f]{64}$")
@@ -140,6 +145,10 @@ def read_field(path: str | Path) -> tuple[dict[str, np.ndarray], dict]:
             if not np.isfinite(a).all():
                 raise FormatError(f"{label}: member {name!r}: expected finite numbers, got "
                                   f"{int((~np.isfinite(a)).sum()):,} NaN or infinite")
+            bound = BOUNDS.get(name)
+            if bound is not None and a.size and np.abs(a).max() > bound:
+                raise FormatError(f"{label}: member {name!r}: expected values within "
+                                  f"+-{bound:g}, got {float(np.abs(a).max()):.6g}")
         else:
             a = a.astype(np.int64)
         arrays[name] = a

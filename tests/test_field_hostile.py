@@ -154,6 +154,10 @@ ARRAY_CASES = {
     "extra member": ("extra", _set("extra", np.zeros(3))),
     "fixed_idx without indices": ("fixed_idx", _set("fixed_idx", np.arange(5))),
     "handle_idx_7 of no handle": ("handle_idx_7", _set("handle_idx_7", np.arange(5))),
+    "centers huge": ("centers", _set("centers", lambda c: c * 1e10)),
+    "norm_center huge": ("norm_center", _set("norm_center", np.full(3, 1e20))),
+    "support huge": ("support", _set("support", lambda x: x * 1e20)),
+    "matrices huge": ("matrices", _matrix(np.diag([1e20, 1e20, 1e20, 1.0]))),
     "200k centers": ("centers", _set("centers", np.zeros((200_000, 3)))),
     "1000 columns": ("weights", _set("weights", lambda w: np.zeros((w.shape[0], 1000)))),
 }
@@ -169,6 +173,17 @@ def test_malformed_arrays_are_refused_naming_the_member(made, tmp_path, capsys, 
         change(arrays, meta)
     field = write(tmp_path / "bad.npz", arrays, meta)
     refused(capsys, field, made / "in.ply", tmp_path / "o.ply", member)
+
+
+@pytest.mark.parametrize("scale", [{"delta_c": 1e300}, {"delta_c": 1e300, "weights": 1e300}],
+                         ids=["displacements", "weights and displacements"])
+def test_finite_but_overflowing_values_are_refused_naming_the_field(made, tmp_path, capsys,
+                                                                    scale):
+    arrays, meta = members(made / "f.npz")
+    for name, factor in scale.items():
+        arrays[name] = arrays[name] * factor
+    field = write(tmp_path / "bad.npz", arrays, meta)
+    refused(capsys, field, made / "in.ply", tmp_path / "o.ply", None)
 
 
 def test_an_object_array_is_never_unpickled(made, tmp_path, capsys):
