@@ -29,6 +29,7 @@ import yaml
 import splatdeform as sd
 from data_tools.synth import bumpy_bar, gaussian_bar
 from splatdeform import memory
+from splatdeform.errors import FormatError
 from splatdeform.io import FORMATS, SOG_META, extension_of, split_extension
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -90,13 +91,17 @@ def test_one_extension_parser():
 
 def test_splat_probes_count_what_the_header_declares(tmp_path):
     """The estimate of a splat file comes from its declared count, not from its size: a 1 MB
-    SPZ declaring 10M splats is estimated from 10M (the probe reads only its header)."""
+    SPZ declaring 3M splats is estimated from 3M (the probe reads only its header); 10M, more
+    than its compressed bytes plausibly hold (64x + 16 MiB), is refused by the probe."""
     path = tmp_path / "big.spz"
-    path.write_bytes(_declaring_spz(10_000_000))
+    path.write_bytes(_declaring_spz(3_000_000))
     assert path.stat().st_size < 1.2 * 2**20
     cost = memory.file_cost(path)
-    assert cost.points == 10_000_000
-    assert cost.load_bytes > 10_000_000 * 20
+    assert cost.points == 3_000_000
+    assert cost.load_bytes > 3_000_000 * 20
+    path.write_bytes(_declaring_spz(10_000_000))
+    with pytest.raises(FormatError, match="10,000,000 splats .* compresses at most 64x"):
+        memory.file_cost(path)
 
 
 # --------------------------------------------------------------------------------------------
@@ -305,7 +310,7 @@ def _declaring_spz(count: int) -> bytes:
 
 def test_deform_budget_refuses_an_spz_from_its_declared_count(tmp_path):
     spz_path = tmp_path / "big.spz"
-    spz_path.write_bytes(_declaring_spz(10_000_000))
+    spz_path.write_bytes(_declaring_spz(3_000_000))   # within what 1 MB plausibly holds
     cfg = tmp_path / "edit.yaml"
     cfg.write_text(yaml.safe_dump({**_edit(), "input": "big.spz", "output": "out.spz"}))
     res = subprocess.run([sys.executable, "-m", "splatdeform.cli", "deform", str(cfg),

@@ -10,12 +10,14 @@ source conversion import the format's module only when called.
 from __future__ import annotations
 
 import importlib
+import warnings
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from types import ModuleType
 from typing import TYPE_CHECKING
 
+from ..errors import SplatdeformError
 from .atomic import atomic_path, atomic_write
 
 if TYPE_CHECKING:
@@ -106,16 +108,48 @@ class Format:
         return self.chunk_class is not None
 
     def write(self, model: PointModel, path: Path, text: bool | None) -> None:
-        """Write ``model`` to ``path`` atomically (``text``: PLY encoding, None: the input's)."""
+        """Write ``model`` to ``path`` atomically (``text``: PLY encoding, None: the input's).
+        A writer's refusal that names no file is said of ``path`` (the output, never its
+        temporary file)."""
+        try:
+            self._write(model, path, text)
+        except SplatdeformError as exc:
+            if exc.file is None and not str(exc).startswith(str(path)):
+                exc.in_file(str(path))
+            raise
+
+    def _write(self, model: PointModel, path: Path, text: bool | None) -> None:
         module = self._load(self.writer or self.module)
         if self.write_by == "folder":
             module.write_folder(model, path)
         elif self.write_by == "path":
             with atomic_path(path) as tmp:
-                module.write_model(model, tmp)
+                _by_path(module, model, Path(tmp), path)
         else:
             with atomic_write(path) as stream:
                 if self.write_by == "ply":
                     module.write_model(model, stream, text=text)
                 else:
                     module.write_model(model, path, stream)
+
+
+def _by_path(module: ModuleType, model: PointModel, tmp: Path, path: Path) -> None:
+    """``module.write_model(model, tmp)``, its refusals and warnings said of the output
+    ``path`` instead of the temporary file ``tmp`` it writes."""
+    def named(text: str) -> str:
+        return text.replace(str(tmp), str(path))
+
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        try:
+            module.write_model(model, tmp)
+        except SplatdeformError as exc:
+            exc.message = named(exc.message)
+            exc.args = (exc.message,)
+            if exc.file is not None:
+                exc.file = named(exc.file)
+            raise
+        finally:
+            said = [(named(str(w.message)), w.category) for w in caught]
+    for text, category in said:
+        warnings.warn(text, category, stacklevel=4)

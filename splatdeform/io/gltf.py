@@ -31,6 +31,7 @@ import numpy as np
 from ..errors import FormatError, InputError
 from ..model import PointModel
 from . import spz
+from .checks import check_fits
 from .regular import member_path, open_regular, read_regular
 from .splat_model import to_model
 from .splats import (
@@ -741,6 +742,10 @@ def _document(f: SplatFields) -> tuple[dict, Iterator[bytes | memoryview]]:
 
 def write_model(model: PointModel, path: Path, stream) -> None:
     f = fields_of(model, path, Path(path).suffix.lower())
+    if f.count:  # the linear scale is stored: exp(scale_log) must fit float32
+        with np.errstate(over="ignore"):
+            top = np.exp(np.array([np.nanmax(f.scale_log.astype(np.float64))]))
+        check_fits("scale (exp of scale_log)", top, np.float32, "glTF")
     note_lossy(path, "glTF", None, model)
     doc, pieces = _document(f)
     if Path(path).suffix.lower() == ".gltf":

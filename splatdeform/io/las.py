@@ -30,7 +30,7 @@ import numpy as np
 from ..errors import FormatError, ProcessingError
 from ..model import PlyElementData, PlyProperty, PlySource, PointModel, classify
 from .chunks import ChunkFile
-from .las_header import check_header
+from .las_header import check_header, scale_offset_fault
 from .ply_format import TYPE_NAMES
 
 DECODE_CHUNK = 50_000  # points per read (LAZ's default chunk): a corrupt body names this chunk
@@ -274,6 +274,19 @@ def fit_offsets(header, lo: np.ndarray, hi: np.ndarray, path: str | Path) -> tup
     return scales, offsets, shift
 
 
+def check_writable(scales: np.ndarray, offsets: np.ndarray, lo: np.ndarray,
+                   hi: np.ndarray) -> None:
+    """Refuse (one line; the writer names the output) a scale and offset the LAS reader would
+    refuse (:func:`~splatdeform.io.las_header.scale_offset_fault`, the one rule): coordinates
+    in [lo, hi] (3,) too far from the origin for a LAS file."""
+    for i, axis in enumerate("xyz"):
+        fault = scale_offset_fault(axis, float(scales[i]), float(offsets[i]))
+        if fault:
+            top = max(abs(float(lo[i])), abs(float(hi[i])))
+            raise FormatError(f"{axis} coordinates reach {top:g}: a LAS file cannot hold them "
+                              f"({fault}, which LAS readers refuse); write .ply or .pcd")
+
+
 def quantize(positions: np.ndarray, original: np.ndarray | None, original_xyz: np.ndarray | None,
              scales: np.ndarray, offsets: np.ndarray, shift: np.ndarray,
              keep_ints: bool) -> np.ndarray:
@@ -320,7 +333,12 @@ def las_records_for(model: PointModel, path: str | Path):
                           f"{src.points.shape[0]}; cannot save it verbatim")
     header = src.header
     lo, hi = model.bbox()
-    scales, offsets, shift = fit_offsets(header, lo, hi, path)
+    with warnings.catch_warnings(record=True) as said:  # said only once the fit is writable
+        warnings.simplefilter("always")
+        scales, offsets, shift = fit_offsets(header, lo, hi, path)
+    check_writable(scales, offsets, lo, hi)
+    for w in said:
+        warnings.warn(str(w.message), w.category, stacklevel=2)
     same_scale = bool(np.all(scales == np.asarray(header.scales)))
     points = requantized(header, src.points, model, scales, offsets, shift, same_scale)
     if np.any(shift) or not same_scale:
@@ -360,6 +378,7 @@ def _new_las(model: PointModel):
     step = 10.0 ** np.ceil(np.log10(extent / 2**30))  # ~1e-9 of the extent, a power of ten
     header.scales = np.full(3, max(step, 1e-9))
     header.offsets = np.round((lo + hi) / 2.0 / step) * step
+    check_writable(header.scales, header.offsets, lo, hi)
     record = laspy.ScaleAwarePointRecord.zeros(model.n_points, header=header)
     points = np.asarray(record.array)
     ints = np.rint((model.positions - header.offsets) / header.scales).astype(np.int32)

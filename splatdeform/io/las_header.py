@@ -51,6 +51,18 @@ LASZIP_RECORD = 22204
 VARIABLE_CHUNKS = 0xFFFFFFFF
 
 
+def scale_offset_fault(axis: str, scale: float, offset: float) -> str:
+    """What is wrong with an axis' scale and offset ('' when nothing): the one rule the reader
+    holds a header to and the writer holds itself to (non-zero finite scale, finite offset,
+    every int32 coordinate within :data:`~splatdeform.model.MAX_COORDINATE`)."""
+    if not (math.isfinite(scale) and scale != 0.0 and math.isfinite(offset)):
+        return (f"{axis} scale {scale} / offset {offset}: expected finite numbers and a "
+                "non-zero scale")
+    if abs(scale) * 2.0**31 + abs(offset) > MAX_COORDINATE:
+        return f"{axis} scale {scale} / offset {offset} give coordinates beyond {MAX_COORDINATE:g}"
+    return ""
+
+
 def _fail(path: Path, message: str) -> FormatError:
     return FormatError(f"{path}: corrupt LAS/LAZ header: {message}")
 
@@ -157,12 +169,9 @@ def check_header_in(f, path: Path, size: int, available: int | None = None) -> L
         raise _fail(path, f"point record length {record_length} is shorter than point "
                           f"format {fmt} needs ({RECORD_SIZES[fmt]})")
     for axis, s, o in zip("xyz", scales, offsets, strict=True):
-        if not (math.isfinite(s) and s != 0.0 and math.isfinite(o)):
-            raise _fail(path, f"{axis} scale {s} / offset {o}: expected finite numbers "
-                              "and a non-zero scale")
-        if abs(s) * 2.0**31 + abs(o) > MAX_COORDINATE:
-            raise _fail(path, f"{axis} scale {s} / offset {o} give coordinates beyond "
-                              f"{MAX_COORDINATE:g}")
+        fault = scale_offset_fault(axis, s, o)
+        if fault:
+            raise _fail(path, fault)
     count = legacy_count
     evlr_start, n_evlrs = 0, 0
     if minor >= 4:

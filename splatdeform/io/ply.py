@@ -27,7 +27,7 @@ from ..model import (
     classify,
 )
 from . import playcanvas
-from .checks import infinite_opacity_ok
+from .checks import check_fits, infinite_opacity_ok
 from .chunks import ChunkFile
 from .ply_format import MAX_HEADER_BYTES, header_text, parse_header, read_ply, write_ply
 
@@ -387,13 +387,18 @@ def read_model(path: str | Path, *, drop_nonfinite: bool = False) -> PointModel:
     return model_from_source(read_ply(path), path, drop_nonfinite=drop_nonfinite)
 
 
+PLY_CODES = {"float": "f4", "double": "f8", "uchar": "u1"}
+
+
 def _set_field(data: np.ndarray, props: list[PlyProperty], name: str, values: np.ndarray,
                type_name: str = "float") -> tuple[np.ndarray, list[PlyProperty]]:
     """Set (or append) scalar property ``name`` of the structured array ``data``."""
     if name in (data.dtype.names or ()):
+        check_fits(f"PLY property {name}", values, data.dtype[name])
         data[name] = values.astype(data.dtype[name], copy=False)
         return data, props
-    code = {"float": "f4", "double": "f8", "uchar": "u1"}[type_name]
+    check_fits(f"PLY property {name}", values, PLY_CODES[type_name])
+    code = PLY_CODES[type_name]
     descr = [(n, data.dtype[n]) for n in data.dtype.names] + [(name, code)]
     grown = np.empty(len(data), dtype=descr)
     for n in data.dtype.names:
@@ -448,6 +453,7 @@ def source_for_save(model: PointModel) -> PlySource:
         for name, values in columns:
             if name in (data.dtype.names or ()):
                 changed = data[name].astype(values.dtype) != values
+                check_fits(f"PLY property {name}", values[changed], data.dtype[name])
                 data[name][changed] = values[changed]
             else:
                 data, props = _set_field(data, props, name, values)

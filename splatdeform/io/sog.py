@@ -444,6 +444,11 @@ def encode(f: SplatFields, *, keep: SogCodes | None = None, same: np.ndarray | N
     # positions
     logp = log_transform(f.positions)
     mins, maxs = logp.min(axis=0), logp.max(axis=0)
+    if n and np.abs(logp).max() > MAX_LOG_POSITION:
+        top = float(np.abs(f.positions).max())
+        raise FormatError(f"a coordinate of magnitude {top:g} does not fit SOG (positions are "
+                          f"stored as ln(1 + |p|), at most {MAX_LOG_POSITION:g}: "
+                          f"|p| <= {math.expm1(MAX_LOG_POSITION):.3g})")
     if reuse:
         old_min = np.asarray(keep.meta["means"]["mins"], dtype=np.float64)
         old_max = np.asarray(keep.meta["means"]["maxs"], dtype=np.float64)

@@ -14,6 +14,7 @@ import numpy as np
 
 from ..errors import FormatError
 from ..model import PointModel
+from .checks import check_fits
 from .splat_model import to_model
 from .splats import (
     SplatFields,
@@ -53,7 +54,10 @@ def encode(f: SplatFields) -> np.ndarray:
     """(N,) RECORD array of the splat fields."""
     rec = np.empty(f.count, dtype=RECORD)
     rec["position"] = f.positions
-    rec["scale"] = np.exp(f.scale_log.astype(np.float64))
+    with np.errstate(over="ignore"):
+        scale = np.exp(f.scale_log.astype(np.float64))
+    check_fits("scale (exp of scale_log)", scale, np.float32, ".splat")
+    rec["scale"] = scale
     color = np.clip(np.round(dc_to_color(f.sh_dc) * 255), 0, 255)
     alpha = np.clip(np.round(sigmoid(f.opacity) * 255), 0, 255)
     rec["rgba"] = np.concatenate([color, alpha[:, None]], axis=1).astype(np.uint8)

@@ -17,6 +17,7 @@ import numpy as np
 
 from ..errors import FormatError
 from ..model import SH_C0, PlyElementData, PlyProperty, PlySource, PointModel
+from .checks import check_fits
 
 #: SH rest coefficients per colour channel for each degree (4: SPZ v4 and PLY only)
 SH_COEFFS = {0: 0, 1: 3, 2: 8, 3: 15, 4: 24}
@@ -123,6 +124,12 @@ def fields_of(model: PointModel, path: str | Path, fmt: str,
     if sh_degree_of(rest.shape[1]) is None:
         raise FormatError(f"{path}: {fmt} holds SH degrees 0-{max_degree} (0, 9, 24, 45 or 72 "
                           f"f_rest_* values); this model has {rest.shape[1]}")
+    for name, values in (("positions", model.positions), ("scale_log", g.scale_log),
+                         ("rotation", g.rotation), ("sh_dc", g.sh_dc), ("f_rest", rest)):
+        try:
+            check_fits(name, values, np.float32, fmt)
+        except FormatError as exc:
+            raise FormatError(f"{path}: {exc}") from None
     sh = rest.reshape(n, 3, -1)
     keep = SH_COEFFS[min(sh_degree_of(rest.shape[1]), max_degree)]
     if sh.shape[2] > keep:
