@@ -171,13 +171,14 @@ class Field:
 
     # --- the file
     def save(self, path: str | Path) -> Path:
+        """Write the field (this version's format, atomically) to ``path`` (.npz)."""
         from splatdeform.io.atomic import atomic_write
 
         arrays = {"centers": self.fit.centers, "weights": self.fit.weights,
                   "norm_center": self.fit.normalization.center,
                   "norm_scale": np.float64(self.fit.normalization.scale),
                   "delta_c": self.delta_c, "meta": np.array(json.dumps(self.meta)),
-                  **self.arrays}
+                  "support": self.support, **self.arrays}
         with atomic_write(path) as fh:
             np.savez(fh, **arrays)
         return Path(path)
@@ -188,25 +189,26 @@ class Field:
         FormatError (one line naming the file and the member) for anything else."""
         path = Path(path)
         arrays, meta = read_field(path)
-        old = "support" not in arrays
         centers, weights = arrays.pop("centers"), arrays.pop("weights")
         delta = arrays.pop("delta_c")
         norm = Normalization(arrays.pop("norm_center"), float(arrays.pop("norm_scale")))
         fit = RbfFit(centers=centers, weights=weights, normalization=norm,
                      residuals=np.zeros((1, weights.shape[1])), converged=True,
                      tolerance=0.0, method=meta["method"])
-        if old:  # version 1: the box the fit normalised (a cube about it)
-            half = norm.scale / 2.0
-            arrays["support"] = np.vstack([norm.center - half, norm.center + half])
-        field = Field(fit, delta, meta, arrays, path)
-        if old:
-            field.support_note = " (a version 1 field: the cube of its normalisation)"
-        return field
+        return Field(fit, delta, meta, arrays, path)
 
     @property
     def support(self) -> np.ndarray:
-        """(2, 3) float64: the low and high corner of the box of the fit's constraints (model
-        units), where the field was fitted."""
+        """(2, 3) float64: the low and high corner of the box of the fit's constraints and of
+        the model it was fitted on (model units), where the field was fitted. A field that did
+        not store it (version 1) gives the cube its normalisation spans, which holds that box
+        (:attr:`support_note` says so)."""
+        if "support" not in self.arrays:
+            norm = self.fit.normalization
+            half = float(norm.scale) / 2.0
+            self.arrays["support"] = np.vstack([np.asarray(norm.center) - half,
+                                                np.asarray(norm.center) + half])
+            self.support_note = " (a version 1 field: the cube of its normalisation)"
         return self.arrays["support"]
 
     # --- on a model

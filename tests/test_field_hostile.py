@@ -474,9 +474,12 @@ def test_a_version_1_field_still_loads_and_applies_the_same(made, tmp_path, caps
     assert (tmp_path / "a.ply").read_bytes() == (made / "out.ply").read_bytes()
     assert "warning" not in capsys.readouterr().err
     f = Field.load(old)
+    lo, hi = load(made / "in.ply").bbox()
+    assert np.all(f.support[0] <= lo) and np.all(f.support[1] >= hi)
     assert "version 1" in f.support_note
     f.save(tmp_path / "v2.npz")  # re-saved in this version's form
     assert Field.load(tmp_path / "v2.npz").meta["version"] == 2
+    np.testing.assert_array_equal(members(tmp_path / "v2.npz")[0]["support"], f.support)
 
 
 def test_a_version_1_indices_file_is_never_opened(made, tmp_path, capsys):
