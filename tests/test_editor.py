@@ -1,6 +1,6 @@
 """The editor: controller (no browser), the ``edit`` verb in a subprocess (the page; loopback
-only, Ctrl-C / SIGTERM end it with exit 0; the retired ``--viewer viser`` is an invalid choice in one line), and one
-real headless chromium on the verb's page."""
+only, Ctrl-C / SIGTERM end it with exit 0; the retired ``--viewer viser`` is an invalid choice
+in one line), and one real headless chromium on the verb's page."""
 
 from __future__ import annotations
 
