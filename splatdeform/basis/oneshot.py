@@ -34,8 +34,9 @@ from .result import Basis
 #: points per one-shot chunk: bounds the float64 Jacobians and the apply's temporaries
 #: (262,144 points: 19 MB of J) while keeping kernel launches few
 ONESHOT_CHUNK = 1 << 18
-#: the numpy path's (rows, centers) float64 temporaries per block (the reference's own default
-#: is 256 MB; 16 MB measured 30 % less CPU, blocks in cache, and a lower peak)
+#: the numpy path's (rows, centers) float64 temporaries per block, on one BLAS thread (the
+#: reference's own default is 256 MB; 16 MB measured 30 % less CPU and a lower peak; with the
+#: default thread pool the many small products ran 2x slower than the stored basis, busy box)
 NUMPY_TEMP_BYTES = 16 << 20
 
 
@@ -87,12 +88,14 @@ def oneshot_chunks(points: np.ndarray, fit: RbfFit, delta_c: np.ndarray, *,
         yield from opencl.chunks(arr, both, gradients=gradients, device=device,
                                  max_chunk_points=chunk)
         return
+    from ..blas import blas_threads
     from .reference import compute_basis
 
     for lo in range(0, arr.shape[0], chunk):
         hi = min(lo + chunk, arr.shape[0])
-        b = compute_basis(arr[lo:hi], both, gradients=gradients,
-                          max_chunk_bytes=NUMPY_TEMP_BYTES)
+        with blas_threads(1):  # many small products: an unlimited pool spins on a busy machine
+            b = compute_basis(arr[lo:hi], both, gradients=gradients,
+                              max_chunk_bytes=NUMPY_TEMP_BYTES)
         yield lo, hi, b.values, b.gradients
 
 
