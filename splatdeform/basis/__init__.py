@@ -43,7 +43,10 @@ def warm_up(backend: str = "auto", device: str | None = None, k: int | None = No
         except Exception:  # noqa: BLE001 - reported by the compute_basis that needs it
             pass
 
-    _WARM = threading.Thread(target=work, name="opencl-warm-up", daemon=True)
+    # not a daemon: an edit refused while the device opens (a region error from the rings)
+    # exits after it; a daemon thread inside the OpenCL driver at exit aborts the process
+    # ("terminate called without an active exception", exit -6) after the error line
+    _WARM = threading.Thread(target=work, name="opencl-warm-up", daemon=False)
     _WARM.start()
 
 

@@ -15,10 +15,17 @@ units, s the largest pair displacement (:func:`pair_scale`). Default
 to the diagonal of the r^3 kernel matrix of the pair rows; fixed rings stay exact), solved
 densely (:func:`fit_smoothed`, at most :data:`EXACT_MAX_CONSTRAINTS` constraints).
 
-Checks (one line naming the row): duplicate or conflicting pairs (sources closer than
-:data:`DUPLICATE_DISTANCE` of the model's diagonal), a source or target farther than
-:data:`PAIR_MARGIN` diagonals outside the model's bounding box; without fixed regions or other
+Checks (one line naming the row): more than :data:`MAX_PAIRS` pairs; duplicate or conflicting
+pairs (sources closer than :data:`DUPLICATE_DISTANCE` of the model's diagonal), two sources
+closer than :data:`NEAR_DISTANCE` of the diagonal with different displacements (the field
+would fold between them), a source or target farther than :data:`PAIR_MARGIN` diagonals outside
+the model's bounding box, a source in a fixed region or a moving region (its nearest model
+point belongs to it: those points do not follow the field); without fixed regions or other
 metaphors, fewer than 4 pairs or an ill-conditioned affine part (:data:`AFFINE_MIN_RATIO`).
+After the fit (smoothing 0), a pair missed by more than ``tolerance`` times the largest pair
+displacement is refused (:func:`check_pair_residuals`): nothing is written.
+Duplicates and near pairs are found with a kd-tree (at most :data:`NEAR_NEIGHBOURS` neighbours
+a source): O(n log n).
 """
 
 from __future__ import annotations
@@ -43,7 +50,15 @@ DUPLICATE_DISTANCE = 1e-9  # sources closer than this (times the diagonal) are t
 #: smallest singular value of their centred sources must be at least this of the largest
 #: (nearly collinear or coplanar pairs leave an axis of the affine part undetermined).
 AFFINE_MIN_RATIO = 1e-3
-MAX_PAIRS = 200_000  # pairs (and check pairs) in one edit
+#: Pairs (and check pairs) in one edit. Every pair is a center of its own (the pairs are
+#: scattered data), so the fit is a dense solve: O(m^3) time and 8 m^2 bytes (twice with
+#: smoothing). 3,000 pairs take about a second and under 150 MB; 20,000 would take minutes and
+#: gigabytes. More pairs than this are refused at once (reading stops at the limit).
+MAX_PAIRS = 3_000
+#: Two sources closer than this (times the diagonal) with different displacements are refused:
+#: the interpolant would fold between them (1e-7 apart in a 10-unit model moved points 7e5).
+NEAR_DISTANCE = 1e-4
+NEAR_NEIGHBOURS = 8  # neighbours of each source searched for duplicates and near pairs
 PLANAR_HULL_RATIO = 0.1  # pairs flatter than this: the hull is taken in their principal plane
 SMALL_DENSE = 64  # constraints up to this: the plain saddle solve (the exact fit needs more)
 
@@ -72,8 +87,6 @@ def check_pairs(pairs: Pairs, lo: np.ndarray, hi: np.ndarray, *, anchored: bool)
     pairs outside the box [lo, hi] by more than :data:`PAIR_MARGIN` of its diagonal, and (when
     not ``anchored`` by fixed regions or other metaphors) an affine part the pairs cannot
     determine (fewer than 4, or :data:`AFFINE_MIN_RATIO`)."""
-    from scipy.spatial import cKDTree
-
     n = pairs.n
     if n == 0:
         raise ConfigError.at(pairs.key, "expected at least one pair")
@@ -94,16 +107,7 @@ def check_pairs(pairs: Pairs, lo: np.ndarray, hi: np.ndarray, *, anchored: bool)
                                  f"more than {PAIR_MARGIN:g} diagonals ({margin:.6g} model "
                                  f"units) outside the model's box {lo.tolist()} .. "
                                  f"{hi.tolist()} (wrong units or CRS?)")
-    close = sorted(cKDTree(pairs.sources).query_pairs(DUPLICATE_DISTANCE * diag))
-    if close:
-        i, j = min(close, key=lambda p: (max(p), min(p)))
-        i, j = min(i, j), max(i, j)
-        same = np.allclose(pairs.targets[i], pairs.targets[j], rtol=0,
-                           atol=DUPLICATE_DISTANCE * diag)
-        what = "duplicates" if same else "conflicts with"
-        tail = "" if same else " (the same source with another target)"
-        raise ConfigError.at(pairs.key, f"{pairs.rows[j]} {what} {pairs.rows[i]}{tail}; "
-                             "remove one")
+    check_close_sources(pairs, diag)
     if anchored:
         return
     if n < 4:
@@ -115,6 +119,114 @@ def check_pairs(pairs: Pairs, lo: np.ndarray, hi: np.ndarray, *, anchored: bool)
                              f"(smallest / largest singular value {ratio:.2g} < "
                              f"{AFFINE_MIN_RATIO:g}): the affine part is ill-conditioned; add "
                              "pairs off that plane or fixed regions")
+
+
+def _first_close(nbr: np.ndarray, hit: np.ndarray) -> tuple[int, int] | None:
+    """The pair (i, j), i < j, with the smallest j (then i) among the neighbour hits (n, k)."""
+    rows = np.nonzero(hit)
+    if rows[0].size == 0:
+        return None
+    a, b = rows[0], nbr[rows]
+    lo, hi = np.minimum(a, b), np.maximum(a, b)
+    best = int(np.lexsort((lo, hi))[0])
+    return int(lo[best]), int(hi[best])
+
+
+def check_close_sources(pairs: Pairs, diag: float) -> None:
+    """Duplicates (sources within :data:`DUPLICATE_DISTANCE` diagonals) and near pairs (within
+    :data:`NEAR_DISTANCE` with displacements that differ by more than that): one line naming
+    both rows. Exact duplicates by sorting, the rest from each source's
+    :data:`NEAR_NEIGHBOURS` nearest sources in a kd-tree: O(n log n)."""
+    from scipy.spatial import cKDTree
+
+    n = pairs.n
+    if n < 2:
+        return
+    src = pairs.sources
+    order = np.lexsort(src.T[::-1])
+    same = np.flatnonzero((src[order[1:]] == src[order[:-1]]).all(axis=1))
+    if same.size:   # identical sources: sorting finds them however many there are
+        a, b = order[same], order[same + 1]
+        lo, hi = np.minimum(a, b), np.maximum(a, b)
+        best = int(np.lexsort((lo, hi))[0])
+        _refuse_close(pairs, int(lo[best]), int(hi[best]), diag)
+    atol = DUPLICATE_DISTANCE * diag
+    k = min(NEAR_NEIGHBOURS, n - 1) + 1
+    dist, nbr = cKDTree(src).query(src, k=k, distance_upper_bound=NEAR_DISTANCE * diag)
+    valid = (nbr < n) & (nbr != np.arange(n)[:, None])
+    nbr = np.where(valid, nbr, 0)
+    found = _first_close(nbr, valid & (dist <= atol))
+    if found is not None:
+        _refuse_close(pairs, *found, diag)
+    disp = pairs.displacements
+    differ = np.linalg.norm(disp[nbr] - disp[:, None, :], axis=2) > atol
+    found = _first_close(nbr, valid & differ)
+    if found is not None:
+        i, j = found
+        d = float(np.linalg.norm(src[j] - src[i]))
+        raise ConfigError.at(pairs.key, f"{pairs.rows[j]} lies {d:.3g} model units from "
+                             f"{pairs.rows[i]} (closer than {NEAR_DISTANCE:g} of the model's "
+                             f"diagonal, {NEAR_DISTANCE * diag:.3g}) with another displacement: "
+                             "the field would fold between them; remove or merge one")
+
+
+def _refuse_close(pairs: Pairs, i: int, j: int, diag: float) -> None:
+    same = np.allclose(pairs.targets[i], pairs.targets[j], rtol=0,
+                       atol=DUPLICATE_DISTANCE * diag)
+    what = "duplicates" if same else "conflicts with"
+    tail = "" if same else " (the same source with another target)"
+    raise ConfigError.at(pairs.key, f"{pairs.rows[j]} {what} {pairs.rows[i]}{tail}; "
+                         "remove one")
+
+
+def check_pair_regions(pairs: Pairs, positions: np.ndarray, fixed: np.ndarray,
+                       metaphors: list[Metaphor]) -> None:
+    """Refuse a pair whose source lies in the fixed region or a moving region (handle, curve
+    band): its nearest model point (positions (N, 3)) belongs to it. Those points do not follow
+    the field (fixed: copied; moving: their own map), and a source among the ring constraints
+    makes the system singular (a residual of 1e19). One line naming the row and the region."""
+    from scipy.spatial import cKDTree
+
+    regions = [("regions.fixed", fixed)] if fixed.any() else []
+    for mph in metaphors:
+        mask = np.zeros(positions.shape[0], dtype=bool)
+        mask[mph.idx] = True
+        regions.append((mph.name, mask))
+    if not regions or pairs.n == 0:
+        return
+    _, nearest = cKDTree(positions).query(pairs.sources, k=1)
+    for name, mask in regions:
+        inside = np.flatnonzero(mask[nearest])
+        if inside.size:
+            i = int(inside[0])
+            raise ConfigError.at(pairs.key, f"{pairs.rows[i]}: source {pairs.sources[i].tolist()} "
+                                 f"lies in {name} (its nearest model point, {int(nearest[i])}, "
+                                 "is one of its points, which do not follow the field); "
+                                 "move the pair into the free region or drop it")
+
+
+def check_pair_residuals(pairs: Pairs, fit: RbfFit, columns: tuple[int, int], scale: float,
+                         tolerance: float, diagonal: float) -> None:
+    """After an interpolating fit: refuse (one line naming the worst row, nothing written) when
+    a pair misses its target by more than ``tolerance`` times the largest pair displacement
+    (the documented bound, :func:`pair_scale`). Only the pair columns are evaluated (g I)."""
+    from splatdeform.basis.reference import compute_basis
+
+    values = compute_basis(pairs.sources, fit, gradients=False,
+                           max_chunk_bytes=32 * 2**20).values   # float64, small temporaries
+    moved = values[:, columns[0]:columns[1]].astype(np.float64) * scale
+    err = np.linalg.norm(moved - pairs.displacements, axis=1)
+    s = max(float(np.linalg.norm(pairs.displacements, axis=1).max()),
+            1e-9 * max(diagonal, 1e-300))
+    bound = tolerance * s
+    bad = ~np.isfinite(err) | (err > bound)
+    if bad.any():
+        i = int(np.argmax(np.where(np.isfinite(err), err, np.inf)))
+        raise ConfigError.at(pairs.key, f"{pairs.rows[i]}: the fit misses this pair by "
+                             f"{err[i]:.3g} model units, more than the bound {bound:.3g} "
+                             f"(points.tolerance {tolerance:g} of the largest pair displacement "
+                             f"{s:.4g}); nothing written (pairs too close together or next to a "
+                             "region? raise fit.max_centers or use fit.method: exact)")
 
 
 def affine_ratio(sources: np.ndarray) -> float:
@@ -217,6 +329,7 @@ def fit_smoothed(points: np.ndarray, rhs: np.ndarray, diagonal: np.ndarray,
 
 def _rings_of_fixed(model: PointModel, fixed: np.ndarray, continuity: int, neighbors: int
                     ) -> list[np.ndarray]:
+    from splatdeform.deform.regions import not_adjacent
     from splatdeform.deform.rings import region_adjacency, rings
 
     moving = np.zeros_like(fixed)
@@ -226,8 +339,7 @@ def _rings_of_fixed(model: PointModel, fixed: np.ndarray, continuity: int, neigh
     adj = region_adjacency(model, fixed, moving, neighbors, continuity + 2)
     found = rings(adj, fixed, free, continuity + 1)
     if found[0].size == 0:
-        raise RegionError.at("regions.fixed", "no fixed point is adjacent to the free region "
-                             "(is it a separate component? raise boundary.neighbors)")
+        raise not_adjacent("regions.fixed", "fixed")
     return list(found)
 
 
@@ -245,6 +357,7 @@ def prepare_points(model: PointModel, fixed: np.ndarray, metaphors: list[Metapho
     n = model.n_points
     lo, hi = model.bbox()
     check_pairs(pairs, lo, hi, anchored=bool(metaphors) or bool(fixed.any()))
+    check_pair_regions(pairs, model.positions, fixed, metaphors)
     t0 = time.perf_counter()
     if metaphors:
         lay = layout(model, fixed, metaphors, continuity=continuity, neighbors=neighbors)
@@ -288,6 +401,8 @@ def prepare_points(model: PointModel, fixed: np.ndarray, metaphors: list[Metapho
             kept = None
         elif fit.kept is not None:
             kept = fit.kept
+    if smoothing == 0:
+        check_pair_residuals(pairs, fit, (k0, k), scale, tolerance, model.diagonal())
     timings["fit"] = time.perf_counter() - t0
     free_idx = np.flatnonzero(~(fixed | moving))
     t0 = time.perf_counter()

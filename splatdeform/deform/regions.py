@@ -14,7 +14,7 @@ import numpy as np
 
 from splatdeform.deform.handle import AffineFrame
 from splatdeform.deform.metaphor import Metaphor
-from splatdeform.deform.rings import boundary_rings, region_adjacency
+from splatdeform.deform.rings import neighbours_of, region_adjacency, rings
 from splatdeform.errors import RegionError
 from splatdeform.model import PointModel
 
@@ -74,6 +74,16 @@ def check_region_counts(n_fixed: int, n_handle: int, n_overlap: int, n_free: int
     if n_free == 0:
         raise RegionError.at("regions", f"fixed and {handle_name} regions cover every point; "
                              "leave a free region between them")
+
+
+def not_adjacent(key: str, what: str) -> RegionError:
+    """The one line for a region none of whose points is adjacent to the free region (a
+    separate cluster: no kNN edge or mesh edge reaches a free point). The in-memory rings and
+    the streamed border (where such a region has no point near the free region) say it alike."""
+    return RegionError.at(key, f"no {what} point is adjacent to the free region (a separate "
+                          f"cluster: no neighbour edge reaches a free point, so it has no "
+                          f"rings); select {what} points that touch the free region, or raise "
+                          "boundary.neighbors")
 
 
 def check_regions(fixed: np.ndarray, handle: np.ndarray, *, handle_name: str = "handle") -> None:
@@ -152,7 +162,7 @@ def layout(model: PointModel, fixed: np.ndarray, metaphors: list[Metaphor], *,
     name = short_name(metaphors[0].name) if len(metaphors) == 1 else "handle"
     check_regions(fixed, moving, handle_name=name)
     adj = region_adjacency(model, fixed, moving, neighbors, continuity + 2)
-    fixed_rings, moving_rings = boundary_rings(adj, fixed, moving, continuity + 1, name)
+    fixed_rings, moving_rings = region_rings(adj, fixed, moving, continuity + 1, name)
     if len(metaphors) > 1:
         first_ring = moving_rings[0]
         for mph in metaphors:
@@ -162,3 +172,22 @@ def layout(model: PointModel, fixed: np.ndarray, metaphors: list[Metaphor], *,
                                      "separate component? raise boundary.neighbors)")
     return Layout(fixed, moving, moving_idx, coords, grads, groups, list(fixed_rings),
                   list(moving_rings), name)
+
+
+def region_rings(adj, fixed: np.ndarray, moving: np.ndarray, count: int, name: str
+                 ) -> tuple[list[np.ndarray], list[np.ndarray]]:
+    """The ``count`` rings of the fixed and the moving region next to the free region (adj: the
+    (N, N) adjacency); RegionError when the regions touch each other or one of them has no
+    point next to the free region (:func:`not_adjacent`: regions in separate clusters)."""
+    free = ~(fixed | moving)
+    touching = neighbours_of(adj, moving) & fixed
+    if touching.any():
+        raise RegionError.at("regions", f"{int(touching.sum())} fixed points are adjacent to "
+                             f"{name} points; leave a free region between them")
+    fixed_rings = rings(adj, fixed, free, count)
+    moving_rings = rings(adj, moving, free, count)
+    if fixed_rings[0].size == 0:
+        raise not_adjacent("regions.fixed", "fixed")
+    if moving_rings[0].size == 0:
+        raise not_adjacent(f"regions.{name}", name)
+    return fixed_rings, moving_rings

@@ -132,6 +132,8 @@ def border_knn_adjacency(positions: np.ndarray, labels: np.ndarray, neighbors: i
             reached = nbr[valid]
         reached = np.unique(reached)
         frontier = reached[~queried[reached]]
+    if not sources:  # no label border at all (regions in separate clusters): no edges
+        return _symmetric(np.empty((0, 2), dtype=np.int64), n)
     src = np.concatenate(sources)
     dst = np.concatenate(targets)
     keep = (dst != src) & (dst < n)

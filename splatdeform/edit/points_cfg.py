@@ -4,8 +4,9 @@ from __future__ import annotations
 
 from typing import Annotated
 
-from pydantic import Field
+from pydantic import Field, field_validator
 
+from splatdeform.deform.points import MAX_PAIRS
 from splatdeform.edit.schema import MAX_VALUE, Number, Strict
 
 _Strict = Strict
@@ -38,3 +39,11 @@ class PointsCfg(_Strict):
                              "allowed, relative to the largest pair displacement")
     check_pairs: PairsFileCfg | list[PairRow] | None = Field(
         default=None, description="Held-out pairs, not fitted: only their error is reported")
+
+    @field_validator("pairs", "check_pairs", mode="before")
+    @classmethod
+    def _bounded(cls, v):   # before any row is validated: a 2 MB config holds ~140,000 rows
+        if isinstance(v, list) and len(v) > MAX_PAIRS:
+            raise ValueError(f"{len(v):,} inline pairs exceed the limit of {MAX_PAIRS:,} (the "
+                             "dense fit: O(m^3) time, 8 m^2 bytes)")
+        return v

@@ -8,8 +8,11 @@ curve (:mod:`splatdeform.deform.points`), and :mod:`splatdeform.edit.run` calls
 
 Pairs files: CSV or TXT (comma, semicolon, tab or blank separated), a header line naming the
 columns (``x, y, z, X, Y, Z`` unless ``points.columns`` names them), ``#`` comments; at most
-:data:`MAX_PAIRS_BYTES`. Coordinates follow ``regions.units`` (model units: the file's CRS, as
-the loader reads LAS/LAZ with its scale and offset applied).
+:data:`MAX_PAIRS_BYTES` and :data:`~splatdeform.deform.points.MAX_PAIRS` rows (reading stops
+there). Numbers are read strictly, as the PLY reader reads them: decimal, finite, no digit
+separators (``1_0.5``), no ``nan``/``inf``, no hex; a bad one is one line naming the file,
+line and column. Coordinates follow ``regions.units`` (model units: the file's CRS, as the
+loader reads LAS/LAZ with its scale and offset applied).
 """
 
 from __future__ import annotations
@@ -20,15 +23,52 @@ from pathlib import Path
 
 import numpy as np
 
-from splatdeform.deform.points import Pairs, PointsFit, outside_hull, pair_errors, prepare_points
+from splatdeform.deform.points import (
+    DUPLICATE_DISTANCE,
+    MAX_PAIRS,
+    Pairs,
+    PointsFit,
+    outside_hull,
+    pair_errors,
+    prepare_points,
+)
 from splatdeform.edit import units as u
 from splatdeform.edit.config import EditConfig, PairsFileCfg
 from splatdeform.edit.metaphors.capabilities import Capabilities
 from splatdeform.errors import ConfigError
 from splatdeform.model import PointModel
 
-MAX_PAIRS_BYTES = 64 * 2**20  # a pairs file
+MAX_PAIRS_BYTES = 8 * 2**20  # a pairs file (MAX_PAIRS rows of up to ~2,800 characters)
 DEFAULT_COLUMNS = ("x", "y", "z", "X", "Y", "Z")
+#: A number as the PLY reader accepts it: decimal, optional sign, fraction and exponent.
+_DECIMAL = re.compile(r"[+-]?(?:[0-9]+\.?[0-9]*|\.[0-9]+)(?:[eE][+-]?[0-9]+)?")
+
+
+def _number(token: str, path: Path, line_no: int, column: str) -> float:
+    """A strict decimal (see :data:`_DECIMAL`), finite as a float64; else one line naming the
+    file, line and column."""
+    if _DECIMAL.fullmatch(token) is None:
+        raise ConfigError(f"{path}: line {line_no}, column {column}: expected a decimal number, "
+                          f"got {token[:40]!r}")
+    value = float(token)
+    if not np.isfinite(value):
+        raise ConfigError(f"{path}: line {line_no}, column {column}: {token[:40]!r} is beyond "
+                          "the float64 range")
+    return value
+
+
+def _data_lines(text: str):
+    """(line number, stripped line) of each line that is neither blank nor a ``#`` comment,
+    one at a time (no list of every line)."""
+    start, line_no = 0, 0
+    while start < len(text):
+        end = text.find("\n", start)
+        end = len(text) if end < 0 else end
+        line_no += 1
+        line = text[start:end].strip()
+        start = end + 1
+        if line and not line.startswith("#"):
+            yield line_no, line
 
 #: control-point pairs fit in memory, without --reuse (their columns come from the pairs, not a
 #: region), and are edited in the editor (:func:`splatdeform.edit.metaphors.refusal`)
@@ -51,9 +91,9 @@ def read_pairs_file(path: Path, columns: list[str] | None, key: str) -> tuple[np
         text = raw.decode("utf-8-sig")
     except UnicodeDecodeError:
         raise ConfigError(f"{path}: {key}: not a UTF-8 text file") from None
-    lines = [(i + 1, ln.strip()) for i, ln in enumerate(text.splitlines())]
-    lines = [(i, ln) for i, ln in lines if ln and not ln.startswith("#")]
-    if not lines:
+    lines = _data_lines(text.replace("\r\n", "\n").replace("\r", "\n"))
+    first = next(lines, None)
+    if first is None:
         raise ConfigError(f"{path}: {key}: no header line (expected the columns "
                           f"{', '.join(columns or DEFAULT_COLUMNS)})")
 
@@ -63,7 +103,7 @@ def read_pairs_file(path: Path, columns: list[str] | None, key: str) -> tuple[np
                 return [v.strip().strip('"') for v in line.split(sep)]
         return re.split(r"\s+", line)
 
-    header = split(lines[0][1])
+    header = split(first[1])
     wanted = list(columns or DEFAULT_COLUMNS)
     missing = [c for c in wanted if c not in header]
     if missing:
@@ -72,14 +112,17 @@ def read_pairs_file(path: Path, columns: list[str] | None, key: str) -> tuple[np
                           "[x, y, z, X, Y, Z]")
     where = [header.index(c) for c in wanted]
     rows, labels = [], []
-    for line_no, line in lines[1:]:
+    for line_no, line in lines:
+        if len(rows) == MAX_PAIRS:
+            raise ConfigError(f"{path}: {key}: more than {MAX_PAIRS:,} pairs (line {line_no}); "
+                              "the limit keeps the dense fit to seconds and under 150 MB "
+                              "(O(m^3) time, 8 m^2 bytes): thin the pairs")
         fields = split(line)
-        try:
-            values = [float(fields[j]) for j in where]
-        except (IndexError, ValueError):
-            raise ConfigError(f"{path}: line {line_no}: expected numbers in the columns "
-                              f"{', '.join(wanted)}, got {line[:80]!r}") from None
-        rows.append(values)
+        if len(fields) <= max(where):
+            raise ConfigError(f"{path}: line {line_no}: expected {len(header)} columns "
+                              f"({', '.join(header)[:80]}), got {len(fields)}")
+        rows.append([_number(fields[j], path, line_no, c)
+                     for j, c in zip(where, wanted, strict=True)])
         labels.append(f"{path.name} line {line_no}")
     if not rows:
         raise ConfigError(f"{path}: {key}: no pairs after the header")
@@ -93,6 +136,8 @@ def load_pairs(value, columns: list[str] | None, key: str, units: str, model: Po
         path = Path(base_dir or ".") / value.file
         rows, labels = read_pairs_file(path, columns, key)
     else:
+        if len(value) > MAX_PAIRS:   # the schema refuses this first; a direct caller too
+            raise ConfigError.at(key, f"{len(value):,} pairs exceed the limit of {MAX_PAIRS:,}")
         rows = np.asarray(value, dtype=np.float64).reshape(-1, 6)
         labels = [f"{key}[{i}]" for i in range(rows.shape[0])]
     frame = u.Frame.of(model)
@@ -111,7 +156,25 @@ def pairs_of(cfg: EditConfig, model: PointModel, base_dir: Path | None
     pairs = load_pairs(p.pairs, p.columns, "points.pairs", cfg.regions.units, model, base_dir)
     check = None if p.check_pairs is None else load_pairs(
         p.check_pairs, p.columns, "points.check_pairs", cfg.regions.units, model, base_dir)
+    if check is not None and check.n and pairs.n:
+        _check_not_fitted(pairs, check, model.diagonal())
     return pairs, check
+
+
+def _check_not_fitted(pairs: Pairs, check: Pairs, diagonal: float) -> None:
+    """A check pair at a fitted pair's source (within the duplicate distance) would report an
+    error of 0: one line naming both rows."""
+    from scipy.spatial import cKDTree
+
+    if not (np.isfinite(pairs.sources).all() and np.isfinite(check.sources).all()):
+        return   # check_pairs names the row
+    dist, near = cKDTree(pairs.sources).query(check.sources, k=1)
+    same = np.flatnonzero(dist <= DUPLICATE_DISTANCE * max(diagonal, 1e-300))
+    if same.size:
+        i = int(same[0])
+        raise ConfigError.at(check.key, f"{check.rows[i]} is the fitted pair "
+                             f"{pairs.rows[int(near[i])]} (the same source): a held-out pair "
+                             "must not be fitted, its error would be 0; remove one")
 
 
 @dataclass
@@ -209,7 +272,7 @@ def select(cfg: EditConfig, model: PointModel, base_dir: Path):
     pairs and check pairs (model units), checked as ``deform`` checks them (the same one-line
     refusals). Returns (:class:`~splatdeform.edit.selection.Selection`, pairs, check or None).
     """
-    from splatdeform.deform.points import _rings_of_fixed, check_pairs
+    from splatdeform.deform.points import _rings_of_fixed, check_pair_regions, check_pairs
     from splatdeform.deform.regions import layout
     from splatdeform.edit import plain
     from splatdeform.edit.selection import Selection, moving_label
@@ -220,6 +283,7 @@ def select(cfg: EditConfig, model: PointModel, base_dir: Path):
     metaphors = plain.metaphors(cfg, model, base_dir)
     lo, hi = model.bbox()
     check_pairs(pairs, lo, hi, anchored=bool(metaphors) or bool(fixed.any()))
+    check_pair_regions(pairs, model.positions, fixed, metaphors)
     if metaphors:
         lay = layout(model, fixed, metaphors, continuity=cfg.boundary.continuity,
                      neighbors=cfg.boundary.neighbors)

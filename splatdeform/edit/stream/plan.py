@@ -41,7 +41,7 @@ from splatdeform.deform.border import (
     voxel_keys,
 )
 from splatdeform.deform.handle import AffineFrame, delta_for_transform, handle_frame
-from splatdeform.deform.regions import check_region_counts
+from splatdeform.deform.regions import check_region_counts, not_adjacent
 from splatdeform.edit.config import EditConfig
 from splatdeform.edit.selectors import Indices, Property, leaves, map_leaves, select
 from splatdeform.edit.selectors.indices import index_mask
@@ -319,6 +319,12 @@ def build_plan(src: ChunkFile, cfg: EditConfig, base_dir: Path, *, chunk: int, q
                       f"{k} nearest neighbours farther than the border band ({radius:.3g}); "
                       "their rings may differ from the in-memory path", stacklevel=2)
     fixed_s, handle_s = lab == FIXED, lab == HANDLE
+    # a region with no point near the free region (a separate cluster: the labels pass counted
+    # its points) has no rings; the in-memory rings say the same line
+    if not fixed_s.any():
+        raise not_adjacent("regions.fixed", "fixed")
+    if not handle_s.any():
+        raise not_adjacent("regions.handle", "handle")
     sub = PointModel(positions=pos)
     grads = frame.coordinate_gradients()
     bbox_model = PointModel(positions=np.stack([lo, hi]))
