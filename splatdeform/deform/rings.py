@@ -16,6 +16,13 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.spatial import cKDTree
 
+from splatdeform.deform.cells import (
+    Cells,
+    GridTooFine,
+    SubsetKnn,
+    kth_distances,
+    levels_around,
+)
 from splatdeform.errors import RegionError
 from splatdeform.geometry import bounds
 from splatdeform.interrupts import knn_query
@@ -42,17 +49,8 @@ def knn_edges(positions: np.ndarray, k: int, subset: np.ndarray | None = None) -
 #: Points sampled (seeded) to estimate the kNN radius that sizes the border band.
 _SPACING_SAMPLE = 4000
 _BAND_SAFETY = 2.0
-
-
-def _cell_keys(positions: np.ndarray, cell: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Voxel cells of size ``cell``: (unique keys (C,), inverse (N,), key strides (3,))."""
-    lo = bounds(positions)[0]
-    ijk = np.floor((positions - lo) / cell).astype(np.int64) + 1  # 1-based: room for -1
-    dims = ijk.max(axis=0) + 2
-    strides = np.array([dims[1] * dims[2], dims[2], 1], dtype=np.int64)
-    keys = ijk @ strides
-    uniq, inverse = np.unique(keys, return_inverse=True)
-    return uniq, inverse.reshape(-1), strides
+#: Cells of the band grid around the border cells whose points the kd-tree holds.
+_REACH = 2
 
 
 def border_band(positions: np.ndarray, labels: np.ndarray, radius: float) -> np.ndarray:
@@ -61,36 +59,42 @@ def border_band(positions: np.ndarray, labels: np.ndarray, radius: float) -> np.
     labels: (N,) small ints (free / fixed / moving). Points are hashed into cells of size
     ``radius``; a cell is on the border when its 3x3x3 neighbourhood holds two or more labels,
     so every point within ``radius`` of another label is in the band (and some a little
-    farther). O(N log N) for the hash, no neighbour search.
+    farther). No neighbour search, and no sort when the grid is small (see
+    :class:`splatdeform.deform.cells.Cells`).
     """
-    uniq, inverse, strides = _cell_keys(positions, radius)
-    flags = np.zeros(uniq.size, dtype=np.uint8)
-    for label in np.unique(labels):
-        flags[np.unique(inverse[labels == label])] |= np.uint8(1 << int(label))
-    around = flags.copy()
-    offsets = np.array([[i, j, k] for i in (-1, 0, 1) for j in (-1, 0, 1) for k in (-1, 0, 1)
-                        if (i, j, k) != (0, 0, 0)]) @ strides
-    for off in offsets:
-        pos = np.searchsorted(uniq, uniq + off)
-        pos[pos == uniq.size] = 0
-        hit = uniq[pos] == uniq + off
-        around[hit] |= flags[pos[hit]]
-    bits = np.unpackbits(around[:, None], axis=1).sum(axis=1)
-    return (bits >= 2)[inverse]
+    try:
+        cells = Cells(positions, radius)
+    except GridTooFine:  # a radius far below the model's extent: every point
+        return np.ones(positions.shape[0], dtype=bool)
+    return cells.label_border(labels)[cells.cell]
 
 
-def knn_radius(positions: np.ndarray, tree: cKDTree, k: int, seed: int = 0) -> float:
-    """A high quantile of the distance to the k-th nearest neighbour, from a seeded sample."""
+def sample_indices(n: int, seed: int = 0) -> np.ndarray:
+    """The seeded sample (M,) of point indices whose k-th-neighbour distances size the band."""
+    if n <= _SPACING_SAMPLE:
+        return np.arange(n)
+    return np.random.default_rng(seed).choice(n, _SPACING_SAMPLE, replace=False)
+
+
+def knn_radius(positions: np.ndarray, k: int, seed: int = 0) -> tuple[float, cKDTree | None]:
+    """A high quantile of the distance to the k-th nearest neighbour over a seeded sample: the
+    whole-model tree's value, from trees over the cells around the sample when those hold a
+    small share of the model; with the whole-model tree when one was built (else None)."""
     n = positions.shape[0]
-    rng = np.random.default_rng(seed)
-    sample = positions if n <= _SPACING_SAMPLE else positions[
-        rng.choice(n, _SPACING_SAMPLE, replace=False)]
-    dist, _ = knn_query(tree, sample, k=min(k + 1, n))
-    return float(np.quantile(dist[:, -1], 0.999))
+    idx = sample_indices(n, seed)
+    k1 = min(k + 1, n)
+    sample = positions[idx]
+    if idx.size > k1:  # first guess: the sample's own spacing scaled to the whole (surfaces)
+        own = knn_query(cKDTree(sample), sample, k=k1)[0][:, -1]
+        guess = float(np.quantile(own, 0.9)) * (idx.size / n) ** 0.5  # ~90% certified
+    else:
+        guess = float(np.linalg.norm(np.subtract(*bounds(positions)[::-1])))
+    dist, whole = kth_distances(positions, idx, k1, guess)
+    return float(np.quantile(dist, 0.999)), whole
 
 
 def border_knn_adjacency(positions: np.ndarray, labels: np.ndarray, neighbors: int,
-                         depth: int) -> sp.csr_matrix:
+                         depth: int, stats: dict | None = None) -> sp.csr_matrix:
     """Symmetric (N, N) kNN adjacency holding only the edges of points near the label borders.
 
     The rings (``depth`` of them) and the region checks only look at edges within a few hops of
@@ -102,25 +106,47 @@ def border_knn_adjacency(positions: np.ndarray, labels: np.ndarray, neighbors: i
     because a point far from every border lists a ring point among its neighbours (a lone
     outlier) are the one thing not searched; the tests check equality with the whole-model
     graph's rings on every shared scan.
+
+    The kd-tree holds the band's points and two cells around it, not the whole model; every
+    answer is the whole-model tree's (see :class:`splatdeform.deform.cells.SubsetKnn`).
+    ``stats``, when given, receives the work counts: ``tree_points`` (points in the kd-tree),
+    ``queried`` (points queried) and ``fallback`` (queries the whole-model tree answered).
     """
     n = positions.shape[0]
     k = int(min(neighbors, n - 1))
     if k <= 0:
         return _symmetric(np.empty((0, 2), dtype=np.int64), n)
-    tree = cKDTree(positions)
-    radius = knn_radius(positions, tree, k)
+    radius, tree = knn_radius(positions, k)
     lo, hi = bounds(positions)
     extent = float((hi - lo).max())
+    search: SubsetKnn | None = None
+    frontier = np.arange(n)
     if radius > 0 and 2 * radius * _BAND_SAFETY < extent:
-        frontier = np.flatnonzero(border_band(positions, labels, 2 * radius * _BAND_SAFETY))
+        try:
+            cells = Cells(positions, 2 * radius * _BAND_SAFETY)
+        except GridTooFine:
+            cells = None
+        if cells is not None:
+            core = cells.label_border(labels)
+            frontier = np.flatnonzero(core[cells.cell])
+            if tree is None:
+                search = SubsetKnn(positions, cells, levels_around(cells, core, _REACH),
+                                   _REACH)
+            if search is not None and 2 * search.subset.size > n:  # most of the model
+                search = None
+    if search is not None:
+        query = search.query
     else:
-        frontier = np.arange(n)
+        tree = cKDTree(positions) if tree is None else tree
+
+        def query(idx: np.ndarray, k1: int) -> np.ndarray:
+            return knn_query(tree, positions[idx], k=k1)[1]
     queried = np.zeros(n, dtype=bool)
     sources, targets = [], []
     for hop in range(depth + 2):
         if frontier.size == 0:
             break
-        _, nbr = knn_query(tree, positions[frontier], k=k + 1)
+        nbr = query(frontier, k + 1)
         queried[frontier] = True
         sources.append(np.repeat(frontier, k + 1))
         targets.append(nbr.reshape(-1))
@@ -132,6 +158,10 @@ def border_knn_adjacency(positions: np.ndarray, labels: np.ndarray, neighbors: i
             reached = nbr[valid]
         reached = np.unique(reached)
         frontier = reached[~queried[reached]]
+    if stats is not None:
+        stats.update(tree_points=n if search is None else search.subset.size,
+                     queried=int(queried.sum()),
+                     fallback=0 if search is None else search.fallback)
     if not sources:  # no label border at all (regions in separate clusters): no edges
         return _symmetric(np.empty((0, 2), dtype=np.int64), n)
     src = np.concatenate(sources)
@@ -141,12 +171,12 @@ def border_knn_adjacency(positions: np.ndarray, labels: np.ndarray, neighbors: i
 
 
 def _symmetric(edges: np.ndarray, n: int) -> sp.csr_matrix:
+    """(N, N) bool csr, no diagonal: ``edges`` (E, 2) both ways, self-loops dropped first
+    (setting an N-long diagonal afterwards cost more than the whole band's graph)."""
+    edges = edges[edges[:, 0] != edges[:, 1]]
     data = np.ones(len(edges), dtype=bool)
     adj = sp.coo_matrix((data, (edges[:, 0], edges[:, 1])), shape=(n, n)).tocsr()
-    adj = (adj + adj.T).tocsr()
-    adj.setdiag(False)
-    adj.eliminate_zeros()
-    return adj
+    return (adj + adj.T).tocsr()
 
 
 def region_adjacency(model: PointModel, fixed: np.ndarray, moving: np.ndarray,

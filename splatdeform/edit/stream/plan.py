@@ -274,6 +274,26 @@ def gather_border(src: ChunkFile, labels: np.ndarray, lo: np.ndarray, hi: np.nda
     return idx[keep], pos[keep], lab[keep], dist[keep]
 
 
+#: Passes 3 and 4 gather the points within this many times the first border radius, so that
+#: the usual enlargement (one step of 1.5x the needed radius) filters what is in memory
+#: instead of reading the file twice more.
+_GATHER = 2.0
+
+
+def _gather(src: ChunkFile, labels: np.ndarray, lo: np.ndarray, hi: np.ndarray, radius: float,
+            diag: float, chunk: int, quiet: bool, max_points: int):
+    """(reach, indices, positions, labels, distances) of :func:`gather_border` at ``reach`` =
+    _GATHER x ``radius`` (at most the diagonal), or at ``radius`` itself when that many points
+    would not fit ``max_points``."""
+    reach = min(_GATHER * radius, diag)
+    if reach > radius:
+        try:
+            return (reach, *gather_border(src, labels, lo, hi, reach, chunk, quiet, max_points))
+        except ProcessingError:
+            pass
+    return (radius, *gather_border(src, labels, lo, hi, radius, chunk, quiet, max_points))
+
+
 def build_plan(src: ChunkFile, cfg: EditConfig, base_dir: Path, *, chunk: int, quiet: bool,
                max_border: int, make_fit_fn, handle_matrix, max_handle: int = 2**62) -> Plan:
     """Passes 1-4, the rings on the border set and the fit. The handle frame and pivot come
@@ -301,9 +321,12 @@ def build_plan(src: ChunkFile, cfg: EditConfig, base_dir: Path, *, chunk: int, q
     import time
 
     t0 = time.perf_counter()
+    gathered = None
     for _attempt in range(6):
-        gidx, pos, lab, dist = gather_border(src, labels, lo, hi, radius, chunk, quiet,
-                                             max_border)
+        if gathered is None or radius > gathered[0]:  # passes 3 and 4, once in the usual case
+            gathered = _gather(src, labels, lo, hi, radius, diag, chunk, quiet, max_border)
+        within = gathered[4] < radius   # the border set of this radius, as its own passes
+        gidx, pos, lab, dist = (a[within] for a in gathered[1:])
         kth = kth_distance(pos, k) if pos.shape[0] > 1 else np.zeros(pos.shape[0])
         core = dist <= radius / 2
         r_core = float(kth[core].max()) if core.any() else 0.0
@@ -314,6 +337,7 @@ def build_plan(src: ChunkFile, cfg: EditConfig, base_dir: Path, *, chunk: int, q
         if radius >= diag:
             break
         radius = min(max(needed, radius) * 1.5, diag)
+    del gathered
     if outliers:
         warnings.warn(f"{src.path}: {outliers} points near the region borders have their "
                       f"{k} nearest neighbours farther than the border band ({radius:.3g}); "
