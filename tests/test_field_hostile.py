@@ -316,6 +316,25 @@ def test_a_seeded_corpus_of_wrong_types(made, tmp_path, capsys):
 
 # ------------------------------------------------------------------------ the zip itself
 
+def test_a_seeded_corpus_of_flipped_bytes(made, tmp_path, capsys):
+    """150 copies of a field with 1 to 5 bytes changed: each is applied (exit 0) or refused
+    with one line naming the file (exit 2, no output); never an internal error."""
+    raw = (made / "f.npz").read_bytes()
+    rng = np.random.default_rng(4302)
+    for i in range(150):
+        b = bytearray(raw)
+        for _ in range(int(rng.integers(1, 6))):
+            b[int(rng.integers(len(b)))] = int(rng.integers(256))
+        field = tmp_path / f"flip{i}.npz"
+        field.write_bytes(bytes(b))
+        out = tmp_path / f"o{i}.ply"
+        code = main(["apply", str(field), str(made / "in.ply"), "-o", str(out)])
+        err = capsys.readouterr().err.strip()
+        assert code in (0, 2) and "internal error" not in err, err
+        if code == 2:
+            assert len(err.splitlines()) == 1 and str(field) in err and not out.exists(), err
+
+
 def _zip(path: Path, entries: list[tuple[str, bytes]], method=zipfile.ZIP_STORED) -> Path:
     with zipfile.ZipFile(path, "w", compression=method) as zf:
         for name, data in entries:
@@ -341,6 +360,16 @@ def test_files_that_are_no_npz(made, tmp_path, capsys):
     refused(capsys, tmp_path / "path.npz", made / "in.ply", tmp_path / "o.ply", None)
     _zip(tmp_path / "dup.npz", [("centers.npy", _npy(np.zeros((2, 3))))] * 2)
     refused(capsys, tmp_path / "dup.npz", made / "in.ply", tmp_path / "o.ply", "centers")
+    _zip(tmp_path / "z.npz", [("centers.npy", _npy(np.zeros((50, 3))))], zipfile.ZIP_DEFLATED)
+    raw = bytearray((tmp_path / "z.npz").read_bytes())
+    raw[60:100] = bytes(b ^ 0x55 for b in raw[60:100])  # a corrupt deflate stream
+    (tmp_path / "deflate.npz").write_bytes(bytes(raw))
+    refused(capsys, tmp_path / "deflate.npz", made / "in.ply", tmp_path / "o.ply", "centers")
+    raw = bytearray((tmp_path / "z.npz").read_bytes())
+    raw[6] |= 1  # flagged encrypted, local header and directory
+    raw[raw.rfind(b"PK\x01\x02") + 8] |= 1
+    (tmp_path / "locked.npz").write_bytes(bytes(raw))
+    refused(capsys, tmp_path / "locked.npz", made / "in.ply", tmp_path / "o.ply", "centers")
     header = _npy(np.zeros((5, 3)))[:-16]  # the header says 120 bytes of data, 104 follow
     _zip(tmp_path / "short.npz", [("centers.npy", header)])
     refused(capsys, tmp_path / "short.npz", made / "in.ply", tmp_path / "o.ply", "centers")

@@ -25,6 +25,7 @@ import os
 import re
 import struct
 import zipfile
+import zlib
 from collections.abc import Callable, Collection
 from pathlib import Path
 
@@ -166,9 +167,12 @@ def read_npz(path: str | Path, *, label: str, max_bytes: int, max_members: int,
                     continue
                 try:
                     out[name] = _read_member(zf, info, name, label, header)
-                except (zipfile.BadZipFile, EOFError, OSError, zipfile.LargeZipFile) as exc:
+                except FormatError:
+                    raise
+                except (zipfile.BadZipFile, EOFError, OSError, zipfile.LargeZipFile, zlib.error,
+                        ValueError, RuntimeError, NotImplementedError, struct.error) as exc:
                     if isinstance(exc, OSError) and exc.errno is not None:
-                        raise
+                        raise  # the disk, not the file: the CLI's own line
                     raise FormatError(f"{label}: member {name!r}: unreadable "
                                       f"({' '.join(str(exc).split())[:80]})") from None
             return out
