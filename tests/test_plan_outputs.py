@@ -82,8 +82,9 @@ def test_the_plan_lists_every_output(scans, tmp_path):
 # ------------------------------------------------ metaphors declare what they can take part in
 
 def test_each_kind_declares_its_capabilities():
+    from splatdeform.edit.capable import refusal
     from splatdeform.edit.config import parse_edit
-    from splatdeform.edit.metaphors import KINDS, points, refusal
+    from splatdeform.edit.metaphors import KINDS, points
 
     for kind in (*KINDS, points):
         assert kind.CAPABILITIES.why, kind.__name__

@@ -98,7 +98,7 @@ def decide(cfg: EditConfig, in_path: Path, options: StreamOptions, budget: int |
         if whole is not None:
             raise ConfigError("--scheduler/--workers: cannot be combined with --reuse or "
                               "--drop-nonfinite")
-        from splatdeform.edit.stream import stream_refusal
+        from splatdeform.edit.capable import stream_refusal
 
         why = stream_refusal(cfg)
         if why:
@@ -146,7 +146,7 @@ def plan_edit(config: str | Path | dict[str, Any] | EditConfig,
     checked and the edit runs in memory."""
     cfg, base, file = resolve_config(config, base_dir)
     if reuse is not None:
-        from splatdeform.edit.metaphors import refusal
+        from splatdeform.edit.capable import refusal
 
         why = refusal(cfg, "reusable")
         if why:

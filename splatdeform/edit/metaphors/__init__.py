@@ -7,7 +7,7 @@ A kind module has ``entries(cfg) -> [(key, entry)]``, ``metaphor(key, entry, ctx
 ``basis_key(entry)`` (what of it determines the basis, for ``--reuse``), ``label(n)`` (what
 ``n`` of them are called in the counts line) and ``CAPABILITIES``
 (:class:`~splatdeform.edit.metaphors.capabilities.Capabilities`: the runs it can take part in;
-:func:`refusal` is the one query, e.g. whether an edit streams).
+:func:`splatdeform.edit.capable.refusal` is the one query, e.g. whether an edit streams).
 :data:`KINDS` fixes the column order (every handle, then the curve). A new metaphor is one
 module plus one line in :data:`KINDS` (and its key in the edit config).
 """
@@ -26,20 +26,6 @@ from splatdeform.edit.units import Frame
 from splatdeform.model import PointModel
 
 KINDS = (handle, curve)  # one line per metaphor, in column order
-
-
-def refusal(cfg: EditConfig, capability: str) -> str:
-    """Why this edit cannot take part in ``capability`` (``"streams"``, ``"reusable"``,
-    ``"editable"``: a :class:`~splatdeform.edit.metaphors.capabilities.Capabilities` field),
-    '' when it can. Asked of every kind the edit holds (the moving kinds of :data:`KINDS`,
-    then control-point pairs)."""
-    from splatdeform.edit.metaphors import points
-
-    for kind in (*KINDS, points):
-        why = kind.CAPABILITIES.refusal([key for key, _ in kind.entries(cfg)], capability)
-        if why:
-            return why
-    return ""
 
 
 @dataclass(frozen=True)

@@ -1,5 +1,5 @@
 """What a metaphor kind can take part in: each kind module declares ``CAPABILITIES`` (a
-:class:`Capabilities`), and :func:`splatdeform.edit.metaphors.refusal` is the one query the
+:class:`Capabilities`), and :func:`splatdeform.edit.capable.refusal` is the one query the
 pre-flight, streaming and the editor ask (issue 44: the stream-or-not rule had been written
 twice, and points edits were refused only after planning)."""
 

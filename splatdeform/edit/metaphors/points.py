@@ -71,7 +71,7 @@ def _data_lines(text: str):
             yield line_no, line
 
 #: control-point pairs fit in memory, without --reuse (their columns come from the pairs, not a
-#: region), and are edited in the editor (:func:`splatdeform.edit.metaphors.refusal`)
+#: region), and are edited in the editor (:func:`splatdeform.edit.capable.refusal`)
 CAPABILITIES = Capabilities(streams=0, reusable=0, why={
     "streams": "points: a control-point edit runs in memory",
     "reusable": "points: a control-point edit runs without --reuse"})

@@ -24,6 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
+from splatdeform.edit.capable import stream_refusal
 from splatdeform.edit.result import EditResult, edit_stats
 from splatdeform.edit.stream.progress import Progress
 from splatdeform.io import COSTED as io_costed
@@ -59,19 +60,6 @@ class StreamOptions:
 #: formats whose in-memory estimate comes from their validated header (memory.file_cost): the
 #: ones whose declaration has a header probe (splatdeform.io), splat formats included
 COSTED = io_costed
-
-
-def stream_refusal(cfg) -> str:
-    """Why this edit cannot stream ('' when it can): the metaphors' own capabilities
-    (:func:`splatdeform.edit.metaphors.refusal`), then what needs the whole model. The one
-    rule: the pre-flight (:func:`edit_choice`) and the stream's reader
-    (:func:`run.check_streamable`) both ask it."""
-    from splatdeform.edit.metaphors import refusal
-
-    why = refusal(cfg, "streams")
-    if not why and cfg.normals == "estimate":
-        why = "normals: estimate needs the whole model"
-    return why
 
 
 def edit_choice(cfg, in_path: Path, budget: int | None, *, whole: str | None = None,

@@ -230,7 +230,7 @@ def stream_deform(src: ChunkFile, cfg, base_dir: Path, out: Path, *, chunk: int,
 def check_streamable(cfg, in_path: Path, out_path: Path) -> ChunkFile:
     """The chunk reader, or an InputError saying why this edit cannot stream (the one rule,
     :func:`splatdeform.edit.stream.stream_refusal`)."""
-    from splatdeform.edit.stream import stream_refusal
+    from splatdeform.edit.capable import stream_refusal
 
     why = stream_refusal(cfg)
     if why:
