@@ -136,6 +136,8 @@ def read_field(path: str | Path) -> tuple[dict[str, np.ndarray], dict]:
         raise FormatError(f"{label}: member 'meta': missing; not a field file written by "
                           "deform --save-field")
     meta = _parse_meta(data.pop("meta"), label)
+    if meta["version"] >= 2 and "support" not in data:
+        missing.append("support")  # version 1 fields had none: their normalisation stands in
     if missing:
         raise FormatError(f"{label}: member {missing[0]!r}: missing")
     arrays = {}

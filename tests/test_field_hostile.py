@@ -151,6 +151,7 @@ ARRAY_CASES = {
     "missing inverses": ("inverses", _drop("inverses")),
     "missing matrices": ("matrices", _drop("matrices")),
     "missing meta": ("meta", None),
+    "missing support": ("support", _drop("support")),
     "extra member": ("extra", _set("extra", np.zeros(3))),
     "fixed_idx without indices": ("fixed_idx", _set("fixed_idx", np.arange(5))),
     "handle_idx_7 of no handle": ("handle_idx_7", _set("handle_idx_7", np.arange(5))),
