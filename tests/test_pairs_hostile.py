@@ -219,3 +219,23 @@ def test_close_sources_found_among_many():
     same[[5, 9, 12, 190_000]] = same[3]
     with pytest.raises(ConfigError, match=r"r5 (duplicates|conflicts with) r3"):
         check_close_sources(Pairs(same, same + 1.0, rows), diag)
+
+
+@pytest.mark.parametrize("smoothing", [0.0, 0.01])
+def test_the_cap_itself_fits_in_bounded_memory(tmp_path, cloud, smoothing):
+    """MAX_PAIRS pairs (the dense solve's worst case, exact or smoothed) run and stay under
+    300 MB; the pairs are met within the tolerance when interpolated."""
+    folder = _folder(tmp_path, cloud)
+    rng = np.random.default_rng(11)
+    src = rng.uniform(0.5, 9.5, (MAX_PAIRS, 3))
+    _csv(folder / "gcp.csv", src, src + rng.normal(0, 0.05, (MAX_PAIRS, 3)))
+    config = write_config(folder, "input: m.ply\noutput: out.ply\npoints:\n"
+                          f"  pairs: {{file: gcp.csv}}\n  smoothing: {smoothing}\n")
+    res, peak = run_cli_peak("deform", config, "--quiet", "--residuals",
+                             folder / "r.csv", cwd=folder)
+    assert res.returncode == 0, res.stderr
+    assert peak < PEAK_LIMIT, peak
+    errors = np.loadtxt(folder / "r.csv", delimiter=",", skiprows=1, usecols=11)
+    assert errors.shape == (MAX_PAIRS,)
+    if smoothing == 0:
+        assert errors.max() <= 1e-6 * 0.05 * 6
