@@ -16,6 +16,7 @@ import sys
 import traceback
 import warnings
 
+from . import __version__
 from .basis.names import BACKENDS
 from .errors import InputError, NoDeviceWarning, SplatdeformError, error_line, one_line
 from .verbs import (
@@ -32,9 +33,16 @@ from .verbs import (
 
 
 class _Parser(argparse.ArgumentParser):
+    def parse_known_args(self, args=None, namespace=None):  # the words, for error's hints
+        self._words = list(sys.argv[1:] if args is None else args)
+        return super().parse_known_args(args, namespace)
+
     def error(self, message: str) -> None:  # argparse would exit 2 with usage; keep one line
         # main prints "splatdeform: error: "; a verb's parser adds only the verb ("deform: ...")
         verb = self.prog.partition(" ")[2]
+        from .suggest import argparse_hint
+
+        message += argparse_hint(self, message)
         raise InputError(f"{verb}: {message}" if verb else message)
 
 
@@ -141,6 +149,7 @@ def _add_color_arg(p: argparse.ArgumentParser) -> None:
 def build_parser() -> argparse.ArgumentParser:
     parser = _Parser(prog="splatdeform", description="Real-time RBF shape editing of scans.")
     parser.add_argument("--debug", action="store_true", help="show tracebacks on errors")
+    parser.add_argument("--version", action="version", version=f"splatdeform {__version__}")
     sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
 
     p = sub.add_parser("info", help="what the loader sees in a model file")
@@ -281,8 +290,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_convert)
 
     from .batch import register as register_batch
+    from .examples import register as register_example
 
     register_batch(sub)
+    register_example(sub)
     # --debug after the verb too; SUPPRESS: when absent there, the top level's value stands
     for verb in sub.choices.values():
         verb.add_argument("--debug", action="store_true", default=argparse.SUPPRESS,

@@ -132,31 +132,80 @@ def _blocks(text: str, lang: str) -> list[str]:
     return re.findall(rf"```{lang}\n(.*?)```", text, flags=re.S)
 
 
+def _fresh_venv_with_wheel(tmp_path: Path) -> Path:
+    """A new virtual environment outside the clone with the wheel built from this tree
+    installed; returns its bin folder. The dependencies come from this environment's
+    site-packages through a .pth line (a plain path entry: its own .pth files, the editable
+    install's among them, are not read), so nothing is downloaded and the clone is not on
+    sys.path: only what the wheel ships can be imported as splatdeform."""
+    import sysconfig
+
+    # offline: hatchling (a dev dependency) builds it in this environment
+    build = subprocess.run([sys.executable, "-m", "pip", "wheel", "--no-deps", "-q",
+                            "--no-build-isolation", "-w", str(tmp_path / "wheel"), str(ROOT)],
+                           capture_output=True, text=True, timeout=300)
+    assert build.returncode == 0, build.stdout + build.stderr
+    (wheel,) = (tmp_path / "wheel").glob("splatdeform-*.whl")
+    venv = tmp_path / "venv"
+    subprocess.run([sys.executable, "-m", "venv", "--without-pip", str(venv)], check=True,
+                   timeout=120)
+    fresh = venv / "bin" / "python"
+    site = subprocess.run([fresh, "-c", "import sysconfig; print(sysconfig.get_paths()"
+                           "['purelib'])"], capture_output=True, text=True, check=True).stdout
+    ours = {sysconfig.get_paths()[k] for k in ("purelib", "platlib")}
+    (Path(site.strip()) / "_project_deps.pth").write_text("".join(f"{p}\n" for p in ours))
+    proc = subprocess.run([sys.executable, "-m", "pip", "--python", str(fresh), "install",
+                           "--no-deps", "--no-index", "-q", str(wheel)],
+                          capture_output=True, text=True, timeout=180)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    return venv / "bin"
+
+
 @pytest.mark.slow
 def test_readme_quick_start_runs_as_written(tmp_path):
-    """The README's quick start: its bash lines run in order (`python` and `splatdeform` from
-    this environment), its YAML is the bend.yaml they use; the `edit` step is started, its page
-    fetched with the printed token, then stopped with SIGTERM (exit 0)."""
+    """The README's quick start from the wheel installed in a fresh venv, run in a folder
+    outside the clone (issue 48): its bash lines run in order (`splatdeform` from that venv's
+    bin, no PYTHONPATH); `splatdeform example bar` writes exactly the bend.yaml the README
+    shows, and the Python snippet runs too; the `edit` step is started, its page fetched with
+    the printed token, then stopped with SIGTERM (exit 0)."""
     readme = (ROOT / "README.md").read_text()
     quick = readme.split("## Quick start", 1)[1].split("\n## ", 1)[0]
-    (tmp_path / "bend.yaml").write_text(_blocks(quick, "yaml")[0])
-    env = dict(os.environ, PYTHONPATH=str(ROOT), PATH=f"{BIN}{os.pathsep}{os.environ['PATH']}")
+    bin_dir = _fresh_venv_with_wheel(tmp_path)
+    work = tmp_path / "work"
+    work.mkdir()
+    env = {k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "VIRTUAL_ENV")}
+    env["PATH"] = f"{bin_dir}{os.pathsep}{os.environ['PATH']}"
+    where = subprocess.run(["python", "-c", "import splatdeform, importlib.util; "
+                            "print(splatdeform.__file__, importlib.util.find_spec('data_tools'))"],
+                           cwd=work, env=env, capture_output=True, text=True, timeout=120)
+    assert where.returncode == 0, where.stderr
+    assert where.stdout.startswith(str(bin_dir.parent)) and where.stdout.split()[1] == "None"
+    version = subprocess.run(["splatdeform", "--version"], cwd=work, env=env,
+                             capture_output=True, text=True, timeout=120)
+    assert version.stdout.strip() == "splatdeform 0.1.0", version.stdout + version.stderr
     lines = [ln.split("#", 1)[0].strip() for block in _blocks(quick, "bash")
              for ln in block.splitlines()]
     lines = [ln for ln in lines if ln]
     assert [ln.split()[1] for ln in lines if ln.startswith("splatdeform")] == \
-        ["select", "deform", "render", "edit"]
+        ["example", "select", "deform", "render", "edit"]
     for line in lines:
         if line.startswith("splatdeform edit"):
             continue
-        run = subprocess.run(line, shell=True, cwd=tmp_path, env=env, capture_output=True,
+        run = subprocess.run(line, shell=True, cwd=work, env=env, capture_output=True,
                              text=True, timeout=300)
         assert run.returncode == 0, f"{line}: {run.stdout}{run.stderr}"
-    assert (tmp_path / "out" / "bar_bent.ply").is_file()
-    assert (tmp_path / "out" / "before_after.png").is_file()
+        if line.startswith("splatdeform example"):
+            assert (work / "bend.yaml").read_text() == _blocks(quick, "yaml")[0]
+    assert (work / "out" / "bar_bent.ply").is_file()
+    assert (work / "out" / "before_after.png").is_file()
+    snippet = subprocess.run(["python", "-c", _blocks(quick, "python")[0]], cwd=work, env=env,
+                             capture_output=True, text=True, timeout=300)
+    assert snippet.returncode == 0, snippet.stderr
+    centers, converged = snippet.stdout.split()
+    assert int(centers) > 0 and converged == "True"
 
     edit = next(ln for ln in lines if ln.startswith("splatdeform edit"))
-    proc = subprocess.Popen(edit.split() + ["--port", "0"], cwd=tmp_path, env=env,
+    proc = subprocess.Popen(edit.split() + ["--port", "0"], cwd=work, env=env,
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     try:
         url = None

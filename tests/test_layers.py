@@ -16,10 +16,10 @@ import pytest
 
 PACKAGE = Path(__file__).resolve().parents[1] / "splatdeform"
 RANK = {"errors": 0, "lazy": 0, "interrupts": 0, "blas": 0, "progress": 0, "dask_client": 0,
-        "model": 1, "geometry": 1,
+        "suggest": 0, "model": 1, "geometry": 1,
         "resources": 1, "io": 2, "rbf": 2, "info": 2, "memory": 2, "basis": 3, "deform": 4,
         "render": 5, "edit": 6, "editor": 7, "batch": 7, "field": 7, "field_schema": 7,
-        "field_apply": 7, "conversion": 8, "verbs": 8,
+        "field_apply": 7, "conversion": 8, "verbs": 8, "examples": 8,
         "cli": 8}
 CONFIG_LAYER = "edit"
 BELOW_CONFIG = [name for name, rank in RANK.items() if rank < RANK[CONFIG_LAYER]]

@@ -449,10 +449,14 @@ def validation_error(source: str, exc: ValidationError, prefix: str = "",
     ``roots``: base classes of the config models validated (default: the edit config's)."""
     errors = exc.errors()
     # prefer errors that are not union-branch noise: the deepest location first
-    err = max(errors, key=lambda e: (e["type"] != "model_type", len(e["loc"])))
+    err = max(errors, key=lambda e: (e["type"] != "model_type", len(e["loc"]),
+                                     e["type"] == "extra_forbidden"))  # 'mins' over 'min'
     loc = _loc(err["loc"], err["type"], roots or (_Strict,))
     path = f"{prefix}.{loc}" if prefix and loc != "(top level)" else (prefix or loc)
-    return ConfigError.at(path, _message(err), file=source)
+    from splatdeform.edit.hints import hint  # did you mean: the allowed keys / values
+
+    return ConfigError.at(path, _message(err) + hint(err, exc.title, roots or (_Strict,)),
+                          file=source)
 
 
 def parse_edit(data: dict[str, Any], source: str, prefix: str = "") -> EditConfig:
