@@ -91,3 +91,18 @@ def test_touching_regions_still_deform_alike(tmp_path):
     assert np.array_equal(whole[: N // 2], before[: N // 2])
     assert np.array_equal(streamed[: N // 2], before[: N // 2])
     assert np.abs(whole - streamed).max() < 1e-3
+
+
+def test_points_edit_with_a_separate_fixed_cluster(tmp_path):
+    """Control-point pairs in the free cluster and a fixed cluster apart: the same line from
+    deform and select (the fixed rings of a points: edit)."""
+    config, _ = _clusters(tmp_path, 5, 2.0, 2.0)
+    text = config.read_text().split("  handle:")[0]
+    config.write_text(text + "points:\n  pairs: [[3.5,0.5,0.5,3.5,0.7,0.5], "
+                      "[3.2,0.2,0.8,3.2,0.3,0.8]]\n")
+    before = snapshot(tmp_path)
+    lines = {cmd: one_error_line(run_cli(cmd, config, cwd=tmp_path), 2,
+                                 ["regions.fixed", "no fixed point is adjacent"])
+             for cmd in ("deform", "select")}
+    assert lines["deform"] == lines["select"]
+    assert snapshot(tmp_path) == before
