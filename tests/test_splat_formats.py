@@ -575,7 +575,9 @@ def test_sog_bad_meta_is_one_line(tmp_path):
         members = {name: z.read(name) for name in z.namelist()}
     meta = json.loads(members["meta.json"])
     cases = {"version": (dict(meta, version=3), "SOG version 3 is not supported"),
-             "count": (dict(meta, count=10**6), "pixels for 1,000,000 splats"),
+             "count": (dict(meta, count=500_000), "pixels for 500,000 splats"),
+             "implausible": (dict(meta, count=10**6),   # 20 MB of pixels from 18 KB
+                             "1,000,000 splats .* compresses at most 64x"),
              "codebook": (dict(meta, scales={**meta["scales"], "codebook": [0.0] * 5}),
                           "'scales.codebook' must be 256"),
              "missing": (dict(meta, quats={"files": ["nope.webp"]}), "has no nope.webp"),

@@ -48,6 +48,7 @@ from .splats import (
     note_lossy,
     restore_largest,
 )
+from .spz import PLAUSIBLE_RATIO, PLAUSIBLE_SLACK
 
 VERSION = 2
 CODEBOOK = 256
@@ -72,6 +73,9 @@ MAX_LOG_POSITION = 88.0
 # bytes a decode holds per splat (the RGBA images, the codes, float fields, the model's table)
 # and per SH rest coefficient: what the memory cap is checked against before reading images
 DECODED_PER_SPLAT = 320
+#: pixel bytes a splat takes in the five per-splat RGBA images (means_l, means_u, quats, scales,
+#: sh0): held, like an SPZ stream, to at most PLAUSIBLE_RATIO x the stored bytes (+ slack)
+PIXEL_BYTES = 20
 DECODED_PER_COEFF = 48
 SEED = 0
 LOSSES = ("positions 16 bits per axis (log-spaced), rotation 8 bits per component, log "
@@ -176,7 +180,33 @@ def _meta(path: Path, files: _Files) -> dict:
     k = SH_COEFFS.get(bands, 0) if isinstance(bands, int) else 0
     check_declared(path, f"SOG meta.json ({count:,} splats)", count,
                    decoded=count * (DECODED_PER_SPLAT + DECODED_PER_COEFF * k))
+    stored = _stored_bytes(path, files, meta, len(raw))
+    if count * PIXEL_BYTES > PLAUSIBLE_RATIO * stored + PLAUSIBLE_SLACK:
+        raise FormatError(f"{path}: SOG meta.json declares {count:,} splats "
+                          f"({count * PIXEL_BYTES:,} bytes of pixels) in {stored:,} stored "
+                          "bytes; splat data compresses "
+                          f"at most {PLAUSIBLE_RATIO}x (+{PLAUSIBLE_SLACK >> 20} MiB) here: "
+                          "refused before decoding its images")
     return meta
+
+
+def _stored_bytes(path: Path, files: _Files, meta: dict, meta_bytes: int) -> int:
+    """The bytes the scene is stored in: a bundle's members as compressed, or meta.json and the
+    plain-named files its entries list beside it (those that exist)."""
+    if files.zip is not None:
+        return sum(info.compress_size for info in files.zip.infolist())
+    total = meta_bytes
+    for key in FILES:
+        entry = meta.get(key)
+        names = entry.get("files") if isinstance(entry, dict) else None
+        for name in names if isinstance(names, list) else ():
+            if isinstance(name, str) and name and "/" not in name and "\\" not in name \
+                    and "\x00" not in name and not name.startswith("."):
+                try:
+                    total += (path.parent / name).stat().st_size
+                except OSError:
+                    continue
+    return total
 
 
 def _entry(path: Path, meta: dict, key: str, files: int) -> dict:
@@ -592,6 +622,7 @@ def write_model(model: PointModel, path: Path, stream) -> None:
     fields = fields_of(model, path, ".sog")
     note_lossy(path, ".sog", LOSSES, model)
     members = encode(fields, **_kept(model, fields))
+    _check_readable(path, fields.count, members)
     with zipfile.ZipFile(stream, "w", compression=zipfile.ZIP_STORED) as bundle:
         for name in ("meta.json", *[m for m in members if m != "meta.json"]):
             info = zipfile.ZipInfo(name, date_time=(2020, 1, 1, 0, 0, 0))
@@ -606,9 +637,21 @@ def write_folder(model: PointModel, path: Path) -> None:
     fields = fields_of(model, path, "SOG (meta.json)")
     note_lossy(path, "SOG", LOSSES, model)
     members = encode(fields, **_kept(model, fields))
+    _check_readable(path, fields.count, members)
     for name in [m for m in members if m != "meta.json"] + ["meta.json"]:
         with atomic_write(path if name == "meta.json" else path.parent / name) as stream:
             stream.write(members[name])
+
+
+def _check_readable(path: Path, count: int, members: dict[str, bytes]) -> None:
+    """Refuse a scene whose images compress beyond what the reader accepts (near-identical
+    splats: :data:`PIXEL_BYTES` x count more than PLAUSIBLE_RATIO x the stored bytes + slack):
+    what we write, we read back."""
+    stored = sum(len(raw) for raw in members.values())
+    if count * PIXEL_BYTES > PLAUSIBLE_RATIO * stored + PLAUSIBLE_SLACK:
+        raise FormatError(f"{path}: {count:,} splats compress to {stored:,} bytes of images, "
+                          f"more than the {PLAUSIBLE_RATIO}x a SOG reader here accepts (a scene "
+                          "of near-identical splats); write .ply instead")
 
 
 def _kept(model: PointModel, fields: SplatFields) -> dict:
