@@ -163,8 +163,13 @@ def _apply(deformation: Deformation, model: PointModel, delta: np.ndarray,
         values = deformation.basis.values.astype(np.float64, copy=False)
         out.positions[free] = ap.displace(model.positions[free], values, delta)
     mov = deformation.moving_idx
-    out.positions[mov] = model.positions[mov] + deformation.moving_coords @ delta
-    for group, matrix in handle_matrices(deformation, moving_matrix):
+    pairs = handle_matrices(deformation, moving_matrix)
+    covered = np.zeros(mov.size, dtype=bool)
+    for group, _ in pairs:
+        covered[group.rows] = True
+    if not covered.all():  # rows no 4x4 map overwrites below move by their coordinates
+        out.positions[mov] = model.positions[mov] + deformation.moving_coords @ delta
+    for group, matrix in pairs:
         rows = mov[group.rows]
         out.positions[rows] = apply_affine(matrix, model.positions[rows])
     if needs_jac:
