@@ -25,7 +25,10 @@ $(STAMP): pyproject.toml
 	$(PY) -m pip install -q -e '.[dev,dask]'
 	touch $(STAMP)
 
+# setup also builds the OpenCL kernels once (PoCL caches them: a fresh machine's first deform
+# would otherwise spend seconds compiling; nothing to do without a device)
 setup: $(STAMP)
+	$(PY) -m splatdeform.basis.kernel_cache
 
 # The splat-format tests' independent oracle: PlayCanvas splat-transform, pinned, from the npm
 # registry into .cache/splat-transform (git-ignored, kept between runs). Node: Debian's if it

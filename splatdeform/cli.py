@@ -422,6 +422,9 @@ def _run(argv: list[str], debug: bool) -> int:
 
     try:
         _lossy_writes_as_lines()  # inside the try: an import here may meet a SIGTERM
+        from .basis.kernel_cache import set_note_sink
+
+        set_note_sink(lambda line: print(f"splatdeform: {line}", file=sys.stderr, flush=True))
         args = build_parser().parse_args(argv)
         if args.command == "render" and len(args.models) > 2:
             raise InputError("render: expected one or two model files")

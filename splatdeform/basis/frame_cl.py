@@ -13,6 +13,7 @@ import numpy as np
 
 from ..errors import DeviceError, InputError
 from ..resources import resource_path
+from .kernel_cache import noting_slow_build
 from .opencl import _select_device, _state, cl
 
 #: work-items per work-group (PoCL vectorises a group's work-items: 64 measured fastest)
@@ -26,8 +27,9 @@ def _program(state, k: int, normals: bool):
         if program is None:
             source = resource_path("kernels", "frame.cl").read_text()
             try:
-                program = cl.Program(state.context, source).build(
-                    options=[f"-DK={k}", f"-DNORMALS={int(normals)}"])
+                with noting_slow_build("frames", state.device.platform.name):
+                    program = cl.Program(state.context, source).build(
+                        options=[f"-DK={k}", f"-DNORMALS={int(normals)}"])
             except cl.Error as exc:  # a broken kernel source is our bug, not the user's input
                 raise RuntimeError(f"kernels/frame.cl failed to build: {exc}") from exc
             state.programs[key] = program

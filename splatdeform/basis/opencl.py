@@ -5,8 +5,9 @@ The one place in the package that creates an OpenCL context. Device choice, in o
 case-insensitive substring of the device or platform name), the ``PYOPENCL_CTX`` environment
 variable (same syntax), then the first GPU, then the first CPU (then any) device.
 
-Contexts, queues and built programs are cached per device for the life of the process; pyopencl's
-on-disk program cache (which follows the ``-I`` includes) makes later processes skip the build.
+Contexts, queues and built programs are cached per device for the life of the process; on disk,
+PoCL's cache (pyopencl leaves PoCL's builds to it) or pyopencl's (which follows the ``-I``
+includes) makes later processes skip the build (:mod:`.kernel_cache`: the first build's note).
 """
 
 from __future__ import annotations
@@ -22,6 +23,7 @@ from ..errors import DeviceError, InputError
 from ..rbf.result import RbfFit
 from ..resources import resource_dir, resource_path
 from .checks import check_fit, check_points
+from .kernel_cache import noting_slow_build
 from .result import Basis
 
 try:  # pyopencl is a hard dependency, but a broken install must read as "no device"
@@ -232,7 +234,8 @@ def _kernel(state: _DeviceState, config: _Config) -> object:
         if program is None:
             source = resource_path("kernels", "basis.cl").read_text()
             try:
-                program = cl.Program(state.context, source).build(options=config.options())
+                with noting_slow_build("basis", state.device.platform.name):
+                    program = cl.Program(state.context, source).build(options=config.options())
             except cl.Error as exc:  # a broken kernel source is our bug, not the user's input
                 raise RuntimeError(f"kernels/basis.cl failed to build: {exc}") from exc
             state.programs[config] = program
