@@ -52,6 +52,11 @@ def check_fits(what: str, values: np.ndarray, dtype: np.dtype | str, fmt: str = 
         if values.dtype.kind == "f" and values.dtype.itemsize <= dtype.itemsize:
             return
         top = float(np.finfo(dtype).max)
+        if values.dtype.kind != "f":   # no integer type reaches a float type's range
+            return
+        if max(-float(np.fmin.reduce(values, axis=None)),
+               float(np.fmax.reduce(values, axis=None))) <= top:
+            return   # two reductions, no temporaries: the usual case
         with np.errstate(invalid="ignore"):
             big = np.abs(values.astype(np.float64, copy=False)) > top
         big &= np.isfinite(values)
@@ -62,6 +67,10 @@ def check_fits(what: str, values: np.ndarray, dtype: np.dtype | str, fmt: str = 
                               f"{int(big.sum()):,} such value(s)")
         return
     info = np.iinfo(dtype)
+    with np.errstate(invalid="ignore"):
+        if float(np.fmin.reduce(values, axis=None)) >= info.min and \
+                float(np.fmax.reduce(values, axis=None)) <= info.max:
+            return   # NaN is skipped by fmin/fmax: the caller's business
     v = values.astype(np.float64, copy=False) if values.dtype.kind == "f" else values
     with np.errstate(invalid="ignore"):
         bad = (v < info.min) | (v > info.max)
