@@ -114,7 +114,7 @@ class Format:
         try:
             self._write(model, path, text)
         except SplatdeformError as exc:
-            if exc.file is None and not str(exc).startswith(str(path)):
+            if exc.file is None and str(path) not in str(exc):
                 exc.in_file(str(path))
             raise
 
