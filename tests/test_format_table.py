@@ -121,10 +121,7 @@ NOT_FORMATS = {
 }
 #: comparisons to move onto ``splatdeform.io.extension_of`` (owned elsewhere), by (module,
 #: function): why; remove an entry when it is fixed
-PENDING = {
-    ("edit/selectors/indices.py", "load_indices"):
-        "case-sensitive `.suffix == '.npy'` (P.NPY): issue 44 item 4 reads it through io",
-}
+PENDING: dict[tuple[str, str], str] = {}
 #: an extension as a string: ``.ply``, ``.compressed.ply``, ``.tar.gz``
 EXTENSION = re.compile(r"^\.[a-z0-9]+(\.[a-z0-9]+)*$", re.IGNORECASE)
 PARSERS = {"extension_of", "split_extension"}

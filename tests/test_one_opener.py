@@ -55,3 +55,24 @@ def test_a_camera_file_is_read_through_the_one_opener(tmp_path, kind):
             fh.truncate(MAX_CAMERA_BYTES + 1)
     with pytest.raises(InputError, match="c.camera.json"):
         load_camera(cam)
+
+
+def test_an_indices_file_is_read_through_io(tmp_path):
+    """``.NPY`` is a .npy array (io's case-insensitive parser, not ``.suffix == '.npy'``), the
+    file goes through the one opener, and an error quotes no more than a short line of it."""
+    import numpy as np
+
+    from splatdeform.edit.selectors.indices import Indices, load_indices
+
+    np.save(tmp_path / "p.npy", np.array([3, 1, 2], dtype=np.int32))
+    (tmp_path / "p.npy").rename(tmp_path / "P.NPY")
+    assert load_indices(Indices(file="P.NPY"), tmp_path).tolist() == [3, 1, 2]
+    (tmp_path / "t.txt").write_text("4\n5\n")
+    assert load_indices(Indices(file="t.txt"), tmp_path).tolist() == [4, 5]
+    (tmp_path / "long.txt").write_text("x" * 5000 + "\n")
+    with pytest.raises(InputError, match="long.txt") as info:
+        load_indices(Indices(file="long.txt"), tmp_path)
+    assert len(str(info.value)) < 300
+    os.mkfifo(tmp_path / "f.txt")
+    with pytest.raises(InputError, match="f.txt"):
+        load_indices(Indices(file="f.txt"), tmp_path)

@@ -3,6 +3,7 @@ whitespace-separated integers, or a .npy integer array; relative to the config's
 
 from __future__ import annotations
 
+import io
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
@@ -14,6 +15,7 @@ from pydantic import Field, field_validator
 from splatdeform.edit.schema import Index, Strict
 from splatdeform.edit.units import Frame, check_units
 from splatdeform.errors import InputError
+from splatdeform.io import extension_of
 from splatdeform.model import PointModel
 
 NAME = "indices"
@@ -94,33 +96,52 @@ def load_indices(sel: Indices, base_dir: Path | None) -> np.ndarray:
     path = Path(sel.file)
     if base_dir is not None and not path.is_absolute():
         path = base_dir / path
-    if not path.is_file():
-        what = "is not a regular file" if path.exists() else "indices file not found"
-        raise InputError(f"{path}: {what}")
-    size = path.stat().st_size
-    if size > MAX_FILE_BYTES:
-        raise InputError(f"{path}: the indices file has {size} bytes, more than "
-                         f"{MAX_FILE_BYTES >> 20} MB")
-    if size == 0:
-        raise InputError(f"{path}: the indices file is empty; expected integer point indices")
+    raw = _read_indices_file(path)
     try:
-        if path.suffix == ".npy":
-            raw = np.load(path, allow_pickle=False)
-            if raw.dtype.kind not in "iu":
-                raise ValueError(f"expected an integer array, got dtype {raw.dtype}")
-            if raw.size and raw.dtype.kind == "u" and raw.max() > np.iinfo(np.int64).max:
+        if extension_of(path) == ".npy":   # io's one parser: P.NPY is a .npy array too
+            arr = np.load(io.BytesIO(raw), allow_pickle=False)
+            if arr.dtype.kind not in "iu":
+                raise ValueError(f"expected an integer array, got dtype {arr.dtype}")
+            if arr.size and arr.dtype.kind == "u" and arr.max() > np.iinfo(np.int64).max:
                 raise OverflowError("index too large")
-            return raw.astype(np.int64).ravel()
+            return arr.astype(np.int64).ravel()
+        try:
+            text = raw.decode("utf-8-sig")
+        except UnicodeDecodeError:
+            raise ValueError("not UTF-8 text (a .npy array needs the .npy extension)") from None
         with warnings.catch_warnings():
             warnings.simplefilter("error")  # "input contained no data" becomes the error below
-            return np.loadtxt(path, dtype=np.int64, ndmin=1).ravel()
+            return np.loadtxt(io.StringIO(text), dtype=np.int64, ndmin=1).ravel()
     except UserWarning:
         raise InputError(f"{path}: holds no indices (only blanks or comments); expected integer "
                          "point indices") from None
-    except (ValueError, OverflowError) as exc:
-        raise InputError(f"{path}: expected integer point indices: {exc}") from exc
+    except (ValueError, OverflowError, EOFError) as exc:
+        raise InputError(f"{path}: expected integer point indices: {_short(exc)}") from None
+
+
+def _short(exc: BaseException) -> str:
+    """The first line of ``exc``, at most 120 characters: never a file's contents at length."""
+    text = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+    return text if len(text) <= 120 else text[:117] + "..."
+
+
+def _read_indices_file(path: Path) -> bytes:
+    """The bytes of an indices file through the one opener (a regular file of at most
+    MAX_FILE_BYTES); InputError naming it otherwise."""
+    from splatdeform.errors import FormatError
+    from splatdeform.io.regular import read_regular
+
+    try:
+        raw = read_regular(path, max_bytes=MAX_FILE_BYTES, what="indices file")
+    except FileNotFoundError:
+        raise InputError(f"{path}: indices file not found") from None
+    except FormatError as exc:
+        raise InputError(str(exc)) from None
     except OSError as exc:
-        raise InputError(f"{path}: cannot read the indices file ({exc.strerror or exc})") from exc
+        raise InputError(f"{path}: cannot read the indices file ({exc.strerror or exc})") from None
+    if not raw:
+        raise InputError(f"{path}: the indices file is empty; expected integer point indices")
+    return raw
 
 
 class Entry(Strict):
