@@ -13,7 +13,8 @@ Printed per size:
   checkout and, with ``--before REV``, with ``splatdeform/deform/rings.py`` of REV (the same
   graph is checked), best of ``--repeat``;
 - whole processes: ``deform`` in memory and with ``--memory-budget`` (streamed): the rings
-  stage as the CLI reports it, the process time and peak RSS, and the ratios in/streamed.
+  stage as the CLI reports it (streamed: plus passes 3 and 4, which gather the border set the
+  rings run on), the process time and peak RSS, and the ratios in/streamed.
 """
 
 from __future__ import annotations
@@ -49,14 +50,15 @@ RUN = """
 import resource, subprocess, sys, time
 t0 = time.perf_counter()
 out = subprocess.run(sys.argv[1:], capture_output=True, text=True)
-sys.stdout.write(out.stdout)
+sys.stdout.write(out.stdout + out.stderr)
 print("#", out.returncode, time.perf_counter() - t0,
       resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss)
 """
 
 
 def run_deform(cfg: Path, extra: list[str]) -> tuple[float, float, float]:
-    """(process seconds, peak RSS MB, rings stage seconds) of one ``deform`` process."""
+    """(process seconds, peak RSS MB, rings stage seconds) of one ``deform`` process; streamed,
+    the rings stage is the rings on the border set plus passes 3 and 4 (which gather it)."""
     out = subprocess.run([sys.executable, "-c", RUN, sys.executable, "-m", "splatdeform.cli",
                           "deform", str(cfg), *extra], capture_output=True, text=True,
                          cwd=ROOT, check=True).stdout
@@ -64,7 +66,11 @@ def run_deform(cfg: Path, extra: list[str]) -> tuple[float, float, float]:
     if last[1] != "0":
         raise SystemExit(f"deform failed:\n{out}")
     rings = re.search(r"^rings\s+([0-9.]+) s", out, re.M)
-    return float(last[2]), int(last[3]) / 1024, float(rings.group(1)) if rings else float("nan")
+    seconds = float(rings.group(1)) if rings else float("nan")
+    for step in re.findall(r"^pass [34] \(border [a-z]+\): [0-9,]+ points in ([0-9.]+) s", out,
+                           re.M):
+        seconds += float(step)
+    return float(last[2]), int(last[3]) / 1024, seconds
 
 
 def old_rings(rev: str):
@@ -133,7 +139,7 @@ def main() -> None:
             streamed = run_deform(cfg, ["--memory-budget", args.budget])
             print(f"{'':>18}deform in memory: {mem[0]:6.2f} s, peak {mem[1]:6.0f} MB, rings "
                   f"{mem[2]:.2f} s | streamed ({args.budget}): {streamed[0]:6.2f} s, peak "
-                  f"{streamed[1]:6.0f} MB, rings {streamed[2]:.2f} s | in/streamed: "
+                  f"{streamed[1]:6.0f} MB, rings + passes 3-4 {streamed[2]:.2f} s | in/streamed: "
                   f"process {mem[0] / streamed[0]:.2f}, rings {mem[2] / streamed[2]:.2f}",
                   flush=True)
     with open("/proc/loadavg") as f:

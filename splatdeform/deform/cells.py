@@ -36,10 +36,12 @@ _BLOCK27 = np.array([[i, j, k] for i in (-1, 0, 1) for j in (-1, 0, 1) for k in 
 _POPCOUNT = np.array([bin(i).count("1") for i in range(256)], dtype=np.uint8)
 
 
-def cell_keys(positions: np.ndarray, edge: float) -> tuple[np.ndarray, np.ndarray, float]:
+def cell_keys(positions: np.ndarray, edge: float, box: tuple | None = None
+              ) -> tuple[np.ndarray, np.ndarray, float]:
     """(keys (N,) int64, strides (3,) int64, number of cells in the grid) of the cells of edge
-    ``edge`` holding points (N, 3): ``(floor((p - lo) / edge) + 1) . strides``."""
-    lo, hi = bounds(positions)
+    ``edge`` holding points (N, 3): ``(floor((p - lo) / edge) + 1) . strides``; ``box`` the
+    points' (lo, hi) when known."""
+    lo, hi = bounds(positions) if box is None else box
     n = positions.shape[0]
     # floor is monotone, so the largest ijk is the box corner's (no pass to find it)
     dims = np.floor((hi - lo) / edge).astype(np.int64) + 3
@@ -87,10 +89,10 @@ class Cells:
     the sorted layout). ``occupied`` (C,) int64: the ids of cells holding points.
     """
 
-    def __init__(self, positions: np.ndarray, edge: float) -> None:
+    def __init__(self, positions: np.ndarray, edge: float, box: tuple | None = None) -> None:
         n = positions.shape[0]
         self.edge = float(edge)
-        keys, self.strides, total = cell_keys(positions, edge)
+        keys, self.strides, total = cell_keys(positions, edge, box)
         self.dense = total <= max(_DENSE_PER_POINT * n, _DENSE_MIN)
         if self.dense:
             self.size = int(total)
@@ -207,7 +209,7 @@ def levels_around(cells: Cells, core: np.ndarray, reach: int) -> np.ndarray:
 
 
 def kth_distances(positions: np.ndarray, idx: np.ndarray, k1: int, guess: float,
-                  attempts: int = 4, max_share: float = 0.25
+                  attempts: int = 4, max_share: float = 0.25, box: tuple | None = None
                   ) -> tuple[np.ndarray, cKDTree | None]:
     """(Q,) exact distance of points ``idx`` (Q,) to their ``k1``-th nearest point (themselves
     counted), from kd-trees over the cells around them: cells of edge ``guess`` first, doubled
@@ -222,7 +224,7 @@ def kth_distances(positions: np.ndarray, idx: np.ndarray, k1: int, guess: float,
         if todo.size == 0 or not edge > 0:
             break
         try:
-            keys, strides, total = cell_keys(positions, edge)
+            keys, strides, total = cell_keys(positions, edge, box)
         except GridTooFine:
             break
         near = np.unique((keys[idx[todo]][:, None] + (_BLOCK27 @ strides)[None, :]).ravel())

@@ -76,7 +76,8 @@ def sample_indices(n: int, seed: int = 0) -> np.ndarray:
     return np.random.default_rng(seed).choice(n, _SPACING_SAMPLE, replace=False)
 
 
-def knn_radius(positions: np.ndarray, k: int, seed: int = 0) -> tuple[float, cKDTree | None]:
+def knn_radius(positions: np.ndarray, k: int, seed: int = 0, box: tuple | None = None
+               ) -> tuple[float, cKDTree | None]:
     """A high quantile of the distance to the k-th nearest neighbour over a seeded sample: the
     whole-model tree's value, from trees over the cells around the sample when those hold a
     small share of the model; with the whole-model tree when one was built (else None)."""
@@ -88,8 +89,9 @@ def knn_radius(positions: np.ndarray, k: int, seed: int = 0) -> tuple[float, cKD
         own = knn_query(cKDTree(sample), sample, k=k1)[0][:, -1]
         guess = float(np.quantile(own, 0.9)) * (idx.size / n) ** 0.5  # ~90% certified
     else:
-        guess = float(np.linalg.norm(np.subtract(*bounds(positions)[::-1])))
-    dist, whole = kth_distances(positions, idx, k1, guess)
+        lo, hi = bounds(positions) if box is None else box
+        guess = float(np.linalg.norm(hi - lo))
+    dist, whole = kth_distances(positions, idx, k1, guess, box=box)
     return float(np.quantile(dist, 0.999)), whole
 
 
@@ -116,14 +118,14 @@ def border_knn_adjacency(positions: np.ndarray, labels: np.ndarray, neighbors: i
     k = int(min(neighbors, n - 1))
     if k <= 0:
         return _symmetric(np.empty((0, 2), dtype=np.int64), n)
-    radius, tree = knn_radius(positions, k)
     lo, hi = bounds(positions)
+    radius, tree = knn_radius(positions, k, box=(lo, hi))
     extent = float((hi - lo).max())
     search: SubsetKnn | None = None
     frontier = np.arange(n)
     if radius > 0 and 2 * radius * _BAND_SAFETY < extent:
         try:
-            cells = Cells(positions, 2 * radius * _BAND_SAFETY)
+            cells = Cells(positions, 2 * radius * _BAND_SAFETY, (lo, hi))
         except GridTooFine:
             cells = None
         if cells is not None:
