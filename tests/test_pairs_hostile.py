@@ -7,7 +7,8 @@ peak memory under 300 MB:
 
 - a pair whose source lies in the fixed region or in the handle (was a residual of 2.5e19 and
   points moved by 3e19, exit 0);
-- two sources 1e-7 apart with different targets (moved points 7.4e5 units in a 10-unit model);
+- two sources 1e-7 apart with different targets (moved points 7.4e5 units in a 10-unit model):
+  close sources whose displacements differ by more than their distance;
 - a fit whose largest pair residual exceeds ``points.tolerance`` times the largest pair
   displacement (here: too few centers for 300 pairs);
 - numbers in a pairs CSV read strictly (``1_0.5`` was 10.5; nan, inf, hex, 1e400, non-ASCII
@@ -180,10 +181,10 @@ def test_inline_pairs_bounded_before_the_yaml_is_built(tmp_path, cloud, count, s
     rows = np.random.default_rng(count).integers(1, 9, (count, 6))
     if style == "flow":
         text = "points:\n  pairs: [" + ",".join(
-            "[%d,%d,%d,%d,%d,%d]" % tuple(r) for r in rows) + "]\n"
+            "[" + ",".join(map(str, r)) + "]" for r in rows) + "]\n"
     else:
         text = "points:\n  pairs:\n" + "".join(
-            "  - [%d,%d,%d,%d,%d,%d]\n" % tuple(r) for r in rows)
+            "  - [" + ",".join(map(str, r)) + "]\n" for r in rows)
     config = write_config(folder, "input: m.ply\noutput: out.ply\n" + text)
     assert config.stat().st_size < 2 * 2**20   # under the config size cap
     before = snapshot(folder)
@@ -215,6 +216,9 @@ def test_close_sources_found_among_many():
     rows = [f"r{i}" for i in range(src.shape[0])]
     with pytest.raises(ConfigError, match=r"r150000 lies .* from r70000"):
         check_close_sources(Pairs(near, moved, rows), diag)
+    agree = moved.copy()   # close sources that agree within their distance: kept
+    agree[150_000] = near[150_000] + 1.0 + NEAR_DISTANCE * diag / 10
+    check_close_sources(Pairs(near, agree, rows), diag)
     same = near.copy()
     same[[5, 9, 12, 190_000]] = same[3]
     with pytest.raises(ConfigError, match=r"r5 (duplicates|conflicts with) r3"):

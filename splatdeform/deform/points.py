@@ -17,11 +17,12 @@ densely (:func:`fit_smoothed`, at most :data:`EXACT_MAX_CONSTRAINTS` constraints
 
 Checks (one line naming the row): more than :data:`MAX_PAIRS` pairs; duplicate or conflicting
 pairs (sources closer than :data:`DUPLICATE_DISTANCE` of the model's diagonal), two sources
-closer than :data:`NEAR_DISTANCE` of the diagonal with different displacements (the field
-would fold between them), a source or target farther than :data:`PAIR_MARGIN` diagonals outside
-the model's bounding box, a source in a fixed region or a moving region (its nearest model
-point belongs to it: those points do not follow the field); without fixed regions or other
-metaphors, fewer than 4 pairs or an ill-conditioned affine part (:data:`AFFINE_MIN_RATIO`).
+closer than :data:`NEAR_DISTANCE` of the diagonal whose displacements differ by more than
+their distance (the field would fold between them), a source or target farther than
+:data:`PAIR_MARGIN` diagonals outside the model's bounding box, a source in a fixed region or a
+moving region (its nearest model point belongs to it: those points do not follow the field);
+without fixed regions or other metaphors, fewer than 4 pairs or an ill-conditioned affine part
+(:data:`AFFINE_MIN_RATIO`).
 After the fit (smoothing 0), a pair missed by more than ``tolerance`` times the largest pair
 displacement is refused (:func:`check_pair_residuals`): nothing is written.
 Duplicates and near pairs are found with a kd-tree (at most :data:`NEAR_NEIGHBOURS` neighbours
@@ -55,8 +56,10 @@ AFFINE_MIN_RATIO = 1e-3
 #: smoothing). 3,000 pairs take about a second and under 150 MB; 20,000 would take minutes and
 #: gigabytes. More pairs than this are refused at once (reading stops at the limit).
 MAX_PAIRS = 3_000
-#: Two sources closer than this (times the diagonal) with different displacements are refused:
-#: the interpolant would fold between them (1e-7 apart in a 10-unit model moved points 7e5).
+#: Two sources closer than this (times the diagonal) whose displacements differ by more than
+#: their distance are refused: the interpolant would fold between them (a strain above 1; 1e-7
+#: apart with targets 0.5 apart moved points of a 10-unit model by 7e5). Close pairs that agree
+#: (ground control points measured twice) are kept; the residual check still guards them.
 NEAR_DISTANCE = 1e-4
 NEAR_NEIGHBOURS = 8  # neighbours of each source searched for duplicates and near pairs
 PLANAR_HULL_RATIO = 0.1  # pairs flatter than this: the hull is taken in their principal plane
@@ -134,8 +137,8 @@ def _first_close(nbr: np.ndarray, hit: np.ndarray) -> tuple[int, int] | None:
 
 def check_close_sources(pairs: Pairs, diag: float) -> None:
     """Duplicates (sources within :data:`DUPLICATE_DISTANCE` diagonals) and near pairs (within
-    :data:`NEAR_DISTANCE` with displacements that differ by more than that): one line naming
-    both rows. Exact duplicates by sorting, the rest from each source's
+    :data:`NEAR_DISTANCE` diagonals, with displacements that differ by more than the sources'
+    distance): one line naming both rows. Exact duplicates by sorting, the rest from each source's
     :data:`NEAR_NEIGHBOURS` nearest sources in a kd-tree: O(n log n)."""
     from scipy.spatial import cKDTree
 
@@ -159,15 +162,16 @@ def check_close_sources(pairs: Pairs, diag: float) -> None:
     if found is not None:
         _refuse_close(pairs, *found, diag)
     disp = pairs.displacements
-    differ = np.linalg.norm(disp[nbr] - disp[:, None, :], axis=2) > atol
+    differ = np.linalg.norm(disp[nbr] - disp[:, None, :], axis=2) > np.maximum(dist, atol)
     found = _first_close(nbr, valid & differ)
     if found is not None:
         i, j = found
         d = float(np.linalg.norm(src[j] - src[i]))
         raise ConfigError.at(pairs.key, f"{pairs.rows[j]} lies {d:.3g} model units from "
                              f"{pairs.rows[i]} (closer than {NEAR_DISTANCE:g} of the model's "
-                             f"diagonal, {NEAR_DISTANCE * diag:.3g}) with another displacement: "
-                             "the field would fold between them; remove or merge one")
+                             f"diagonal, {NEAR_DISTANCE * diag:.3g}) and their displacements "
+                             "differ by more than that: the field would fold between them; "
+                             "remove or merge one")
 
 
 def _refuse_close(pairs: Pairs, i: int, j: int, diag: float) -> None:
