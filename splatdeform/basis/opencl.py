@@ -12,6 +12,7 @@ includes) makes later processes skip the build (:mod:`.kernel_cache`: the first 
 
 from __future__ import annotations
 
+import contextlib
 import os
 import threading
 from collections.abc import Iterator
@@ -320,7 +321,7 @@ def chunks(
 ) -> Iterator[tuple[int, int, np.ndarray, np.ndarray | None]]:
     """The basis of ``fit`` at ``points`` (N, 3) one device chunk at a time, never all N rows:
     yields (start, stop, values (m, k) float32, gradients (m, k, 3) float32 or None) for rows
-    start:stop, in views of one reused host buffer (valid until the next step). Precision
+    start:stop, in views of host buffers the step after next reuses. Precision
     ``auto`` (double where the device has it). What one-shot evaluation
     (:mod:`splatdeform.basis.oneshot`) runs with k = 3 columns W delta_c."""
     arr = _check_points(points)
@@ -345,7 +346,8 @@ def _chunks(
 ) -> Iterator[tuple[int, int, np.ndarray, np.ndarray | None]]:
     """Run the kernel chunk by chunk and yield (start, stop, values (m, k), grads (m, k, 3) or
     None) float32: rows of ``values`` / ``grads`` when given (the whole (N, ...) outputs), else
-    views of one chunk-sized host buffer reused by the next step."""
+    views of two chunk-sized host slots in turn. Chunk i + 1 is uploaded and its kernel started
+    before chunk i is yielded, so the device computes while the caller applies chunk i."""
     n_points, k, n_centers = arr.shape[0], weights.shape[1], centers.shape[0]
     gradients = config.gradients
     if n_points == 0:
@@ -362,9 +364,9 @@ def _chunks(
     chunk = min(chunk, max(1, int(dev.max_mem_alloc_size) // out_bytes))
     chunk = -(-chunk // group) * group
     own = values is None
-    if own:  # one chunk-sized host buffer, handed out a view at a time
-        values = np.empty((chunk, k), dtype=np.float32)
-        grads = np.empty((chunk, k, 3), dtype=np.float32) if gradients else None
+    if own:  # two chunk-sized host slots: one handed out while the next chunk computes
+        values = np.empty((2, chunk, k), dtype=np.float32)
+        grads = np.empty((2, chunk, k, 3), dtype=np.float32) if gradients else None
 
     mf = cl.mem_flags
     ctx, queue = state.context, state.queue
@@ -390,27 +392,44 @@ def _chunks(
         d_values,
         d_grads,
     )
+
+    def launch(start: int) -> None:
+        """Upload chunk ``start`` and start its kernel (returns without waiting for it)."""
+        stop = min(start + chunk, n_points)
+        m = stop - start
+        launched = -(-m // group) * group
+        block = host_points[:, :m]  # normalise straight into the (3, m) upload buffer
+        if config.fp64:
+            np.subtract(arr[start:stop].T, center[:, None], out=block, casting="unsafe")
+            block *= 1.0 / scale
+        else:  # normalise in float64, round to float32 once
+            block[...] = (arr[start:stop] - center).T / scale
+        host_points[:, m:launched] = 0.0
+        cl.enqueue_copy(queue, d_points, host_points)  # in order: after the previous kernel
+        kernel.set_arg(2, np.int32(m))
+        cl.enqueue_nd_range_kernel(queue, kernel, (launched // config.vw,), (config.wg,))
+        queue.flush()
+
+    starts = range(0, n_points, chunk)
     try:
-        for start in range(0, n_points, chunk):
+        launch(0)
+        for i, start in enumerate(starts):
             stop = min(start + chunk, n_points)
-            m = stop - start
-            launched = -(-m // group) * group
-            block = host_points[:, :m]  # normalise straight into the (3, m) upload buffer
-            if config.fp64:
-                np.subtract(arr[start:stop].T, center[:, None], out=block, casting="unsafe")
-                block *= 1.0 / scale
-            else:  # normalise in float64, round to float32 once
-                block[...] = (arr[start:stop] - center).T / scale
-            host_points[:, m:launched] = 0.0
-            cl.enqueue_copy(queue, d_points, host_points)
-            kernel.set_arg(2, np.int32(m))
-            cl.enqueue_nd_range_kernel(queue, kernel, (launched // config.vw,), (config.wg,))
-            rows = slice(0, m) if own else slice(start, stop)
-            cl.enqueue_copy(queue, values[rows], d_values)
-            if grads is not None:
-                cl.enqueue_copy(queue, grads[rows], d_grads)
-            yield start, stop, values[rows], None if grads is None else grads[rows]
+            if own:
+                out_v = values[i % 2, : stop - start]
+                out_g = None if grads is None else grads[i % 2, : stop - start]
+            else:
+                out_v = values[start:stop]
+                out_g = None if grads is None else grads[start:stop]
+            cl.enqueue_copy(queue, out_v, d_values)  # blocking: waits for chunk i's kernel
+            if out_g is not None:
+                cl.enqueue_copy(queue, out_g, d_grads)
+            if i + 1 < len(starts):  # the next chunk computes while the caller uses this one
+                launch(starts[i + 1])
+            yield start, stop, out_v, out_g
         queue.finish()
     finally:
+        with contextlib.suppress(Exception):  # a caller that stopped early: a kernel may run
+            queue.finish()
         for buf in (d_centers, d_poly, d_points, d_values, d_grads):
             buf.release()
