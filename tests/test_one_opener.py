@@ -76,3 +76,28 @@ def test_an_indices_file_is_read_through_io(tmp_path):
     os.mkfifo(tmp_path / "f.txt")
     with pytest.raises(InputError, match="f.txt"):
         load_indices(Indices(file="f.txt"), tmp_path)
+
+
+def test_box_and_plane_rules_are_one_each():
+    """A bad box or plane says the same thing from a config and from Python (issue 44)."""
+    import numpy as np
+
+    from splatdeform.edit.config import parse_edit
+    from splatdeform.edit.selectors.box import Box
+    from splatdeform.edit.selectors.plane import Plane
+    from splatdeform.errors import ConfigError
+    from splatdeform.model import PointModel
+
+    model = PointModel(positions=np.zeros((3, 3)))
+    for selector, python, words in [
+            ({"box": {"min": [2, 0, 0], "max": [1, 1, 1]}}, Box((2, 0, 0), (1, 1, 1)),
+             "exceeds max"),
+            ({"plane": {"point": [0, 0, 0], "normal": [0, 0, 0]}},
+             Plane((0, 0, 0), (0, 0, 0)), "non-zero vector")]:
+        with pytest.raises(ConfigError, match=words):
+            parse_edit({"input": "a.ply", "output": "b.ply",
+                        "regions": {"fixed": [selector],
+                                    "handle": [{"indices": [0]}]},
+                        "handle": {"matrix": np.eye(4).tolist()}}, "edit")
+        with pytest.raises(InputError, match=words):
+            python.mask(model)

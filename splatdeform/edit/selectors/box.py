@@ -53,8 +53,9 @@ class Box:
     def mask(self, model: PointModel, base_dir: Path | None = None) -> np.ndarray:
         """(N,) bool."""
         lo, hi = np.asarray(self.min, float), np.asarray(self.max, float)
-        if np.any(lo > hi):
-            raise InputError(f"box: min {list(self.min)} exceeds max {list(self.max)}")
+        problem = box_problem(list(self.min), list(self.max))
+        if problem:
+            raise InputError(f"box: {problem}")
         return _inside(model.positions, self.origin, self.scale, lo, hi)
 
     def in_units(self, units: str, frame: Frame) -> Box:
@@ -91,6 +92,14 @@ def in_frame(points: np.ndarray, origin, scale) -> np.ndarray:
     return (points - np.asarray(origin, float)) / np.asarray(scale, float)
 
 
+def box_problem(lo: list[float], hi: list[float]) -> str:
+    """What is wrong with corners ``lo``, ``hi`` ('' when nothing): the one rule of the config
+    (a ValueError there) and of a Box built in Python (an InputError)."""
+    if any(not a <= b for a, b in zip(lo, hi, strict=True)):
+        return f"min {lo} exceeds max {hi}; expected min <= max on every axis"
+    return ""
+
+
 class BoxCfg(Strict):
     min: Vec3 = Field(description="The low corner [x, y, z] (inclusive; in relative units "
                       "bounding-box coordinates)")
@@ -99,9 +108,9 @@ class BoxCfg(Strict):
 
     @model_validator(mode="after")
     def _ordered(self) -> BoxCfg:
-        if any(lo > hi for lo, hi in zip(self.min, self.max, strict=True)):
-            raise ValueError(f"min {self.min} exceeds max {self.max}; expected min <= max "
-                             "on every axis")
+        problem = box_problem(self.min, self.max)
+        if problem:
+            raise ValueError(problem)
         return self
 
 

@@ -53,8 +53,9 @@ class Plane:
     def mask(self, model: PointModel, base_dir: Path | None = None) -> np.ndarray:
         """(N,) bool."""
         normal = np.asarray(self.normal, float)
-        if not np.linalg.norm(normal) > 0:
-            raise InputError("plane: normal must be a non-zero vector")
+        problem = normal_problem(list(self.normal))
+        if problem:
+            raise InputError(f"plane: normal: {problem}")
         pts = in_frame(model.positions, self.origin, self.scale)
         return (pts - np.asarray(self.point, float)) @ normal >= 0
 
@@ -69,6 +70,14 @@ class Plane:
                        "normal": [float(v) for v in self.normal]}}
 
 
+def normal_problem(normal: list[float]) -> str:
+    """What is wrong with a plane's ``normal`` ('' when nothing): the one rule of the config
+    (a ValueError there) and of a Plane built in Python (an InputError)."""
+    if not np.linalg.norm(np.asarray(normal, dtype=np.float64)) > 0:
+        return f"expected a non-zero vector, got {normal}"
+    return ""
+
+
 class PlaneCfg(Strict):
     point: Vec3 = Field(description="A point on the plane (in relative units bounding-box "
                         "coordinates)")
@@ -78,8 +87,9 @@ class PlaneCfg(Strict):
     @field_validator("normal")
     @classmethod
     def _nonzero(cls, normal: list[float]) -> list[float]:
-        if not np.linalg.norm(np.asarray(normal, dtype=np.float64)) > 0:
-            raise ValueError(f"expected a non-zero vector, got {normal}")
+        problem = normal_problem(normal)
+        if problem:
+            raise ValueError(problem)
         return normal
 
 
