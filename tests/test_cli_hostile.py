@@ -227,12 +227,12 @@ def _limit_file_size(limit: int):
 
 def test_full_disk_one_line_nothing_left(scans, tmp_path):
     """A write that runs out of space (RLIMIT_FSIZE: the file size limit) fails with one line,
-    exit 1, and leaves neither the output nor a temporary file."""
+    exit 1, and leaves neither the output nor a temporary file (nor the folder made for it)."""
     cfg = write_config(tmp_path, base_config(scans))
     res = run("deform", cfg, cwd=tmp_path, preexec_fn=_limit_file_size(4096))
     line = one_error_line(res, 1)
     assert "too large" in line.lower() or "space" in line.lower(), line
-    assert list((tmp_path / "out").iterdir()) == []
+    assert not (tmp_path / "out").exists()
 
 
 @contextlib.contextmanager
