@@ -77,3 +77,49 @@ def test_deform_to_a_read_only_format_creates_nothing(field, tmp_path, monkeypat
     assert main(["deform", "e.yaml", "-o", "new3/sub/out.ksplat", "--quiet"]) == 2
     _one_line(capsys, "out.ksplat", "read only")
     assert _tree(tmp_path) == before
+
+
+BATCH = """scans: scans
+output_dir: ro
+edit:
+  regions:
+    units: relative
+    fixed: [{box: {min: [0,0,0], max: [0.2,1,1]}}]
+    handle: [{box: {min: [0.8,0,0], max: [1,1,1]}}]
+  handle:
+    transform: {translate: [0.05, 0, 0]}
+"""
+
+
+def test_batch_into_a_read_only_folder_names_the_report(tmp_path, monkeypatch, capsys):
+    """The report that cannot be written is named by its own path, never by the temporary
+    file beside it (a read-only tmpfs as root, which ignores permission bits; else 0555)."""
+    import os
+    import subprocess
+
+    from data_tools.synth import bumpy_bar
+
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "scans").mkdir()
+    sd.save(bumpy_bar(300, seed=1), tmp_path / "scans" / "a.ply")
+    (tmp_path / "b.yaml").write_text(BATCH)
+    ro = tmp_path / "ro"
+    ro.mkdir()
+    if os.geteuid() == 0:
+        res = subprocess.run(["mount", "-t", "tmpfs", "-o", "ro,size=64k", "tmpfs", str(ro)],
+                             capture_output=True, text=True)
+        if res.returncode != 0:
+            pytest.skip(f"cannot mount a read-only tmpfs: {res.stderr.strip()}")
+    else:
+        ro.chmod(0o555)
+    try:
+        assert main(["batch", "b.yaml", "--workers", "1"]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert err and f"{ro / 'report.json'}:" in err[-1], err
+        assert ".tmp" not in err[-1], err
+        assert list(ro.iterdir()) == []
+    finally:
+        if os.geteuid() == 0:
+            subprocess.run(["umount", str(ro)], check=False)
+        else:
+            ro.chmod(0o755)
