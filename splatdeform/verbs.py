@@ -68,6 +68,17 @@ def _show_warning(message, category, filename, lineno, file=None, line=None) -> 
     _warn(str(message))
 
 
+def _up_note(view, models) -> None:
+    """Say on stderr which up axis a render assumed when the file does not say and the shape
+    hints at another (render/upaxis.py's up_note); nothing when --up / a camera decided."""
+    from .render.upaxis import up_note
+
+    note = None if view.up or view.camera is not None else up_note(
+        [m for m in models if m is not None])
+    if note:
+        print(f"splatdeform: note: {note}", file=sys.stderr, flush=True)
+
+
 def cmd_deform(args: argparse.Namespace) -> int:
     from pathlib import Path
 
@@ -118,6 +129,7 @@ def cmd_deform(args: argparse.Namespace) -> int:
         budget = _budget(args.memory_budget, cfg.memory_budget)
         image = render_result(result, cfg, render_out, frames=args.frames, view=view,
                               budget=budget, color=args.color, input_path=base / cfg.input)
+        _up_note(view, [result.model])
     points = getattr(result, "points", None)   # a points: edit's pair residuals
     if args.save_field:
         from splatdeform.field import field_of_edit
@@ -214,8 +226,9 @@ def cmd_select(args: argparse.Namespace) -> int:
     print(format_counts(counts) + ("  (streamed within the memory budget; rings: see "
                                    "deform)" if streamed else ""))
     if pairs is not None:
-        print(f"pairs {pairs[0].n:,}" + ("" if pairs[1] is None else
-                                        f", check pairs {pairs[1].n:,}") + " (not fitted)")
+        check = "" if pairs[1] is None else f", check pairs {pairs[1].n:,}"
+        print(f"pairs {pairs[0].n:,}{check} (select fits nothing: deform reports their "
+              "residuals)")
     if args.output is not None:
         from .render import render_comparison
 
@@ -242,6 +255,7 @@ def cmd_select(args: argparse.Namespace) -> int:
             shown = _colored(model, color, view.up, [model])
             label = f"{cfg.input} ({color})"
         render_comparison(shown, None, args.output, view, labels=(label,), overlays=overlays)
+        _up_note(view, [model])
         if streamed and counts.points > shown.n_points:
             print(f"rendered {shown.n_points:,} of {counts.points:,} points (memory budget)")
         print(f"wrote {args.output}")
@@ -303,6 +317,7 @@ def cmd_render(args: argparse.Namespace) -> int:
     if view.camera is None:   # a camera file brings its panel size
         view = replace(view, size=(size[0] // 2, size[1]) if after is not None else size)
     render_comparison(models[0], after, args.output, view, labels=labels)
+    _up_note(view, [i.model for i in inputs])
     for r in inputs:
         if r.sampled:
             print(f"{r.model.path}: {r.line()}")

@@ -148,17 +148,20 @@ def test_select_draws_pairs_without_fitting(tmp_path, capsys):
     out = tmp_path / "sel.png"
     assert main(["select", str(tmp_path / "e.yaml"), "-o", str(out)]) == 0
     text = capsys.readouterr().out
-    assert "pairs 5, check pairs 1 (not fitted)" in text
+    assert "pairs 5, check pairs 1 (select fits nothing" in text
+    assert "regions: none  free 5,000  of 5,000 points" in text
     assert not (tmp_path / "out.ply").exists()
     image = np.asarray(Image.open(out).convert("RGB"))
     camera, size = load_camera(tmp_path / "sel.camera.json")
+    strip = image.shape[0] - size[1]   # the legend wraps: whole lines of LABEL_HEIGHT
+    assert strip % LABEL_HEIGHT == 0 and strip >= LABEL_HEIGHT
     for color, points in ((ARROW_COLOR, np.vstack([src, dst])),
                           (CHECK_COLOR, np.array([[3.0, 3, 3], [3.5, 3, 3]]))):
         hit = np.all(image == color, axis=2)
         xy, front = project(camera, points, size)
         assert front.all()
         for x, y in xy:
-            r, c = int(round(y)) + LABEL_HEIGHT, int(round(x))
+            r, c = int(round(y)) + strip, int(round(x))
             assert hit[max(r - 6, 0):r + 7, max(c - 6, 0):c + 7].any(), (color, x, y)
     # a refusal names the row, as deform's
     (tmp_path / "bad.yaml").write_text(

@@ -81,7 +81,7 @@ def format_report(result: EditResult) -> str:
         f"points {s['points']:,}  free {s['free_points']:,}  constraints {s['constraints']:,} "
         f"(kept {s.get('kept', s['constraints']):,})  centers {s['centers']}",
         f"fit ({s['method']}): largest |r| {s['residual']:.3g}, RMS {s['residual_rms']:.3g} "
-        f"over the {'kept' if s['method'] != 'exact' else 'all'} constraints (tolerance "
+        f"over {'the kept' if s['method'] != 'exact' else 'all'} constraints (tolerance "
         f"{s['tolerance']:.3g}, converged: {str(s['converged']).lower()})",
         f"constraint error for this transform over all {s['constraints']:,} ring points: max "
         f"{s['constraint_error']:.3g}, RMS {s['constraint_error_rms']:.3g} model units "

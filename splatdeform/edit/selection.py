@@ -82,18 +82,30 @@ def counts_of_deformation(deformation, moving_name: str = "handle") -> RegionCou
     if not f_rings and deformation.constraint_idx.size:
         in_fixed = int(deformation.fixed[deformation.constraint_idx].sum())
         f_rings, m_rings = [in_fixed], [int(deformation.constraint_idx.size) - in_fixed]
+    pairs = int(deformation.constraint_idx.size) - sum(f_rings) - sum(m_rings)
+    if not nm and not any(m_rings) and pairs > 0:   # a points edit: the pairs' constraints
+        m_rings = [pairs]
     return RegionCounts(n, nf, nm, n - nf - nm, [int(v) for v in f_rings],
                         [int(v) for v in m_rings], moving_name)
 
 
 def format_counts(c: RegionCounts) -> str:
-    """One line: ``regions: fixed 1,200 (rings 40+38+37)  handle 300 (rings ...)  free 500``."""
+    """One line: ``regions: fixed 1,200 (rings 40+38+37)  handle 300 (rings ...)  free 500``.
+    A points edit has no moving region: its constraints outside the fixed rings are the pairs
+    (``pairs 12``), and with no fixed region either it reads ``regions: none (the 12 pairs
+    are the constraints)``."""
 
     def rings(sizes: list[int]) -> str:
-        return f" (rings {'+'.join(f'{s:,}' for s in sizes)})" if sizes else ""
+        return f" (rings {'+'.join(f'{s:,}' for s in sizes)})" if any(sizes) else ""
 
-    return (f"regions: fixed {c.fixed:,}{rings(c.fixed_rings)}  {c.moving_name} "
-            f"{c.moving:,}{rings(c.moving_rings)}  free {c.free:,}  of {c.points:,} points")
+    tail = f"  free {c.free:,}  of {c.points:,} points"
+    pairs = sum(c.moving_rings) if not c.moving else 0
+    if not c.moving and not c.fixed:
+        return ("regions: none" + (f" (the {pairs:,} pairs are the constraints)" if pairs
+                                   else "") + tail)
+    moving = (f"  {c.moving_name} {c.moving:,}{rings(c.moving_rings)}" if c.moving
+              else f"  pairs {pairs:,}" if pairs else "")
+    return f"regions: fixed {c.fixed:,}{rings(c.fixed_rings)}{moving}{tail}"
 
 
 def region_colors(sel: Selection) -> np.ndarray:

@@ -21,13 +21,37 @@ from splatdeform.render.overlay import Overlay, draw_overlays
 from splatdeform.render.renderer import Renderer, deformation_session, deformed_positions
 from splatdeform.render.visibility import check_drawn
 
-LABEL_HEIGHT = 18
+LABEL_HEIGHT = 18   # the strip of one line of label text
 LABEL_COLOR = (20, 20, 20)
+LABEL_FONT_SIZE = 12   # Pillow's own font (FreeType) at 12 px: '.' and ':' stay legible
+
+
+def _label_font():
+    from PIL import ImageFont
+
+    try:
+        return ImageFont.load_default(size=LABEL_FONT_SIZE)
+    except (TypeError, ImportError, OSError):   # Pillow < 10.1 or no FreeType: its bitmap font
+        return ImageFont.load_default()
+
+
+def _wrap(draw, text: str, font, width: float) -> list[str]:
+    """``text`` in lines of at most ``width`` pixels, broken at spaces (a longer word alone)."""
+    lines, line = [], ""
+    for word in text.split(" "):
+        trial = f"{line} {word}" if line else word
+        if line and draw.textlength(trial, font=font) > width:
+            lines.append(line)
+            line = word
+        else:
+            line = trial
+    return [*lines, line]
 
 
 def side_by_side(images: Sequence[np.ndarray], labels: Sequence[str] | None = None) -> np.ndarray:
     """Concatenate (H, W, 3) uint8 images left to right, each with its label in a strip above.
-    Returns (H + LABEL_HEIGHT, sum W, 3) uint8 (no strip when ``labels`` is None)."""
+    Returns (H + LABEL_HEIGHT * L, sum W, 3) uint8: L lines, 1 unless a label wider than its
+    panel wraps (no strip when ``labels`` is None)."""
     from PIL import Image, ImageDraw
 
     if not images:
@@ -35,15 +59,19 @@ def side_by_side(images: Sequence[np.ndarray], labels: Sequence[str] | None = No
     if labels is not None and len(labels) != len(images):
         raise InputError(f"labels: expected {len(images)} labels, got {len(labels)}")
     height = max(im.shape[0] for im in images)
-    strip = LABEL_HEIGHT if labels is not None else 0
     width = sum(im.shape[1] for im in images)
+    font = _label_font()
+    measure = ImageDraw.Draw(Image.new("RGB", (1, 1)))
+    lines = [] if labels is None else [_wrap(measure, str(label), font, im.shape[1] - 8)
+                                       for label, im in zip(labels, images, strict=True)]
+    strip = LABEL_HEIGHT * max((len(ln) for ln in lines), default=0)
     canvas = Image.new("RGB", (width, height + strip), (255, 255, 255))
     draw = ImageDraw.Draw(canvas)
     x = 0
     for i, im in enumerate(images):
         canvas.paste(Image.fromarray(np.asarray(im, dtype=np.uint8)[:, :, :3]), (x, strip))
-        if labels is not None:
-            draw.text((x + 4, 3), str(labels[i]), fill=LABEL_COLOR)
+        for row, text in enumerate(lines[i] if lines else []):
+            draw.text((x + 4, 2 + row * LABEL_HEIGHT), text, fill=LABEL_COLOR, font=font)
         x += im.shape[1]
     return np.asarray(canvas)
 
