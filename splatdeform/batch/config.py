@@ -191,7 +191,7 @@ def load_batch(path: str | Path) -> Batch:
     try:
         cfg = BatchConfig.model_validate(data)
     except ValidationError as exc:
-        raise validation_error(src, exc, roots=(_Strict, EditConfig)) from None
+        raise validation_error(src, exc, roots=(_Strict, EditConfig, ViewCfg)) from None
     base = path.resolve().parent
 
     # the edit: a file or an inline mapping
