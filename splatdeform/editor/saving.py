@@ -160,12 +160,29 @@ def deformed_model(ed: EditorState) -> PointModel:
         delta_c, matrix = points_delta(cfg, ed.model, ed.deformation, ed.points_fit)
     else:
         delta_c, matrix = control_displacement(cfg, ed.model, ed.deformation)
-    deformed = df.apply(ed.deformation, ed.model, delta_c, moving_matrix=matrix,
-                        covariance=cfg.gaussians.covariance)
+    deformed = df.apply(_one_shot(ed.deformation, ed.model, cfg), ed.model, delta_c,
+                        moving_matrix=matrix, covariance=cfg.gaussians.covariance)
     if not np.isfinite(deformed.positions).all():
         raise InputError("the deformation produced non-finite positions; check the regions "
                          "and the transform")
     return deformed
+
+
+def _one_shot(deformation, model: PointModel, cfg):
+    """``deformation`` with its basis deferred, as ``deform`` builds it for a model written
+    once: :func:`splatdeform.deform.apply` then evaluates d(x) and J(x) one-shot from the fit,
+    so Save writes the bytes ``splatdeform deform`` writes for the saved YAML (the stored
+    basis the page poses with differs from it in float32 rounding)."""
+    from dataclasses import replace
+
+    from splatdeform.basis.oneshot import DeferredBasis, deferred_basis
+
+    stored = deformation.basis
+    gradients = (stored.with_gradients if isinstance(stored, DeferredBasis)
+                 else stored.gradients is not None)
+    basis = deferred_basis(model.positions[deformation.free_idx], deformation.fit,
+                           gradients=gradients, backend=cfg.backend, device=cfg.device)
+    return replace(deformation, basis=basis)
 
 
 def save(ed: EditorState, model_path: str | Path | None = None,
