@@ -15,7 +15,6 @@ import pytest
 import splatdeform as sd
 from data_tools.synth import bumpy_bar, gaussian_bar
 from splatdeform import deform as df
-from splatdeform.basis import opencl
 from splatdeform.basis.oneshot import DeferredBasis, combined_fit, oneshot_chunks
 from splatdeform.basis.reference import compute_basis as reference
 from splatdeform.deform.gaussians import scale_rotation_to_factor
@@ -25,8 +24,7 @@ from splatdeform.edit.run import precompute, prepare_model
 from splatdeform.errors import InputError
 from splatdeform.rbf import fit_incremental
 
-needs_cl = pytest.mark.skipif(not opencl.opencl_available(), reason="no OpenCL device")
-BACKENDS = ["numpy", pytest.param("opencl", marks=needs_cl)]
+BACKENDS = ["numpy", "opencl"]   # no OpenCL device: the opencl cases fail (install.md)
 
 
 def _fit(seed: int = 0, n: int = 300, centers: int = 40):
