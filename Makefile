@@ -28,7 +28,7 @@ $(STAMP): pyproject.toml
 # setup also builds the OpenCL kernels once (PoCL caches them: a fresh machine's first deform
 # would otherwise spend seconds compiling; nothing to do without a device)
 setup: $(STAMP)
-	$(PY) -m splatdeform.basis.kernel_cache
+	$(PY) -m splatdeform.basis.kernel_warm
 
 # The splat-format tests' independent oracle: PlayCanvas splat-transform, pinned, from the npm
 # registry into .cache/splat-transform (git-ignored, kept between runs). Node: Debian's if it

@@ -1,5 +1,5 @@
 """Issue 48 item 3: the first (uncached) OpenCL build says once, from the CLI only, that it is
-compiling and where the cache is; ``python -m splatdeform.basis.kernel_cache`` (make setup)
+compiling and where the cache is; ``python -m splatdeform.basis.kernel_warm`` (make setup)
 builds the kernels ahead. The threshold is set to 0 here (SPLATDEFORM_NOTE_AFTER_S): the
 wiring is tested, not the duration of a build."""
 
@@ -73,7 +73,7 @@ def test_the_library_alone_says_nothing(tmp_path):
 
 
 def test_warm_up_module_builds_the_kernels(tmp_path):
-    res = subprocess.run([sys.executable, "-m", "splatdeform.basis.kernel_cache"],
+    res = subprocess.run([sys.executable, "-m", "splatdeform.basis.kernel_warm"],
                          capture_output=True, text=True, timeout=300,
                          env={**os.environ, "POCL_CACHE_DIR": str(tmp_path)})
     assert res.returncode == 0, res.stderr

@@ -10,8 +10,8 @@ a cold cache: the sink the CLI installs (:func:`set_note_sink`) says so once per
 library alone says nothing (no sink). ``SPLATDEFORM_NOTE_AFTER_S`` sets the threshold (0: say it
 at the first build of the process, cached or not).
 
-``python -m splatdeform.basis.kernel_cache`` builds the kernels a deform uses on this machine's
-default device (nothing, and exit 0, without one).
+``python -m splatdeform.basis.kernel_warm`` (``make setup``) builds the kernels a deform uses on
+this machine's default device ahead (nothing, and exit 0, without one).
 """
 
 from __future__ import annotations
@@ -72,30 +72,3 @@ def noting_slow_build(what: str, platform: str, after: float | None = None) -> I
         yield
     finally:
         timer.cancel()
-
-
-def warm(device: str | None = None) -> list[str]:
-    """Build (or load from the cache) the kernels a deform uses: the one-shot K = 3 with and
-    without gradients and the stored basis of one handle (K = 4; ``--reuse``). Returns what
-    was built; nothing without a device."""
-    from . import opencl
-
-    if not opencl.opencl_available(device):
-        return []
-    done = []
-    for k, gradients in ((3, True), (3, False), (4, True)):
-        opencl.prepare_device(device, k, gradients)
-        done.append(f"basis K={k}{'' if gradients else ' (no gradients)'}")
-    return done
-
-
-if __name__ == "__main__":  # run as __main__: the package's own copy holds the sink
-    import sys
-
-    from splatdeform.basis import kernel_cache
-
-    kernel_cache.set_note_sink(lambda line: print(f"splatdeform: {line}", file=sys.stderr,
-                                                  flush=True))
-    built = kernel_cache.warm()
-    print("OpenCL kernels ready: " + ", ".join(built) if built else
-          "no OpenCL device: nothing to build (deform uses the numpy backend)")
