@@ -128,20 +128,18 @@ def apply_file(field_path: str | Path, model_path: str | Path, out: str | Path, 
         with naming_output(out):
             save(moved, out)
         return out, False
-    from splatdeform.edit.stream.run import ChunkWriter
-    from splatdeform.io.atomic import atomic_path
+    from splatdeform.io.chunks import map_chunks
     from splatdeform.memory import stream_chunk
 
     src = open_chunks(model_path)
     chunk = stream_chunk(choice.budget, src.record_bytes,
                          int(getattr(cost, "reader_bytes", 0)) + 160 * 2**20)
-    with naming_output(out), _naming_field(field_path, model_path), atomic_path(out) as tmp:
-        writer = ChunkWriter(src, tmp)
-        for a in range(0, src.n_points, chunk):
-            part = _finite(fld.apply(src.read(a, min(a + chunk, src.n_points)), backend,
-                                     support=stats), field_path, model_path)
-            rows, props = src.encode(part)
-            writer.write(rows, props)
-        check_support(stats, fld, field_path, model_path, out, extrapolate)  # before the rename
-        writer.close()
+
+    def part(a: int, b: int):
+        return src.encode(_finite(fld.apply(src.read(a, b), backend, support=stats),
+                                  field_path, model_path))
+
+    with naming_output(out), _naming_field(field_path, model_path):
+        map_chunks(src, out, part, chunk, before_rename=lambda: check_support(  # the last check
+            stats, fld, field_path, model_path, out, extrapolate))
     return out, True

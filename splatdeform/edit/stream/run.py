@@ -31,7 +31,7 @@ from splatdeform.edit.stream.progress import Progress
 from splatdeform.errors import InputError, ProcessingError
 from splatdeform.interrupts import deferred_signals
 from splatdeform.io import FORMATS, ChunkFile, extension_of, open_chunks
-from splatdeform.io.atomic import atomic_path
+from splatdeform.io.chunks import map_chunks
 
 
 @dataclass
@@ -136,24 +136,6 @@ def _remove_parts(parts: Path, futures) -> None:
         time.sleep(0.1)
 
 
-class ChunkWriter:
-    """Streams deformed chunks into the output in the input's format (PLY: header, rows, other
-    elements verbatim; LAS/LAZ: the input's header, VLRs and EVLRs), opened at the first chunk
-    (which gives the output properties)."""
-
-    def __init__(self, src: ChunkFile, tmp: Path) -> None:
-        self.src, self.tmp = src, tmp
-        self.out = None
-
-    def write(self, rows, props) -> None:
-        if self.out is None:
-            self.out = self.src.writer(self.tmp, props)
-        self.out.write(rows)
-
-    def close(self) -> None:
-        self.out.close()
-
-
 def _out_props(src: ChunkFile, plan: Plan, shared: Shared):
     """The output properties (from deforming a one-point chunk)."""
     _, props = deform_chunk(src, 0, 1, plan.labels[:1], shared)
@@ -163,14 +145,8 @@ def _out_props(src: ChunkFile, plan: Plan, shared: Shared):
 def second_pass_local(src: ChunkFile, plan: Plan, shared: Shared, out: Path, chunk: int,
                       quiet: bool) -> None:
     progress = Progress("pass 5 (basis + apply + write)", src.n_points, quiet=quiet)
-    with atomic_path(out) as tmp:
-        writer = ChunkWriter(src, tmp)
-        props = None
-        for a, b in chunk_ranges(src.n_points, chunk):
-            rows, props = deform_chunk(src, a, b, plan.labels[a:b], shared)
-            writer.write(rows, props)
-            progress.update(b - a)
-        writer.close()
+    map_chunks(src, out, lambda a, b: deform_chunk(src, a, b, plan.labels[a:b], shared), chunk,
+               progress=progress.update)
     progress.finish()
 
 
@@ -194,11 +170,8 @@ def second_pass_dask(src: ChunkFile, plan: Plan, shared: Shared, out: Path, chun
             progress.update(b - a)
         progress.finish()
         props = _out_props(src, plan, shared)
-        with atomic_path(out) as tmp:
-            writer = ChunkWriter(src, tmp)
-            for a, _b in chunk_ranges(src.n_points, chunk):
-                writer.write(np.load(_part_name(parts, a), allow_pickle=False), props)
-            writer.close()
+        map_chunks(src, out, lambda a, _b: (np.load(_part_name(parts, a), allow_pickle=False),
+                                            props), chunk)
     finally:
         with deferred_signals():  # a second Ctrl-C must not leave the folder behind
             _remove_parts(parts, futures)
