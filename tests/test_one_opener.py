@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 from pathlib import Path
 
 import pytest
@@ -101,3 +102,19 @@ def test_box_and_plane_rules_are_one_each():
                         "handle": {"matrix": np.eye(4).tolist()}}, "edit")
         with pytest.raises(InputError, match=words):
             python.mask(model)
+
+
+@pytest.mark.parametrize("text,key", [("1_0.5", "min[0]"), ("0x10", "min[0]"), ("1:30", "min[0]"),
+                                      ("0o17", "min[0]")])
+def test_config_numbers_are_read_strictly(tmp_path, text, key):
+    """YAML 1.1 reads 1_0.5 as 10.5, 0x10 as 16 and 1:30 as 90; a config number is plain
+    decimal, as the PLY reader and pairs files read numbers (issue 43 item 4)."""
+    from splatdeform.edit.config import load_edit
+    from splatdeform.errors import ConfigError
+
+    path = tmp_path / "e.yaml"
+    path.write_text("input: a.ply\noutput: b.ply\nregions:\n  fixed: [{box: {min: [" + text
+                    + ", 0, 0], max: [20, 1, 1]}}]\n  handle: [{indices: [0]}]\n"
+                    "handle: {matrix: [[1,0,0,0],[0,1,0,0],[0,0,1,0],[0,0,0,1]]}\n")
+    with pytest.raises(ConfigError, match=re.escape(key) + ".*plain decimal number"):
+        load_edit(path)

@@ -11,6 +11,7 @@ whichever key holds it.
 from __future__ import annotations
 
 import math
+import re
 import sys
 from typing import Annotated, Any
 
@@ -49,9 +50,16 @@ def shown(value: Any, limit: int = 60) -> str:
     return text if len(text) <= limit else f"{text[:limit - 20]}... ({len(text):,} characters)"
 
 
+#: a number given as text must be a plain decimal one (YAML 1.1 and Python's float() also read
+#: ``1_0.5`` as 10.5, ``0x10`` as 16); the PLY reader and pairs files read numbers the same way
+_PLAIN_NUMBER = re.compile(r"\s*[-+]?(\.[0-9]+|[0-9]+(\.[0-9]*)?)([eE][-+]?[0-9]+)?\s*")
+
+
 def _not_bool(value: Any) -> Any:
     if isinstance(value, bool):
         raise ValueError(f"expected a number, got {str(value).lower()} (a boolean)")
+    if isinstance(value, str) and not _PLAIN_NUMBER.fullmatch(value):
+        raise ValueError(f"expected a plain decimal number, got {shown(value)}")
     return value
 
 

@@ -5,6 +5,7 @@ Every error is one :class:`ConfigError` line naming the file."""
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 from typing import Any
 
@@ -29,15 +30,33 @@ class _Loader(_SafeLoader):  # type: ignore[misc,valid-type]
     4,300 digits)."""
 
 
-def _construct_int(loader: Any, node: yaml.ScalarNode) -> int | LongInt:
-    text = str(node.value).replace("_", "").lstrip("+-")
-    digits = len(text) - (2 if text[:2].lower() in ("0x", "0o", "0b") else 0)
+#: numbers are read strictly, as the PLY reader and the pairs files read them: YAML 1.1 also
+#: reads ``1_0.5`` as 10.5, ``0x10`` as 16, ``0o17`` as 15 and ``1:30`` as 90; such a value
+#: stays the text it is, and the key that holds it refuses it ("expected a number, got '1_0.5'")
+_PLAIN_INT = re.compile(r"[-+]?[0-9]+")
+_PLAIN_FLOAT = re.compile(r"[-+]?(\.[0-9]+|[0-9]+(\.[0-9]*)?)([eE][-+]?[0-9]+)?"
+                          r"|[-+]?\.(inf|Inf|INF)|\.(nan|NaN|NAN)")
+
+
+def _construct_int(loader: Any, node: yaml.ScalarNode) -> int | LongInt | str:
+    text = str(node.value)
+    if not _PLAIN_INT.fullmatch(text):
+        return text
+    digits = len(text.lstrip("+-"))
     if digits > MAX_INT_DIGITS:
         return LongInt(digits)
     return yaml.SafeLoader.construct_yaml_int(loader, node)
 
 
+def _construct_float(loader: Any, node: yaml.ScalarNode) -> float | str:
+    text = str(node.value)
+    if not _PLAIN_FLOAT.fullmatch(text):
+        return text
+    return yaml.SafeLoader.construct_yaml_float(loader, node)
+
+
 _Loader.add_constructor("tag:yaml.org,2002:int", _construct_int)
+_Loader.add_constructor("tag:yaml.org,2002:float", _construct_float)
 
 
 def _expanded_size(data: Any, limit: int) -> int:
