@@ -314,6 +314,10 @@ class Interrupted(KeyboardInterrupt):
 
 #: The signal that is ending this run (SIGINT / SIGTERM), once one arrived; see _run's fail
 _signalled: list[int] = []
+#: True while main runs as the process itself (argv None: the console script, python -m): once
+#: the run is complete its result is the exit status, and a later Ctrl-C / SIGTERM is ignored
+#: instead of ending the process by the signal without a line
+_process: list[bool] = [False]
 
 
 def _quiet_dask_logs() -> None:
@@ -388,6 +392,7 @@ def _lossy_writes_as_lines() -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
+    _process[0] = argv is None
     argv = sys.argv[1:] if argv is None else argv
     debug = "--debug" in argv
     previous = {}
@@ -404,7 +409,7 @@ def main(argv: list[str] | None = None) -> int:
             warnings.showwarning = _show_warning  # ours are one line each
             return _run(argv, debug)
     finally:  # callers in the same process (tests, the API) get their handler back
-        for sig, handler in previous.items():
+        for sig, handler in (() if _process[0] else previous.items()):
             with contextlib.suppress(ValueError, TypeError):
                 signal.signal(sig, handler)
 
@@ -430,6 +435,9 @@ def _run(argv: list[str], debug: bool) -> int:
             raise InputError("render: expected one or two model files")
         code = int(args.func(args) or 0)
         sys.stdout.flush()
+        if _process[0]:   # complete: one exit status, whenever a signal comes from now on
+            for sig in (signal.SIGINT, signal.SIGTERM):
+                signal.signal(sig, signal.SIG_IGN)
         if _signalled:  # its exception was swallowed (raised inside a finalizer): still honour it
             return _signal_exit()
         return code

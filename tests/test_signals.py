@@ -211,3 +211,26 @@ def test_ctrl_c_inside_code_run_from_a_string_still_exits_130(tmp_path: Path) ->
     proc = subprocess.run([sys.executable, "-m", "ctrl_c_in_eval"], cwd=tmp_path,
                           capture_output=True, text=True, timeout=60)
     assert proc.returncode == 130, (proc.returncode, proc.stderr)
+
+
+LATE_SIGNAL = """
+import atexit, os, signal, sys
+atexit.register(lambda: os.kill(os.getpid(), signal.{sig}))
+from splatdeform.cli import main
+sys.argv = ["splatdeform", "info", sys.argv[1]]
+sys.exit(main())
+"""
+
+
+@pytest.mark.parametrize("sig", ["SIGINT", "SIGTERM"])
+def test_a_signal_after_the_run_is_complete_changes_nothing(tmp_path: Path, sig: str) -> None:
+    """Once the run is complete its result is the exit status (issue 43 item 7c: a SIGINT
+    arriving then gave exit 130 without the 'interrupted' line): the signal is held."""
+    import splatdeform as sd
+    from data_tools.synth import bumpy_bar
+
+    sd.save(bumpy_bar(500, seed=1), tmp_path / "b.ply")
+    res = subprocess.run([sys.executable, "-c", LATE_SIGNAL.format(sig=sig),
+                          str(tmp_path / "b.ply")], capture_output=True, text=True, timeout=120)
+    assert res.returncode == 0, res.stderr
+    assert res.stderr == "", res.stderr
