@@ -23,7 +23,7 @@ from typing import TYPE_CHECKING, Any
 from splatdeform.edit.config import EditConfig, input_paths, load_edit, parse_edit
 from splatdeform.edit.stream import StreamOptions, edit_choice
 from splatdeform.errors import ConfigError, InputError
-from splatdeform.io import SUPPORTED, atomic, extension_of
+from splatdeform.io import SUPPORTED, atomic, check_writable, extension_of
 
 if TYPE_CHECKING:
     from collections.abc import Callable
@@ -188,6 +188,7 @@ def plan_edit(config: str | Path | dict[str, Any] | EditConfig,
     if extension_of(out_path) not in SUPPORTED:  # a SOG folder's meta.json too
         raise InputError(f"{out_path}: unknown output extension {out_path.suffix!r}; "
                          f"expected one of {', '.join(SUPPORTED)}")
+    check_writable(out_path)   # a format only read here (.ksplat): refused before any work
     budget = options.budget_bytes(cfg)
     streamed, choice = decide(cfg, in_path, options, budget, reuse=reuse,
                               drop_nonfinite=drop_nonfinite, warn=warn)
