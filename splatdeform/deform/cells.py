@@ -36,22 +36,22 @@ _BLOCK27 = np.array([[i, j, k] for i in (-1, 0, 1) for j in (-1, 0, 1) for k in 
 _POPCOUNT = np.array([bin(i).count("1") for i in range(256)], dtype=np.uint8)
 
 
-def cell_keys(positions: np.ndarray, edge: float, box: tuple | None = None
-              ) -> tuple[np.ndarray, np.ndarray, float]:
-    """(keys (N,) int64, strides (3,) int64, number of cells in the grid) of the cells of edge
-    ``edge`` holding points (N, 3): ``(floor((p - lo) / edge) + 1) . strides``; ``box`` the
-    points' (lo, hi) when known."""
-    lo, hi = bounds(positions) if box is None else box
-    n = positions.shape[0]
-    # floor is monotone, so the largest ijk is the box corner's (no pass to find it)
+def _grid(edge: float, box: tuple) -> tuple[np.ndarray, np.ndarray, float]:
+    """(lo (3,), strides (3,) int64, number of cells) of the grid of edge ``edge`` over the
+    box (lo, hi); floor is monotone, so the largest ijk is the box corner's."""
+    lo, hi = box
     dims = np.floor((hi - lo) / edge).astype(np.int64) + 3
     total = float(np.prod(dims.astype(np.float64)))
     if not total < 2.0**52:
         raise GridTooFine(f"cells of {edge:.3g} over a box of {hi - lo}")
-    strides = np.array([dims[1] * dims[2], dims[2], 1], dtype=np.int64)
-    keys = np.empty(n, dtype=np.int64)
-    # floor((p - lo) / edge) + 1 in place, a cache-sized block at a time; the keys are
-    # integers below 2**52, so the float products and sums are exact
+    return lo, np.array([dims[1] * dims[2], dims[2], 1], dtype=np.int64), total
+
+
+def _blocks(positions: np.ndarray, lo: np.ndarray, edge: float, strides: np.ndarray):
+    """(start, keys (M,) float64) for each cache-sized block of points: the integer keys
+    ``(floor((p - lo) / edge) + 1) . strides``, exact in float64 below 2**52, computed in
+    place."""
+    n = positions.shape[0]
     buf = np.empty((min(_BLOCK, n), 3))
     scale = strides.astype(np.float64)
     for a in range(0, n, _BLOCK):
@@ -61,20 +61,43 @@ def cell_keys(positions: np.ndarray, edge: float, box: tuple | None = None
         np.floor(w, out=w)
         w += 1
         w *= scale
-        keys[a:a + w.shape[0]] = w[:, 0] + w[:, 1] + w[:, 2]
+        yield a, w[:, 0] + w[:, 1] + w[:, 2]
+
+
+def cell_keys(positions: np.ndarray, edge: float, box: tuple | None = None
+              ) -> tuple[np.ndarray, np.ndarray, float]:
+    """(keys (N,), strides (3,) int64, number of cells in the grid) of the cells of edge
+    ``edge`` holding points (N, 3): ``(floor((p - lo) / edge) + 1) . strides``; ``box`` the
+    points' (lo, hi) when known. Keys are int32 when the grid allows (half the memory)."""
+    lo, strides, total = _grid(edge, bounds(positions) if box is None else box)
+    keys = np.empty(positions.shape[0], dtype=np.int32 if total < 2**31 else np.int64)
+    for a, block in _blocks(positions, lo, edge, strides):
+        keys[a:a + block.size] = block
     return keys, strides, total
 
 
-def _members(keys: np.ndarray, table: np.ndarray, total: float) -> np.ndarray:
-    """(N,) bool: which ``keys`` are in ``table`` (unique keys below ``total``): a bitmap of
-    the grid (total / 8 bytes) when it is small, else a binary search."""
-    if total <= 64 * keys.size + (1 << 25):
+def _points_in(positions: np.ndarray, edge: float, box: tuple, table: np.ndarray
+               ) -> np.ndarray:
+    """(M,) int64 indices of the points (N, 3) whose cell (of edge ``edge`` over ``box``) is
+    one of the keys ``table``, a block at a time (no N-long key array): a bitmap of the grid
+    (total / 8 bytes) when it is small, else a binary search."""
+    lo, strides, total = _grid(edge, box)
+    n = positions.shape[0]
+    table = np.unique(table)
+    bitmap = None
+    if total <= 64 * n + (1 << 25):
         bitmap = np.zeros(int(total) // 8 + 1, dtype=np.uint8)
         np.bitwise_or.at(bitmap, table >> 3, (1 << (table & 7)).astype(np.uint8))
-        return ((bitmap[keys >> 3] >> (keys & 7).astype(np.uint8)) & 1).astype(bool)
-    table = np.sort(table)
-    pos = np.minimum(np.searchsorted(table, keys), table.size - 1)
-    return table[pos] == keys
+    found = []
+    for a, block in _blocks(positions, lo, edge, strides):
+        keys = block.astype(np.int64)
+        if bitmap is not None:
+            hit = (bitmap[keys >> 3] >> (keys & 7).astype(np.uint8)) & 1
+        else:
+            at = np.minimum(np.searchsorted(table, keys), table.size - 1)
+            hit = table[at] == keys
+        found.append(np.flatnonzero(hit) + a)
+    return np.concatenate(found) if found else np.empty(0, dtype=np.int64)
 
 
 class GridTooFine(ValueError):
@@ -106,7 +129,7 @@ class Cells:
             self.size = int(uniq.size)
             self.cell = inverse.reshape(-1)
             self.occupied = np.arange(self.size)
-            self.keys = uniq
+            self.keys = uniq.astype(np.int64)
 
     def shift(self, ids: np.ndarray, offset: np.ndarray) -> np.ndarray:
         """The cells at ``offset`` (3,) ints from cells ``ids`` (M,): ids, or ``size`` where the
@@ -133,9 +156,9 @@ class Cells:
         (labels (N,) small non-negative ints, at most 8 distinct values used as bits)."""
         flags = np.zeros(self.size + 1, dtype=np.uint8)
         lab = labels.ravel()
-        present = np.flatnonzero(np.bincount(lab.astype(np.intp))) if lab.size and \
-            lab.min() >= 0 else np.unique(lab)
-        for label in present:
+        low, high = (int(lab.min()), int(lab.max())) if lab.size else (0, -1)
+        present = range(low, high + 1) if low >= 0 and high < 8 else np.unique(lab)
+        for label in present:  # an absent label sets no bit
             flags[self.cell[lab == label]] |= np.uint8(1 << int(label))
         occ = self.occupied
         around = flags[occ]
@@ -220,16 +243,18 @@ def kth_distances(positions: np.ndarray, idx: np.ndarray, k1: int, guess: float,
     todo = np.arange(idx.size)
     edge = guess
     n = positions.shape[0]
+    box = bounds(positions) if box is None else box
     for _ in range(attempts if idx.size * 32 < max_share * n else 0):
         if todo.size == 0 or not edge > 0:
             break
         try:
-            keys, strides, total = cell_keys(positions, edge, box)
+            lo, strides, _ = _grid(edge, box)
         except GridTooFine:
             break
-        near = np.unique((keys[idx[todo]][:, None] + (_BLOCK27 @ strides)[None, :]).ravel())
-        subset = np.flatnonzero(_members(keys, near, total))
-        del keys
+        own = np.concatenate([b for _, b in _blocks(positions[idx[todo]], lo, edge, strides)]
+                             ).astype(np.int64)
+        subset = _points_in(positions, edge, box,
+                            (own[:, None] + (_BLOCK27 @ strides)[None, :]).ravel())
         if subset.size > max_share * n or subset.size < k1:
             break
         dist = knn_query(cKDTree(positions[subset]), positions[idx[todo]], k=k1)[0][:, -1]
