@@ -134,7 +134,7 @@ HOSTILE_CONFIGS = {
                                ["render.frames"]),
     "translate_nan": (lambda c: c["handle"]["transform"].update(translate=[float("nan"), 0, 0]),
                       ["handle.transform.translate"]),
-    "indices_file_fifo": ("fifo", ["idx.txt", "regular file"]),
+    "indices_file_fifo": ("fifo", ["idx.txt", "named pipe"]),
 }
 
 
