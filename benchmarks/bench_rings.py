@@ -11,7 +11,8 @@ temporary folder (never in the repository). Edit: fixed the first 25 % along x, 
 Printed per size:
 - in process: the rings' kNN adjacency (``border_knn_adjacency``, the stage's cost) with this
   checkout and, with ``--before REV``, with ``splatdeform/deform/rings.py`` of REV (the same
-  graph is checked), best of ``--repeat``;
+  graph is checked), best of ``--repeat``; and in a child process each, the peak RSS the graph
+  adds to the loaded, labelled model;
 - whole processes: ``deform`` in memory and with ``--memory-budget`` (streamed): the rings
   stage as the CLI reports it (streamed: plus passes 3 and 4, which gather the border set the
   rings run on), the process time and peak RSS, and the ratios in/streamed.
@@ -73,6 +74,36 @@ def run_deform(cfg: Path, extra: list[str]) -> tuple[float, float, float]:
     return float(last[2]), int(last[3]) / 1024, seconds
 
 
+PEAK = """
+import importlib.util, sys
+import numpy as np
+def hwm():  # this process's peak RSS in kB (ru_maxrss would carry the parent's over exec)
+    with open("/proc/self/status") as f:
+        return int(next(ln for ln in f if ln.startswith("VmHWM")).split()[1])
+from splatdeform.io import load
+if sys.argv[2] == "-":
+    from splatdeform.deform import rings
+else:
+    spec = importlib.util.spec_from_file_location("rings_before", sys.argv[2])
+    rings = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(rings)
+pos = load(sys.argv[1]).positions
+u = (pos[:, 0] - pos[:, 0].min()) / np.ptp(pos[:, 0])
+labels = (u <= 0.25).astype(np.int8) + 2 * (u >= 0.75).astype(np.int8)
+before = hwm()
+rings.border_knn_adjacency(pos, labels, 10, 4)
+print((hwm() - before) / 1024)
+"""
+
+
+def peak_added(ply: Path, module: str) -> float:
+    """MB the kNN graph adds to a process's peak RSS (after loading and labelling), with this
+    checkout's rings (``module`` "-") or the file ``module``."""
+    out = subprocess.run([sys.executable, "-c", PEAK, str(ply), module], capture_output=True,
+                         text=True, cwd=ROOT, check=True).stdout
+    return float(out.split()[-1])
+
+
 def old_rings(rev: str):
     """splatdeform/deform/rings.py of ``rev`` as a module (imports resolve to this checkout)."""
     text = subprocess.run(["git", "show", f"{rev}:splatdeform/deform/rings.py"], cwd=ROOT,
@@ -82,6 +113,7 @@ def old_rings(rev: str):
     spec = importlib.util.spec_from_file_location("rings_before", path)
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
+    module.source_path = str(path)
     return module
 
 
@@ -131,6 +163,10 @@ def main() -> None:
                 line += f"  before {t_old:6.2f} s  ({t_old / t_new:.1f}x; same graph: {same})"
             print(line, flush=True)
             del pos, labels, adj
+            line = f"{'':>18}peak RSS the kNN graph adds: {peak_added(ply, '-'):.0f} MB"
+            if before is not None:
+                line += f", before {peak_added(ply, before.source_path):.0f} MB"
+            print(line, flush=True)
             if args.no_process:
                 continue
             cfg = Path(tmp) / f"edit{n}.yaml"
