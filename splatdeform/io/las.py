@@ -31,6 +31,7 @@ from ..errors import FormatError, ProcessingError
 from ..model import PlyElementData, PlyProperty, PlySource, PointModel, classify
 from .chunks import ChunkFile
 from .las_header import check_header, scale_offset_fault
+from .las_keep import RawLas, read_raw, restore, writable_evlrs, writable_vlrs
 from .ply_format import TYPE_NAMES
 
 DECODE_CHUNK = 50_000  # points per read (LAZ's default chunk): a corrupt body names this chunk
@@ -51,6 +52,8 @@ class LasSource:
     header: the ``laspy.LasHeader`` (version, point format, scales, offsets, VLRs, all fields).
     points: (N,) raw point records, the point format's structured dtype (X Y Z int32 ...).
     evlrs: extended VLRs (LAS 1.4), or None. compressed: the input was LAZ.
+    raw: the file's own header, VLR and EVLR bytes (:mod:`~splatdeform.io.las_keep`), put
+    back by a save.
 
     It also answers like a :class:`PlySource` (``element('vertex')``, ``elements``,
     ``comments``) with the decoded dimensions, so ``info`` and the ``property`` selector see
@@ -64,6 +67,7 @@ class LasSource:
     obj_info: list[str] = field(default_factory=list)
     text: bool = False
     byte_order: str = "<"
+    raw: RawLas | None = None
 
     @property
     def point_format_id(self) -> int:
@@ -152,11 +156,13 @@ def _normals(points: np.ndarray) -> np.ndarray | None:
 
 
 def model_from_las(header, points: np.ndarray, path: str | Path, *, evlrs=None,
-                   compressed: bool = False, drop_nonfinite: bool = False) -> PointModel:
+                   compressed: bool = False, drop_nonfinite: bool = False,
+                   raw: RawLas | None = None) -> PointModel:
     """Build a PointModel from raw LAS records (N,); LAS coordinates are always finite."""
     if points.shape[0] == 0:
         raise FormatError(f"{path}: the LAS file holds no points")
-    source = LasSource(header=header, points=points, evlrs=evlrs, compressed=compressed)
+    source = LasSource(header=header, points=points, evlrs=evlrs, compressed=compressed,
+                       raw=raw)
     normals = _normals(points)
     kind = classify(has_faces=False, has_normals=normals is not None, has_radius=False,
                     has_axes=False, has_gaussians=False)
@@ -217,6 +223,7 @@ def read_model(path: str | Path, *, drop_nonfinite: bool = False) -> PointModel:
     is checked against the file size first, the points are decoded chunk by chunk)."""
     path = Path(path)
     layout = check_header(path)
+    raw = read_raw(path)
     with _open(path) as reader:
         header = reader.header
         evlrs = getattr(reader, "evlrs", None)
@@ -237,7 +244,7 @@ def read_model(path: str | Path, *, drop_nonfinite: bool = False) -> PointModel:
         raise FormatError(f"{path}: the LAS file holds no points")
     compressed = layout.compressed or path.suffix.lower() == ".laz"
     return model_from_las(header, points, path, evlrs=evlrs, compressed=compressed,
-                          drop_nonfinite=drop_nonfinite)
+                          drop_nonfinite=drop_nonfinite, raw=raw)
 
 
 # ---- writing ---------------------------------------------------------------------------------
@@ -419,24 +426,50 @@ def restore_vlrs(out: Path, original) -> None:
         f.write(head)
 
 
-def _write_records(header, points: np.ndarray, out: Path, evlrs=None) -> None:
+def _kept_header(header, evlrs, raw: RawLas | None):
+    """A copy of ``header`` to hand laspy, and the EVLRs to write: with the input's bytes
+    (``raw``), its VLRs and EVLRs as opaque records of their own length, so that
+    :func:`~splatdeform.io.las_keep.restore` can put every byte back in place."""
+    header = _copy_header(header)
+    if raw is not None:
+        header.vlrs = writable_vlrs(raw)
+        with contextlib.suppress(IndexError, ValueError):   # laspy's setter adds its own
+            header.vlrs.extract("ExtraBytesVlr")            # copy of the extra-bytes VLR
+        kept = writable_evlrs(raw)
+        if kept is not None:
+            from laspy.vlrs.vlrlist import VLRList
+
+            evlrs = VLRList(kept)
+    return header, evlrs
+
+
+def _finish(out: Path, original, raw: RawLas | None) -> None:
+    if raw is not None:
+        restore(out, raw)
+    else:
+        restore_vlrs(out, original)
+
+
+def _write_records(header, points: np.ndarray, out: Path, evlrs=None,
+                   raw: RawLas | None = None) -> None:
     laspy = _laspy()
     do_compress = out.suffix.lower() == ".laz"
     original = header
-    header = _copy_header(header)
+    header, evlrs = _kept_header(header, evlrs, raw)
     with laspy.open(out, mode="w", header=header, do_compress=do_compress) as writer:
         writer.write_points(laspy.PackedPointRecord(points, header.point_format))
         if evlrs:
             writer.write_evlrs(evlrs)
-    restore_vlrs(out, original)
+    _finish(out, original, raw)
 
 
 def write_model(model: PointModel, out: str | Path) -> None:
     """Write ``model`` to ``out`` (.las or .laz by the suffix; call through an atomic path)."""
     out = Path(out)
     header, points = las_records_for(model, out)
-    evlrs = model.source.evlrs if isinstance(model.source, LasSource) else None
-    _write_records(header, points, out, evlrs)
+    source = model.source if isinstance(model.source, LasSource) else None
+    _write_records(header, points, out, source.evlrs if source else None,
+                   source.raw if source else None)
 
 
 def ply_source_from_las(source: LasSource) -> PlySource:
@@ -481,13 +514,16 @@ def iter_chunks(path: str | Path, chunk: int, start: int = 0,
 
 class LasWriter:
     """Append raw records chunk by chunk to ``out`` (compressed for .laz); the header is the
-    input's (point count and bounds are updated by laspy at close)."""
+    input's (point count and bounds are updated by laspy at close; with the input's bytes
+    ``raw``, its header fields, VLRs and EVLRs are put back as
+    :mod:`~splatdeform.io.las_keep` says)."""
 
-    def __init__(self, header, out: str | Path, evlrs=None) -> None:
+    def __init__(self, header, out: str | Path, evlrs=None, raw: RawLas | None = None) -> None:
         laspy = _laspy()
         self._laspy = laspy
         self._original = header
-        self.header = _copy_header(header)
+        self._raw = raw
+        self.header, evlrs = _kept_header(header, evlrs, raw)
         self.out = Path(out)
         self._evlrs = evlrs
         self._writer = laspy.open(self.out, mode="w", header=self.header,
@@ -501,7 +537,7 @@ class LasWriter:
         if self._evlrs:
             self._writer.write_evlrs(self._evlrs)
         self._writer.close()
-        restore_vlrs(self.out, self._original)
+        _finish(self.out, self._original, self._raw)
 
 
 class LasChunks(ChunkFile):
@@ -511,6 +547,7 @@ class LasChunks(ChunkFile):
     def __init__(self, path: str | Path) -> None:
         self.path = Path(path)
         self.header, self.compressed, self.evlrs = read_header(self.path)
+        self.raw = read_raw(self.path)
         self.n_points = int(self.header.point_count)
         self.record_bytes = int(self.header.point_format.size)
         self.scales = np.asarray(self.header.scales, dtype=np.float64)
@@ -558,7 +595,8 @@ class LasChunks(ChunkFile):
         return positions_of(self.header, self.rows(start, stop))
 
     def model_of(self, rows: np.ndarray) -> PointModel:
-        return model_from_las(self.header, rows, self.path, compressed=self.compressed)
+        return model_from_las(self.header, rows, self.path, compressed=self.compressed,
+                              raw=self.raw)
 
     def encode(self, model: PointModel) -> tuple[np.ndarray, None]:
         """Raises ProcessingError when a coordinate leaves int32 (the offset stays)."""
@@ -566,4 +604,4 @@ class LasChunks(ChunkFile):
                            np.zeros(3, dtype=np.int64), True), None
 
     def writer(self, out: Path, props: list | None = None) -> LasWriter:
-        return LasWriter(self.header, out, self.evlrs)
+        return LasWriter(self.header, out, self.evlrs, self.raw)
