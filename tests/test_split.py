@@ -206,3 +206,58 @@ def test_split_mode_is_checked(bent) -> None:
     model, deformation, delta_c, matrix, *_ = bent
     with pytest.raises(InputError, match="gaussians.split"):
         df.apply(deformation, model, delta_c, moving_matrix=matrix, split="always")
+
+
+def test_closed_forms_match_lapack() -> None:
+    """plan()'s determinant and largest singular value without a per-splat LAPACK call."""
+    rng = np.random.default_rng(11)
+    mats = rng.normal(size=(500, 3, 3))
+    mats[:50] = np.eye(3) * rng.uniform(0.1, 3, (50, 1, 1))  # equal singular values
+    mats[50:100, :, 2] = 0  # rank 2
+    assert np.allclose(sp._det3(mats), np.linalg.det(mats), rtol=1e-12, atol=1e-12)
+    top = np.linalg.svd(mats, compute_uv=False)[:, 0]
+    assert np.allclose(sp._largest_singular(mats), top, rtol=1e-9)
+    assert sp._largest_singular(np.zeros((0, 3, 3))).shape == (0,)
+
+
+@pytest.mark.parametrize("backend", ["numpy", "opencl"])
+def test_an_affine_fit_field_never_splits_exactly(bent, backend: str) -> None:
+    """A real fit whose RBF weights are zero (only its polynomial part: an affine field that
+    stretches 3x) gives a bend term of exactly 0 on either backend, so nothing splits, whatever
+    float32 differences the backend's rounding would show."""
+    from dataclasses import replace
+
+    model, deformation, *_ = bent
+    fit = deformation.fit
+    weights = np.zeros_like(fit.weights)
+    weights[1:4, :3] = np.diag([3.0, 1.0, 1.0]) * fit.normalization.scale  # x -> 4x
+    affine = replace(fit, weights=weights)
+    delta = np.eye(fit.k, 3)
+    field = sp.FitField(affine, delta, backend=backend)
+    rows = deformation.free_idx
+    sigma, rot = sp._frames(model.gaussians.scale_log[rows], model.gaussians.rotation[rows])
+    curv = field.curvature(model.positions[rows], sigma, rot)
+    assert (curv == 0).all()
+    _, jac = field(model.positions[rows], True)
+    assert np.allclose(jac[:, 0, 0], 4.0, rtol=1e-5)
+    assert not sp.plan(model.gaussians.scale_log[rows], model.gaussians.rotation[rows], jac,
+                       curv).split.any()
+
+
+def test_opencl_and_numpy_fields_split_alike(bent) -> None:
+    """The sigma points and children through OpenCL float32 give the float64 reference's split
+    decisions on the bend, and children within float32 rounding of it."""
+    model, deformation, delta_c, *_ = bent
+    rows = deformation.free_idx
+    g = model.gaussians
+    sigma, rot = sp._frames(g.scale_log[rows], g.rotation[rows])
+    plans, moved = [], []
+    for backend in ("numpy", "opencl"):
+        field = sp.FitField(deformation.fit, delta_c, backend=backend)
+        pos, jac = field(model.positions[rows], True)
+        plans.append(sp.plan(g.scale_log[rows], g.rotation[rows], jac,
+                             field.curvature(model.positions[rows], sigma, rot)))
+        moved.append(pos)
+    assert plans[0].split.sum() > 0
+    assert (plans[0].counts != plans[1].counts).any(axis=1).sum() <= 2
+    assert np.allclose(moved[0], moved[1], atol=1e-5)

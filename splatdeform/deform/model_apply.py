@@ -183,9 +183,9 @@ def _apply(deformation: Deformation, model: PointModel, delta: np.ndarray,
                               ap.jacobians(np.ascontiguousarray(deformation.moving_gradients),
                                            delta), covariance, stats)
         if split == "auto" and model.gaussians is not None:  # issue 37
-            from splatdeform.deform.split import basis_field, split_splats
+            from splatdeform.deform.split import fit_field, split_splats
 
-            out = split_splats(model, out, free, jac_free, basis_field(deformation.fit, delta),
+            out = split_splats(model, out, free, jac_free, fit_field(deformation, delta),
                                moved=int(model.n_points - np.count_nonzero(deformation.fixed)),
                                covariance=covariance, transform=_transform_attributes,
                                stats=stats)

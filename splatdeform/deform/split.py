@@ -19,6 +19,14 @@ rest centre x, rotation R (columns a_k), standard deviations s_k and Jacobian J:
   affine over the splat and the deformed Gaussian is the exact image of the parent: never
   split (so an affine map, whatever its stretch, never splits).
 
+**Cost.** For an RBF fit (:class:`FitField`) the sigma points and the children go through the
+backend the centres use (OpenCL float32 with double accumulation where it runs, else the
+float64 numpy reference), one-shot from W delta_c a chunk at a time; e_k comes from the RBF
+part alone (the polynomial part's second difference is zero), so it is exactly 0 when the RBF
+weights W delta_c are 0, whatever the backend's rounding; l_k adds the polynomial part's linear
+map. :func:`plan` uses closed forms (determinants by cofactors, the largest singular value
+from the Gram matrix's largest eigenvalue), no per-splat LAPACK call.
+
 Children per axis: m_k children along rest axis k (product <= 8) at offsets
 (2j - (m_k - 1)) c_k s_k, j = 0..m_k-1, each with that axis shrunk to c_k s_k, c_k = 1/sqrt(m_k),
 and binomial weights C(m_k - 1, j) / 2^(m_k - 1): spacing of two child sigmas, and in rest space
@@ -85,25 +93,63 @@ def _frames(scale_log: np.ndarray, rotation: np.ndarray) -> tuple[np.ndarray, np
     return np.exp(np.asarray(scale_log, np.float64)), quaternion_to_matrix(rotation)
 
 
+def sigma_steps(sigma: np.ndarray, rot: np.ndarray) -> np.ndarray:
+    """(M, 3 axes, 3 xyz) the steps h_k = :data:`SIGMA_EXTENT` s_k a_k to the sigma points."""
+    return (rot * (SIGMA_EXTENT * sigma)[:, None, :]).transpose(0, 2, 1)
+
+
+def sigma_points(centers: np.ndarray, steps: np.ndarray) -> np.ndarray:
+    """(M * 7, 3) the sigma points x, x + h_k, x - h_k (k = 0..2) of M splats, splat-major."""
+    c = np.asarray(centers, np.float64)[:, None, :]
+    return np.concatenate([c, c + steps, c - steps], axis=1).reshape(-1, 3)
+
+
+def ratio(second: np.ndarray, first: np.ndarray) -> np.ndarray:
+    """(M, 3) second / first (0 where the first-order term is 0)."""
+    return np.divide(second, first, out=np.zeros_like(second), where=first > 0)
+
+
 def curvature(centers: np.ndarray, sigma: np.ndarray, rot: np.ndarray,
               field: Field) -> np.ndarray:
     """(M, 3) second-order / first-order term of ``field`` along each principal axis over
-    +-:data:`SIGMA_EXTENT` sigma (0 where the first-order term is 0), from 7 sigma points."""
+    +-:data:`SIGMA_EXTENT` sigma (0 where the first-order term is 0), from 7 sigma points.
+    A :class:`FitField` answers from its RBF part alone (:meth:`FitField.curvature`: exactly 0
+    for an affine field); any other field from its values at the sigma points."""
+    if isinstance(field, FitField):
+        return field.curvature(centers, sigma, rot)
     m = centers.shape[0]
-    h = rot * (SIGMA_EXTENT * sigma)[:, None, :]  # (M, 3 xyz, 3 axes)
-    steps = h.transpose(0, 2, 1)  # (M, axis, xyz)
-    pts = np.concatenate([centers[:, None, :], centers[:, None, :] + steps,
-                          centers[:, None, :] - steps], axis=1)  # (M, 7, 3)
-    f, _ = field(pts.reshape(-1, 3), False)
+    f, _ = field(sigma_points(centers, sigma_steps(sigma, rot)), False)
     f = f.reshape(m, 7, 3)
     plus, minus = f[:, 1:4], f[:, 4:7]
     second = np.linalg.norm(plus + minus - 2 * f[:, :1], axis=2) / 2
     first = np.linalg.norm(plus - minus, axis=2) / 2
-    return np.divide(second, first, out=np.zeros_like(second), where=first > 0)
+    return ratio(second, first)
+
+
+def _det3(m: np.ndarray) -> np.ndarray:
+    """(M,) determinants of (M, 3, 3) matrices by the cofactor expansion (no LAPACK call)."""
+    return (m[:, 0, 0] * (m[:, 1, 1] * m[:, 2, 2] - m[:, 1, 2] * m[:, 2, 1])
+            - m[:, 0, 1] * (m[:, 1, 0] * m[:, 2, 2] - m[:, 1, 2] * m[:, 2, 0])
+            + m[:, 0, 2] * (m[:, 1, 0] * m[:, 2, 1] - m[:, 1, 1] * m[:, 2, 0]))
 
 
 def _largest_singular(mats: np.ndarray) -> np.ndarray:
-    return np.linalg.svd(mats, compute_uv=False)[:, 0] if mats.shape[0] else np.zeros(0)
+    """(M,) largest singular values of (M, 3, 3) matrices in closed form: the square root of the
+    largest eigenvalue of the Gram matrix G = F^T F by the trigonometric formula for symmetric
+    3 x 3 matrices (no per-matrix SVD); relative accuracy ~1e-15 on the largest value."""
+    if not mats.shape[0]:
+        return np.zeros(0)
+    g = np.einsum("mki,mkj->mij", mats, mats)
+    q = (g[:, 0, 0] + g[:, 1, 1] + g[:, 2, 2]) / 3
+    off = g[:, 0, 1] ** 2 + g[:, 0, 2] ** 2 + g[:, 1, 2] ** 2
+    d0, d1, d2 = g[:, 0, 0] - q, g[:, 1, 1] - q, g[:, 2, 2] - q
+    p = np.sqrt((d0 * d0 + d1 * d1 + d2 * d2 + 2 * off) / 6)
+    safe = np.where(p > 0, p, 1.0)
+    b = (g - q[:, None, None] * np.eye(3)) / safe[:, None, None]
+    half_det = np.clip(_det3(b) / 2, -1.0, 1.0)
+    top = q + 2 * p * np.cos(np.arccos(half_det) / 3)
+    top = np.maximum(top, g[:, [0, 1, 2], [0, 1, 2]].max(axis=1))  # >= every diagonal entry
+    return np.sqrt(np.maximum(top, 0.0))
 
 
 def shrink(counts: np.ndarray) -> np.ndarray:
@@ -118,7 +164,7 @@ def plan(scale_log: np.ndarray, rotation: np.ndarray, jac: np.ndarray,
     sigma, rot = _frames(scale_log, rotation)
     jac = np.asarray(jac, np.float64)
     m = jac.shape[0]
-    det = np.linalg.det(jac) if m else np.zeros(0)
+    det = _det3(jac)
     uniform = np.cbrt(np.abs(det))
     ok = (uniform > 0) & np.isfinite(uniform) & np.isfinite(curv).all(axis=1) & \
         np.isfinite(sigma).all(axis=1) & (sigma.max(axis=1, initial=0) > 0)
@@ -341,22 +387,91 @@ def split_splats(model: PointModel, out: PointModel, rows: np.ndarray, jac: np.n
     return concat(result, take(deformed, np.flatnonzero(~first)))
 
 
+class FitField:
+    """The deformation x + d(x) of an RBF ``fit`` under control displacements ``delta_c``
+    (k, 3) at any rest points, through the backend the centres use (:func:`oneshot_chunks`:
+    OpenCL float32 with double accumulation, or the float64 numpy reference), a chunk at a time
+    from the combined weights W delta_c (nothing of size points x k is stored).
+
+    Called as a :data:`Field`: (M, 3) rest points -> float64 (M, 3) positions and (M, 3, 3)
+    Jacobians I + grad d when asked. :meth:`curvature` is the rule's bend test from the RBF
+    part alone."""
+
+    def __init__(self, fit, delta_c: np.ndarray, *, backend: str = "numpy",
+                 device: str | None = None) -> None:
+        from splatdeform.basis.oneshot import combined_fit
+
+        self.fit, self.delta = fit, np.asarray(delta_c, np.float64)
+        self.backend, self.device = backend, device
+        combined = combined_fit(fit, self.delta).weights  # (4 + n, 3)
+        # the polynomial part [1, p] . W delta_c is affine: d d_a / d x_b = W[1 + b, a] / scale
+        self.linear = combined[1:4].T / float(fit.normalization.scale)  # (3, 3)
+        rbf = np.array(fit.weights, np.float64)
+        rbf[:4] = 0.0  # the RBF part alone: sum_j |p - s_j|^3 (W delta_c)_j
+        self._rbf_fit = replace(fit, weights=rbf)
+
+    def _chunks(self, fit, points: np.ndarray, gradients: bool):
+        from splatdeform.basis.oneshot import oneshot_chunks
+
+        return oneshot_chunks(points, fit, self.delta, gradients=gradients,
+                              backend=self.backend, device=self.device)
+
+    def __call__(self, points: np.ndarray, gradients: bool
+                 ) -> tuple[np.ndarray, np.ndarray | None]:
+        pts = np.asarray(points, np.float64)
+        moved = pts.copy()
+        jac = np.empty((pts.shape[0], 3, 3)) if gradients else None
+        for lo, hi, disp, grad in self._chunks(self.fit, pts, gradients):
+            moved[lo:hi] += disp
+            if jac is not None:
+                jac[lo:hi] = grad
+        if jac is not None:
+            jac[:, [0, 1, 2], [0, 1, 2]] += 1.0
+        return moved, jac
+
+    def curvature(self, centers: np.ndarray, sigma: np.ndarray, rot: np.ndarray) -> np.ndarray:
+        """(M, 3) the rule's e_k / l_k from the RBF part r(x) at the 7 sigma points: the
+        affine part's second difference is zero, so e_k = |r(x + h) + r(x - h) - 2 r(x)| / 2
+        (exactly 0 when the RBF weights W delta_c are 0: an affine field never splits, whatever
+        the backend's rounding), l_k = |h + A h + (r(x + h) - r(x - h)) / 2| with A the
+        polynomial part's linear map."""
+        m = centers.shape[0]
+        if m == 0:
+            return np.zeros((0, 3))
+        steps = sigma_steps(sigma, rot)
+        r = np.empty((m * 7, 3))
+        if np.any(self._rbf_fit.weights[4:] @ self.delta):
+            for lo, hi, disp, _ in self._chunks(self._rbf_fit, sigma_points(centers, steps),
+                                                False):
+                r[lo:hi] = disp
+        else:  # no RBF part: the field is affine
+            r[:] = 0.0
+        r = r.reshape(m, 7, 3)
+        plus, minus = r[:, 1:4], r[:, 4:7]
+        second = np.linalg.norm(plus + minus - 2 * r[:, :1], axis=2) / 2
+        first = np.linalg.norm(steps + steps @ self.linear.T + (plus - minus) / 2, axis=2)
+        return ratio(second, first)
+
+
+def fit_field(deformation, delta_c: np.ndarray) -> FitField:
+    """The :class:`FitField` of a deformation: through its one-shot basis's backend, else
+    (a stored basis) OpenCL where a device exists, else the numpy reference."""
+    from splatdeform.basis.oneshot import DeferredBasis
+
+    basis = deformation.basis
+    if isinstance(basis, DeferredBasis):
+        return FitField(deformation.fit, delta_c, backend=basis.backend, device=basis.device)
+    from splatdeform.basis import opencl
+
+    backend = "opencl" if opencl.opencl_available(None) else "numpy"
+    return FitField(deformation.fit, delta_c, backend=backend)
+
+
 def basis_field(fit, delta_c: np.ndarray) -> Field:
-    """The deformation x + b(x) delta_c of an RBF ``fit`` at any rest points, through the
-    float64 numpy basis (deterministic, whatever backend made the points' own basis); the
-    Jacobians I + sum_k delta_c[k] (x) grad b_k when asked. Works from a reused (cached) fit:
-    the children's basis is computed, never read from the cache."""
-    from splatdeform.basis import compute_basis
-    from splatdeform.deform.arrays import jacobians
-
-    delta = np.asarray(delta_c, np.float64)
-
-    def field(points: np.ndarray, gradients: bool) -> tuple[np.ndarray, np.ndarray | None]:
-        b = compute_basis(points, fit, gradients=gradients, backend="numpy")
-        moved = points + b.values.astype(np.float64) @ delta
-        return moved, (jacobians(b.gradients.astype(np.float64), delta) if gradients else None)
-
-    return field
+    """The deformation of ``fit`` through the float64 numpy reference (:class:`FitField` on
+    ``numpy``): deterministic whatever backend made the points' own basis (the benchmark's
+    reference uses it)."""
+    return FitField(fit, delta_c, backend="numpy")
 
 
 def check_mode(split: str) -> str:
