@@ -9,7 +9,17 @@ block holding the data column by column (each field's values for every point in 
 
 A save to ``.pcd`` writes the same fields, types, counts and DATA encoding as the input, with the
 model's positions (and normals, when the file has ``normal_x..z``) written in; ascii values that
-did not change keep their original text. Packed ``rgb``/``rgba`` floats are kept as raw bits.
+did not change keep their original text. Packed ``rgb``/``rgba`` floats are kept as raw bits; a
+``TYPE F`` packed colour written as ascii text is the float whose bits it is (what Open3D and
+pypcd4 read back as the same colour), or, where those bits are a NaN (an ``rgba`` with a high
+alpha byte), the field is declared ``TYPE U`` and its bits written as an integer.
+
+Organized clouds (HEIGHT > 1: RGB-D and structured-light frames) keep their grid. A grid cell
+whose x, y or z is not finite is a hole, not a point: the model holds the finite cells only
+(``PcdSource.finite``, the (WIDTH*HEIGHT,) mask of the cells that are its points, in grid
+order), so a hole is never deformed, selected or rendered; the source keeps every cell, and a
+save writes the model's points back into their cells, the holes as they were (NaN, with every
+other field), WIDTH and HEIGHT kept. ``--drop-nonfinite`` has nothing to drop there.
 """
 
 from __future__ import annotations
@@ -48,7 +58,9 @@ class PcdSource:
     """Everything a PCD file held. header: (key, value text) pairs in file order (comments as
     ('#', text)); fields/sizes/types/counts: the field table; data: (N,) structured array with
     one column per field (a COUNT > 1 field is a sub-array); encoding: the DATA line;
-    ascii_text: for ascii files, (N, columns) the original value texts (bytes), else None."""
+    ascii_text: for ascii files, (N, columns) the original value texts (bytes), else None.
+    finite: for an organized cloud with holes, the (N,) bool mask of the cells that are the
+    model's points (None: every cell is); ``rows`` are those cells' records."""
 
     header: list[tuple[str, str]]
     fields: list[str]
@@ -63,10 +75,26 @@ class PcdSource:
     obj_info: list[str] = field(default_factory=list)
     text: bool = False
     byte_order: str = "<"
+    finite: np.ndarray | None = None
+
+    @property
+    def rows(self) -> np.ndarray:
+        """The records of the model's points: every cell's, or the finite cells' of an
+        organized cloud with holes."""
+        return self.data if self.finite is None else self.data[self.finite]
+
+    @property
+    def organized(self) -> str:
+        """'640x480 with 182,292 finite' for an organized cloud, else ''."""
+        if self.height <= 1:
+            return ""
+        n = len(self.data) if self.finite is None else int(self.finite.sum())
+        return f"{self.width}x{self.height} with {n:,} finite"
 
     @property
     def comments(self) -> list[str]:
-        return [f"PCD {dict(self.header).get('VERSION', '')} DATA {self.encoding}",
+        grid = [f"organized {self.organized} (holes kept in place)"] if self.organized else []
+        return [f"PCD {dict(self.header).get('VERSION', '')} DATA {self.encoding}", *grid,
                 *(v for k, v in self.header if k == "#")]
 
     def element(self, name: str) -> PlyElementData | None:
@@ -76,13 +104,14 @@ class PcdSource:
     def elements(self) -> list[PlyElementData]:
         """The fields as one PLY-like vertex element (a COUNT > 1 field as name_0 ..)."""
         columns = []
+        rows = self.rows
         for name, count in zip(self.fields, self.counts, strict=True):
-            col = self.data[name]
+            col = rows[name]
             if count == 1:
                 columns.append((name, col))
             else:
                 columns += [(f"{name}_{i}", col[:, i]) for i in range(count)]
-        data = np.empty(len(self.data), dtype=[(n, c.dtype) for n, c in columns])
+        data = np.empty(len(rows), dtype=[(n, c.dtype) for n, c in columns])
         props = []
         for n, c in columns:
             data[n] = c
@@ -386,10 +415,32 @@ def _colors(data: np.ndarray) -> np.ndarray | None:
     return np.stack([(bits >> 16) & 255, (bits >> 8) & 255, bits & 255], axis=1).astype(np.uint8)
 
 
+def organized_holes(path, source: PcdSource, positions: np.ndarray) -> PcdSource:
+    """``source`` with its :attr:`~PcdSource.finite` mask when it is an organized cloud
+    (HEIGHT > 1) with holes (cells whose x, y or z is not finite); positions (N, 3)."""
+    if source.height <= 1:
+        return source
+    finite = np.isfinite(positions).all(axis=1)
+    if finite.all():
+        return source
+    if not finite.any():
+        raise FormatError(f"{path}: the organized PCD ({source.width}x{source.height}) has no "
+                          "finite point")
+    return replace(source, finite=finite)
+
+
+def xyz_of(data: np.ndarray) -> np.ndarray:
+    """(N, 3) float64 x y z of PCD records (N,)."""
+    return _columns(data, ("x", "y", "z"))
+
+
 def read_model(path: str | Path, *, drop_nonfinite: bool = False) -> PointModel:
     source, _ = read_source(path)
     data = source.data
-    positions = _columns(data, ("x", "y", "z"))
+    positions = xyz_of(data)
+    source = organized_holes(path, source, positions)
+    if source.finite is not None:
+        data, positions = source.rows, positions[source.finite]
     bad = nonfinite_points(path, positions, drop_nonfinite)
     if bad.any():
         keep = ~bad
@@ -457,9 +508,11 @@ def _source_for_save(model: PointModel) -> PcdSource:
                          sizes=sizes, types=["F"] * len(names),
                          counts=[1] * len(names), width=model.n_points, height=1,
                          encoding="binary", data=data)
-    if len(source.data) != model.n_points:
+    cells = None if source.finite is None else np.flatnonzero(source.finite)
+    held = len(source.data) if cells is None else len(cells)
+    if held != model.n_points:
         raise FormatError(f"model has {model.n_points} points but its PCD source "
-                          f"{len(source.data)}; cannot save it field by field")
+                          f"{held}; cannot save it field by field")
     data = source.data.copy()
     texts = None if source.ascii_text is None else source.ascii_text.copy()
     updates = [("x", model.positions[:, 0]), ("y", model.positions[:, 1]),
@@ -473,12 +526,13 @@ def _source_for_save(model: PointModel) -> PcdSource:
                    f"its TYPE {source.types[source.fields.index(name)]} SIZE "
                    f"{column.dtype.itemsize}:")
         new = values.astype(column.dtype)
-        changed = new != column
-        column[changed] = new[changed]
+        changed = new != (column if cells is None else column[cells])
+        at = changed if cells is None else cells[changed]   # the cells (holes stay as read)
+        column[at] = new[changed]
         if texts is not None and changed.any():
             col = starts[source.fields.index(name)]
-            texts[changed, col] = [t.encode() for t in shortest_text(new[changed],
-                                                                     column.dtype.str[1:])]
+            texts[at, col] = [t.encode() for t in shortest_text(new[changed],
+                                                                column.dtype.str[1:])]
     return replace(source, data=data, ascii_text=texts)
 
 
@@ -509,6 +563,8 @@ def _header_bytes(source: PcdSource) -> bytes:
 
 
 def write_source(source: PcdSource, out) -> None:
+    if source.encoding == "ascii" and source.ascii_text is None:
+        source = _packed_colour_types(source)
     out.write(_header_bytes(source))
     data = source.data
     if source.encoding == "binary":
@@ -531,14 +587,42 @@ def write_source(source: PcdSource, out) -> None:
             out.write(buf.getvalue())
 
 
+def _is_packed_colour(name: str, column: np.ndarray) -> bool:
+    return name in ("rgb", "rgba") and column.dtype.base == np.float32
+
+
+def _packed_colour_types(source: PcdSource) -> PcdSource:
+    """``source`` with each packed-colour field whose bits include a NaN float (text cannot
+    carry its bits) declared ``TYPE U`` for an ascii write; the others stay ``F``."""
+    types = list(source.types)
+    for k, name in enumerate(source.fields):
+        column = source.data[name]
+        if types[k] == "F" and _is_packed_colour(name, column) and np.isnan(column).any():
+            types[k] = "U"
+    return source if types == source.types else replace(source, types=types)
+
+
+def _float_bits_texts(values: np.ndarray) -> list[bytes]:
+    """Texts of float32 ``values`` (finite) that read back to the same bits, never a plain
+    integer (which our reader, like PCL's ascii rgb, takes for the bits themselves)."""
+    out = []
+    for t in shortest_text(values, "f4"):
+        if t.lstrip("-").isdigit():
+            t += ".0"
+        out.append(t.encode())
+    return out
+
+
 def _ascii_texts(source: PcdSource) -> np.ndarray:
     cols = []
-    for name in source.fields:
+    for name, kind in zip(source.fields, source.types, strict=True):
         column = source.data[name]
         column = column if column.ndim == 2 else column[:, None]
         for i in range(column.shape[1]):
-            if name in ("rgb", "rgba") and column.dtype.kind == "f":
+            if _is_packed_colour(name, column) and kind == "U":
                 cols.append([str(int(v)).encode() for v in column[:, i].view(np.uint32)])
+            elif _is_packed_colour(name, column):
+                cols.append(_float_bits_texts(column[:, i]))
             else:
                 cols.append([t.encode() for t in shortest_text(column[:, i],
                                                                column.dtype.str[1:])])
