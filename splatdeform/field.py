@@ -284,17 +284,22 @@ class Field:
                            fit=self.fit, basis=basis, groups=groups)
 
     def apply(self, model: PointModel, backend: str | None = None,
-              support: SupportStats | None = None) -> PointModel:
+              support: SupportStats | None = None, split: str | None = None) -> PointModel:
         """The deformed copy of ``model`` (as ``deform`` makes it; see the module);
-        ``support``: counts the points the field moves outside :attr:`support` (adds to it)."""
+        ``support``: counts the points the field moves outside :attr:`support` (adds to it);
+        ``split``: ``gaussians.split`` (None: the field's own, default ``auto``; a streamed
+        apply passes ``off``: chunks keep their row counts)."""
         from splatdeform import deform as df
+        from splatdeform.deform.split import DEFAULT_SPLIT
 
         deformation = self.deformation(model, backend)
         if support is not None:
             support.add(model.positions, deformation.free_idx, self.support)
         matrices = list(self.arrays["matrices"]) if self.meta["handles"] else None
+        meta = self.meta.get("gaussians", {})
         return df.apply(deformation, model, self.delta_c, moving_matrix=matrices,
-                        covariance=self.meta.get("gaussians", {}).get("covariance", "jacobian"))
+                        covariance=meta.get("covariance", "jacobian"),
+                        split=meta.get("split", DEFAULT_SPLIT) if split is None else split)
 
 
 def field_of_edit(result, cfg, base_dir: Path) -> Field:

@@ -136,7 +136,8 @@ def apply_file(field_path: str | Path, model_path: str | Path, out: str | Path, 
                          int(getattr(cost, "reader_bytes", 0)) + 160 * 2**20)
 
     def part(a: int, b: int):
-        return src.encode(_finite(fld.apply(src.read(a, b), backend, support=stats),
+        return src.encode(_finite(fld.apply(src.read(a, b), backend, support=stats,
+                                            split="off"),  # chunks keep their row counts
                                   field_path, model_path))
 
     with naming_output(out), _naming_field(field_path, model_path):

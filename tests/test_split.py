@@ -154,8 +154,12 @@ def test_split_bend_bounds_and_fixed_rows(bent) -> None:
     assert parents.size == out.n_points - n and (np.diff(parents) >= 0).all()
     assert not fixed[parents].any() and not deformation.moving[parents].any()
     # the unsplit path leaves the count alone
-    off = df.apply(deformation, model, delta_c, moving_matrix=matrix, covariance="limited")
+    off = df.apply(deformation, model, delta_c, moving_matrix=matrix, covariance="limited",
+                   split="off")
     assert off.n_points == n
+    # on by default (issue 46)
+    default = df.apply(deformation, model, delta_c, moving_matrix=matrix, covariance="limited")
+    assert default.n_points == out.n_points
 
 
 def test_split_is_deterministic(bent, tmp_path: Path) -> None:

@@ -16,6 +16,7 @@ from splatdeform.deform.deformation import Deformation
 from splatdeform.deform.gaussians import DEFAULT_COVARIANCE
 from splatdeform.deform.handle import apply_affine
 from splatdeform.deform.regions import Group
+from splatdeform.deform.split import DEFAULT_SPLIT
 from splatdeform.errors import InputError
 from splatdeform.model import PointModel
 
@@ -79,7 +80,7 @@ def handle_matrices(deformation: Deformation, moving_matrix
 
 def apply(deformation: Deformation, model: PointModel, delta_c: np.ndarray, *,
           moving_matrix=None, covariance: str = DEFAULT_COVARIANCE, stats: dict | None = None,
-          split: str = "off") -> PointModel:
+          split: str = DEFAULT_SPLIT) -> PointModel:
     """The deformed copy of ``model`` for control displacements delta_c (k, 3).
 
     Positions, normals (cof(J) n), tangent axes (J u), radius-only surfels (area-preserving
@@ -88,9 +89,9 @@ def apply(deformation: Deformation, model: PointModel, delta_c: np.ndarray, *,
     move by their coordinates, m . delta_c). covariance: how 3DGS covariances deform
     (:data:`splatdeform.deform.gaussians.COVARIANCE_MODES`); ``stats``, when given, receives
     ``refused_splats`` (splats whose covariance the ``rotation`` mode kept, det J <= 0).
-    split: ``auto`` replaces free-region splats one Gaussian cannot follow by children
-    appended after the originals (:mod:`splatdeform.deform.split`; ``stats`` then receives
-    split_splats, split_children, split_capped); ``off`` (default) keeps the point count.
+    split: ``auto`` (default) replaces free-region splats one Gaussian cannot follow by
+    children appended after the originals (:mod:`splatdeform.deform.split`; ``stats`` then
+    receives split_splats, split_children, split_capped); ``off`` keeps the point count.
 
     Parameters
     ----------
@@ -104,11 +105,12 @@ def apply(deformation: Deformation, model: PointModel, delta_c: np.ndarray, *,
     moving_matrix : ndarray (4, 4) or list of them, optional
         The handles' maps, applied verbatim to handle points.
     covariance : {"jacobian", "rotation", "limited"}
-        How 3D Gaussian covariances deform (default ``jacobian``: J Sigma J^T).
+        How 3D Gaussian covariances deform (default ``limited``).
     stats : dict, optional
         Receives ``refused_splats`` (and the ``split_*`` counts).
-    split : {"off", "auto"}
-        Split free-region splats one Gaussian cannot follow (``auto``).
+    split : {"auto", "off"}
+        Split free-region splats one Gaussian cannot follow (``auto``, the default; models
+        without splats are never split).
 
     Returns
     -------

@@ -61,6 +61,7 @@ from splatdeform.geometry import quaternion_to_matrix
 from splatdeform.model import Gaussians, PointModel
 
 SPLIT_MODES = ("auto", "off")
+DEFAULT_SPLIT = "auto"  # on by default (issue 46): benchmarks/bench_needles.py --psnr
 STRETCH_LIMIT = 2.0  # longest axis of N R S / longest rest axis above this: split
 CURVE_LIMIT = 0.1  # second-order / first-order term over +-2 sigma above this: split
 AFFINE_FLOOR = 1e-6  # below this on every axis the field is affine across the splat: never split

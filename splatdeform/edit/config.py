@@ -22,6 +22,7 @@ from pydantic import (
 
 from splatdeform.basis.names import BACKENDS
 from splatdeform.deform.gaussians import DEFAULT_COVARIANCE
+from splatdeform.deform.split import DEFAULT_SPLIT
 from splatdeform.edit.points_cfg import PairsFileCfg, PointsCfg
 from splatdeform.edit.schema import (
     MAX_VALUE,
@@ -275,8 +276,10 @@ class GaussiansCfg(_Strict):
     covariance: Literal["jacobian", "rotation", "limited"] = Field(
         DEFAULT_COVARIANCE, description="`jacobian`: J Sigma J^T; `rotation`: turned, shape kept; "
         "`limited`: J Sigma J^T, axis ratio growing at most 2x")
-    split: Literal["auto", "off"] = Field("off", description="`auto`: split free-region "
-                                          "splats one Gaussian cannot follow (opt-in)")
+    split: Literal["auto", "off"] = Field(
+        DEFAULT_SPLIT, description="`auto`: split free-region splats one Gaussian cannot "
+        "follow into children (the written file; the editor's live pose and render images "
+        "draw them unsplit); `off`: keep the splat count")
 
 
 UpAxis = Literal["+x", "+y", "+z", "-x", "-y", "-z"]

@@ -14,6 +14,7 @@ from typing import Any
 
 import yaml
 
+from splatdeform.deform.split import DEFAULT_SPLIT
 from splatdeform.edit.config import EditConfig
 
 
@@ -67,7 +68,7 @@ def edit_yaml(settings: EditConfig, *, input_path: Path, output_path: Path, conf
         data["device"] = s.device
     if gaussians or "gaussians" in s.model_fields_set:
         data["gaussians"] = {"covariance": s.gaussians.covariance}
-        if s.gaussians.split != "off":   # written only when asked for (opt-in)
+        if s.gaussians.split != DEFAULT_SPLIT:   # written only when not the default
             data["gaussians"]["split"] = s.gaussians.split
     if s.render is not None:
         render = s.render.model_dump()

@@ -161,7 +161,8 @@ def deformed_model(ed: EditorState) -> PointModel:
     else:
         delta_c, matrix = control_displacement(cfg, ed.model, ed.deformation)
     deformed = df.apply(_one_shot(ed.deformation, ed.model, cfg), ed.model, delta_c,
-                        moving_matrix=matrix, covariance=cfg.gaussians.covariance)
+                        moving_matrix=matrix, covariance=cfg.gaussians.covariance,
+                        split=cfg.gaussians.split)
     if not np.isfinite(deformed.positions).all():
         raise InputError("the deformation produced non-finite positions; check the regions "
                          "and the transform")
