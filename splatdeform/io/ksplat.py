@@ -41,7 +41,7 @@ import numpy as np
 from ..errors import FormatError, InputError
 from ..model import PointModel
 from .splat_model import to_model
-from .splats import SplatFields, color_to_dc, logit, read_bytes
+from .splats import SplatFields, alpha_logit, color_to_dc, read_bytes
 
 HEADER_BYTES = 4096
 SECTION_BYTES = 1024
@@ -54,7 +54,6 @@ SH_VALUES = {0: 0, 1: 9, 2: 24, 3: 45}
 BAND_SIZES = (3, 5, 7)
 SH_RANGE = 1.5
 ZERO_SCALE_LOG = -10.0
-ALPHA_EPS = 0.5 / 255
 #: bytes a decoded splat needs at most per byte of its record (float32 fields from float16/u8)
 DECODE_GROWTH = 4
 
@@ -171,7 +170,7 @@ def _decode_section(path: str | Path, data, main: dict, s: dict, degree: int) ->
     scale_log = np.where(np.isnan(scale), np.nan, scale_log)
     rgba = rec["rgba"].astype(np.float64) / 255
     alpha = rgba[:, 3]
-    opacity = np.select([alpha >= 1.0, alpha <= 0.0], [np.inf, -np.inf], logit(alpha, ALPHA_EPS))
+    opacity = alpha_logit(alpha)
     sh = np.zeros((n, 3, sum(BAND_SIZES[:degree])), np.float32)
     if s["degree"]:
         values = rec["sh"].astype(np.float64)

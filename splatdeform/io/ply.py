@@ -30,6 +30,7 @@ from . import playcanvas
 from .checks import check_fits, infinite_opacity_ok
 from .chunks import ChunkFile
 from .ply_format import MAX_HEADER_BYTES, header_text, parse_header, read_ply, write_ply
+from .splats import finite_opacity
 
 AXIS_NAMES = ("ux", "uy", "uz", "vx", "vy", "vz")
 RADIUS_NAMES = ("radius", "surfel_radius")
@@ -407,6 +408,17 @@ def _set_field(data: np.ndarray, props: list[PlyProperty], name: str, values: np
     return grown, props + [PlyProperty(name, code, type_name)]
 
 
+def _plain_ply_input(model: PointModel) -> bool:
+    """The model was read from a plain PLY file, whose own values (an opacity logit of +-inf
+    included) a save keeps; a model decoded from a quantised splat file (``.splat``, SPZ,
+    SOG, ``.ksplat``, compressed PLY, glTF) is written with
+    :func:`~splatdeform.io.splats.finite_opacity` instead (alpha 0 / 1 as +-13.8155: every
+    PLY reader keeps those splats, and each quantised writer turns them back into byte 0 /
+    255)."""
+    name = str(model.path or "").lower()
+    return name.endswith(".ply") and not name.endswith(".compressed.ply")
+
+
 def source_for_save(model: PointModel) -> PlySource:
     """The PlySource a save writes: the verbatim source with the model's geometry written in."""
     if model.source is not None:
@@ -446,7 +458,9 @@ def source_for_save(model: PointModel) -> PlySource:
             data, props = _set_field(data, props, f"rot_{i}", g.rotation[:, i])
         # SH (rotated by deformations) and the other 3DGS fields; only changed rows are written
         # so that a double-typed column keeps its untouched values bit-exact
-        columns = [("opacity", g.opacity)] if g.opacity is not None else []
+        opacity = g.opacity if g.opacity is None or _plain_ply_input(model) else \
+            finite_opacity(g.opacity)   # alpha 0 / 1 of a quantised file: finite in a PLY
+        columns = [("opacity", opacity)] if opacity is not None else []
         for part, prefix in ((g.sh_dc, "f_dc_"), (g.sh_rest, "f_rest_")):
             if part is not None:
                 columns += [(f"{prefix}{i}", part[:, i]) for i in range(part.shape[1])]

@@ -42,8 +42,8 @@ from .splat_model import to_model
 from .splats import (
     SH_COEFFS,
     SplatFields,
+    alpha_logit,
     fields_of,
-    logit,
     normalised_quaternions,
     note_lossy,
     restore_largest,
@@ -62,7 +62,6 @@ PALETTE_CAP = 4096  # the fast encoder's most entries: the k-means cost grows wi
 #: ~10x faster on 7k splats and far more on large scenes)
 QUALITIES = ("reference", "fast")
 _QUALITY: ContextVar[str] = ContextVar("sog_quality", default="reference")
-ALPHA_EPS = 0.5 / 255
 MAX_META = 16 << 20  # bytes of a meta.json (a few codebooks: tens of kilobytes)
 MAX_PIXELS = 1 << 28  # WebP's 16383 x 16383
 IMAGE_FORMATS = ("WEBP", "PNG")
@@ -333,10 +332,7 @@ def decode(path: str | Path) -> tuple[SplatFields, SogCodes]:
         files.close()
     fields = SplatFields(positions=positions, scale_log=book[scales[:, :3]],
                          rotation=quats_from_codes(quats).astype(np.float32),
-                         opacity=np.select(  # alpha 1: +inf, alpha 0: -inf
-                             [sh0[:, 3] == 255, sh0[:, 3] == 0], [np.inf, -np.inf],
-                             logit(sh0[:, 3].astype(np.float64) / 255, ALPHA_EPS))
-                         .astype(np.float32),
+                         opacity=alpha_logit(sh0[:, 3] / 255).astype(np.float32),
                          sh_dc=dc_book[sh0[:, :3]], sh_rest=rest)
     return fields, codes
 

@@ -18,10 +18,10 @@ from .checks import check_fits
 from .splat_model import to_model
 from .splats import (
     SplatFields,
+    alpha_logit,
     color_to_dc,
     dc_to_color,
     fields_of,
-    logit,
     normalised_quaternions,
     note_lossy,
     read_bytes,
@@ -30,7 +30,6 @@ from .splats import (
 
 RECORD = np.dtype([("position", "<f4", 3), ("scale", "<f4", 3), ("rgba", "u1", 4),
                    ("rot", "u1", 4)])
-ALPHA_EPS = 0.5 / 255
 
 
 def decode(raw: bytes | np.ndarray, path: str | Path) -> SplatFields:
@@ -45,7 +44,7 @@ def decode(raw: bytes | np.ndarray, path: str | Path) -> SplatFields:
     return SplatFields(positions=rec["position"].astype(np.float64),
                        scale_log=scale_log.astype(np.float32),
                        rotation=((rec["rot"].astype(np.float64) - 128) / 128).astype(np.float32),
-                       opacity=logit(rgba[:, 3], ALPHA_EPS).astype(np.float32),
+                       opacity=alpha_logit(rgba[:, 3]).astype(np.float32),
                        sh_dc=color_to_dc(rgba[:, :3]).astype(np.float32),
                        sh_rest=np.zeros((n, 3, 0), np.float32))
 

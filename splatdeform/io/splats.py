@@ -81,6 +81,32 @@ def logit(p: np.ndarray, eps: float) -> np.ndarray:
     return np.log(p / (1 - p))
 
 
+#: the opacity logit a plain PLY holds where a splat is fully opaque or fully transparent
+#: (alpha 1 / 0, an 8-bit opacity of 255 / 0): splat-transform's own clamp, alpha 1 -+ 1e-6.
+#: Finite, so every PLY reader keeps the splat (splat-transform's ``-N`` drops a -inf opacity),
+#: and quantised again it is byte 255 / 0 (sigmoid * 255 = 254.99974 / 0.00026).
+FINITE_OPACITY = float(np.log((1 - 1e-6) / 1e-6))
+
+
+def alpha_logit(alpha: np.ndarray) -> np.ndarray:
+    """The one rule every 8-bit opacity is read by (``.splat``, SOG, SPZ, ``.ksplat``; the
+    compressed PLY's own formula gives the same ends): alpha (N,) = byte / 255 in [0, 1] ->
+    (N,) float64 logit, alpha 0 -> -inf, alpha 1 -> +inf, else the logit of alpha."""
+    alpha = np.asarray(alpha, dtype=np.float64)
+    return np.select([alpha >= 1.0, alpha <= 0.0], [np.inf, -np.inf],
+                     logit(alpha, 0.5 / 255))
+
+
+def finite_opacity(logits: np.ndarray) -> np.ndarray:
+    """``logits`` (N,) with +-inf (alpha 1 / 0) as +-:data:`FINITE_OPACITY`, the other values
+    unchanged (what a plain PLY written from a quantised splat file holds)."""
+    logits = np.asarray(logits)
+    if not np.isinf(logits).any():
+        return logits
+    return np.where(np.isinf(logits), np.copysign(FINITE_OPACITY, logits),
+                    logits).astype(logits.dtype)
+
+
 def dc_to_color(sh_dc: np.ndarray) -> np.ndarray:
     return 0.5 + SH_C0 * np.asarray(sh_dc, dtype=np.float64)
 

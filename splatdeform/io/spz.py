@@ -62,9 +62,9 @@ from .splat_model import source_model
 from .splats import (
     SH_COEFFS,
     SplatFields,
+    alpha_logit,
     fields_of,
     gaussian_table,
-    logit,
     normalised_quaternions,
     note_lossy,
     restore_largest,
@@ -103,7 +103,6 @@ COORDINATE_SYSTEM = 0xADBE0003
 #: comment prefix keeping an extension record in a model's source
 EXTENSION_COMMENT = "spz_extension"
 COLOR_SCALE = 0.15
-ALPHA_EPS = 0.5 / 255
 # sign of each SH rest coefficient under the RDF <-> RUB flip (y -> -y, z -> -z)
 SH_FLIP = np.array([-1, -1, 1, -1, 1, 1, -1, 1, -1, 1, -1, -1, 1, -1, 1], dtype=np.float32)
 FLIP = np.array([1.0, -1.0, -1.0])
@@ -559,8 +558,7 @@ def decode(raw: bytes, path: str | Path, frame: tuple = RUB,
     put("positions", fixed.astype(np.float64) / (1 << info["fractional_bits"]) * flip)
     del fixed
     alpha = take(n)  # 255 / 0 are alpha 1 / 0: logits +-inf (the reference reads 1 -+ 1e-6)
-    put("opacity", np.where(alpha == 255, np.inf, np.where(
-        alpha == 0, -np.inf, logit(alpha.astype(np.float64) / 255, ALPHA_EPS))))
+    put("opacity", alpha_logit(alpha / 255))
     put("sh_dc", (take(3 * n).reshape(n, 3).astype(np.float64) / 255 - 0.5) / COLOR_SCALE)
     put("scale_log", take(3 * n).reshape(n, 3).astype(np.float64) / 16 - 10)
     if version == 2:
