@@ -48,8 +48,11 @@ from .rbf.defaults import DEFAULT_MAX_CENTERS
 BASE_BYTES = 150 * 2**20   # interpreter + numpy + scipy + pyopencl resident (measured)
 
 # Per point of the in-memory deform beyond the loaded model: float64 geometry and its deformed
-# copy, the kNN graph (~(k+1)*16*3 bytes), basis values and Jacobians of the free points.
-DEFORM_BYTES_PER_POINT = 300
+# copy, the kNN graph (~(k+1)*16*3 bytes); d(x) and J(x) are evaluated one-shot in chunks
+# (issue 45: 1M points measured ~300 B/point above the interpreter, the load included).
+DEFORM_BYTES_PER_POINT = 150
+# A stored basis (--reuse, the editor): b and grad b of every point in float32, k = 4 columns
+STORED_BASIS_BYTES_PER_POINT = 4 * 16 * 4
 KNN_BYTES_PER_NEIGHBOR = 16
 FIT_BYTES_PER_CENTER = 128 * 2**10   # the fit's working set per allowed center (fit.max_centers)
 
@@ -234,21 +237,23 @@ def head_cost(name: str | Path, head: bytes, size: int, suffix: str | None = Non
 
 
 def deform_bytes(cost: FileCost, neighbors: int = 10,
-                 max_centers: int = DEFAULT_MAX_CENTERS) -> int:
+                 max_centers: int = DEFAULT_MAX_CENTERS, *, stored: bool = False) -> int:
     """Peak bytes of the in-memory ``deform`` of a file of this cost (above BASE_BYTES): the
     load, the per-point arrays, and the fit's matrices (constraint rows x centers, with the
     modules the run imports on the way; measured up to ~200 MiB at 2000 centers whatever the
-    point count, see tests/test_memory.py)."""
-    per_point = DEFORM_BYTES_PER_POINT + KNN_BYTES_PER_NEIGHBOR * 3 * (neighbors + 1)
+    point count, see tests/test_memory.py); ``stored``: the basis is kept (``--reuse``)
+    rather than evaluated one-shot."""
+    per_point = DEFORM_BYTES_PER_POINT + KNN_BYTES_PER_NEIGHBOR * 3 * (neighbors + 1) + \
+        (STORED_BASIS_BYTES_PER_POINT if stored else 0)
     return cost.load_bytes + cost.points * (per_point + cost.record_bytes) + \
         FIT_BYTES_PER_CENTER * max_centers
 
 
 def deform_peak(cost: FileCost, neighbors: int = 10,
-                max_centers: int = DEFAULT_MAX_CENTERS) -> int:
+                max_centers: int = DEFAULT_MAX_CENTERS, *, stored: bool = False) -> int:
     """Peak bytes of the whole process for an in-memory ``deform``: :data:`BASE_BYTES` plus
     :func:`deform_bytes` (what the stream-or-not choice and the batch guard compare)."""
-    return BASE_BYTES + deform_bytes(cost, neighbors, max_centers)
+    return BASE_BYTES + deform_bytes(cost, neighbors, max_centers, stored=stored)
 
 
 def stream_chunk(budget: int, record_bytes: int, fixed_bytes: int) -> int:
