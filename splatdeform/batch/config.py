@@ -22,8 +22,6 @@ from typing import Annotated, Any, Literal
 from pydantic import BaseModel, ConfigDict, Field, StrictInt, ValidationError
 
 from splatdeform.edit.config import (
-    MAX_IMAGE,
-    MIN_IMAGE,
     EditConfig,
     ViewCfg,
     input_paths,
@@ -31,6 +29,7 @@ from splatdeform.edit.config import (
     read_yaml,
     validation_error,
 )
+from splatdeform.render.limits import MAX_IMAGE, MIN_IMAGE
 
 from .. import __version__
 from ..errors import ConfigError, InputError

@@ -41,19 +41,7 @@ from splatdeform.rbf.defaults import (
     DEFAULT_THINNING,
     DEFAULT_TOLERANCE,
 )
-from splatdeform.render.limits import (
-    DEFAULT_FOV,
-    DEFAULT_SIZE,
-    MAX_ANGLE,
-    MAX_FOV,
-    MAX_FRAMES,
-    MAX_IMAGE,
-    MAX_ROLL,
-    MAX_ZOOM,
-    MIN_FOV,
-    MIN_IMAGE,
-    MIN_ZOOM,
-)
+from splatdeform.render import limits as lim  # the view bounds, one definition
 
 MAX_CONTROL_POINTS = 128  # curve control points (the renderer's storage-buffer limit)
 _Strict = Strict  # the root of the edit config's models (key paths come from their fields)
@@ -284,24 +272,25 @@ class GaussiansCfg(_Strict):
 
 UpAxis = Literal["+x", "+y", "+z", "-x", "-y", "-z"]
 ViewColor = Literal["rgb", "elevation", "intensity", "classification", "region"]
-Angle = Annotated[float, Field(ge=-MAX_ANGLE, le=MAX_ANGLE)]
+Angle = Annotated[float, Field(ge=-lim.MAX_ANGLE, le=lim.MAX_ANGLE)]
 
 
 class ViewCfg(_Strict):
     """The view keys ``deform``'s ``render`` and a batch's ``render`` share (one definition:
     the batch's thumbnail narrows ``size`` and ``color``, and adds ``closeup``)."""
 
-    size: Annotated[list[Annotated[StrictInt, Field(ge=MIN_IMAGE, le=MAX_IMAGE)]],
-                    Field(min_length=2, max_length=2)] = Field(list(DEFAULT_SIZE),
+    size: Annotated[list[Annotated[StrictInt, Field(ge=lim.MIN_IMAGE, le=lim.MAX_IMAGE)]],
+                    Field(min_length=2, max_length=2)] = Field(list(lim.DEFAULT_SIZE),
                                                                description="[w, h]")
     azimuth: Angle = Field(30.0, description="Degrees about the up axis")
     elevation: Angle | None = Field(None, description="Degrees above the horizon (null: 20, or "
                                     "40 for flat scenes: LiDAR, terrain)")
-    fov: float = Field(DEFAULT_FOV, ge=MIN_FOV, le=MAX_FOV, description="The lens angle, degrees")
-    zoom: float = Field(1.0, ge=MIN_ZOOM, le=MAX_ZOOM,
+    fov: float = Field(lim.DEFAULT_FOV, ge=lim.MIN_FOV, le=lim.MAX_FOV,
+                       description="The lens angle, degrees")
+    zoom: float = Field(1.0, ge=lim.MIN_ZOOM, le=lim.MAX_ZOOM,
                         description="Narrows the view about the target")
     up: UpAxis | None = Field(None, description="The axis shown up (null: the file's convention)")
-    roll: float = Field(0.0, ge=-MAX_ROLL, le=MAX_ROLL,
+    roll: float = Field(0.0, ge=-lim.MAX_ROLL, le=lim.MAX_ROLL,
                         description="Degrees about the view direction")
     camera: str | None = Field(None, description="A camera file (OUT.camera.json), relative to "
                                "the config file")
@@ -312,7 +301,7 @@ class ViewCfg(_Strict):
 class RenderCfg(ViewCfg):
     output: str | None = Field(None, description="A .png (frames >= 2: .gif or a folder); null: "
                                "only `select -o` / `deform --render` name the image")
-    frames: int = Field(0, ge=0, le=MAX_FRAMES, description=">= 2: the edit animated")
+    frames: int = Field(0, ge=0, le=lim.MAX_FRAMES, description=">= 2: the edit animated")
 
     @model_validator(mode="after")
     def _output_kind(self) -> RenderCfg:
