@@ -74,8 +74,9 @@ def test_every_declared_extension_saves_loads_and_probes_its_count(ext, models, 
 def test_table_is_merged_from_the_declarations_in_the_documented_order():
     assert tuple(FORMATS) == (".ply", ".compressed.ply", ".splat", ".ksplat", ".spz", ".sog",
                               "meta.json",
-                              ".glb", ".gltf", ".pcd", ".xyz", ".xyzn", ".pts", ".las", ".laz")
-    assert sd.io.LIDAR_EXTENSIONS == (".las", ".laz")
+                              ".glb", ".gltf", ".pcd", ".xyz", ".xyzn", ".pts", ".las", ".laz",
+                              ".e57")
+    assert sd.io.LIDAR_EXTENSIONS == (".las", ".laz", ".e57")
     assert set(sd.io.COSTED) == set(FORMATS) - {".xyz", ".xyzn", ".pts"}
 
 

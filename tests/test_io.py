@@ -476,7 +476,7 @@ def test_registry_lists_all_formats() -> None:
     assert set(sio.SUPPORTED) == {".ply", ".compressed.ply", ".splat", ".ksplat", ".spz", ".glb",
                                   ".gltf",
                                   ".pcd", ".xyz", ".xyzn", ".pts", ".las", ".laz", ".sog",
-                                  "meta.json"}
+                                  "meta.json", ".e57"}
 
 
 # --------------------------------------------------------------------------------------------

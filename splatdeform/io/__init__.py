@@ -13,6 +13,7 @@ from ..errors import FormatError, InputError, ProcessingError
 from ..model import PointModel
 from .atomic import atomic_path, atomic_write, check_output_path
 from .chunks import ChunkFile
+from .declare import e57 as _e57
 from .declare import las as _las
 from .declare import pcd as _pcd
 from .declare import ply as _ply
@@ -30,7 +31,7 @@ SOG_META = _splats.SOG_META
 FORMATS: dict[str, Format] = {".ply": _ply.FORMATS[".ply"]}
 #: extensions read here but never written -> why, and what to write instead
 READ_ONLY: dict[str, str] = {}
-for _declared in (_splats, _pcd, _xyz, _las):
+for _declared in (_splats, _pcd, _xyz, _las, _e57):
     FORMATS.update(_declared.FORMATS)
     READ_ONLY.update(getattr(_declared, "READ_ONLY", {}))
 
