@@ -374,6 +374,8 @@ def split_splats(model: PointModel, out: PointModel, rows: np.ndarray, jac: np.n
     if stats is not None:  # the parent row of every appended child, in output order
         stats["parent_rows"] = np.concatenate([stats.get("parent_rows", np.zeros(0, np.int64)),
                                                kids.parent[~first]])
+        if "child_jacobians" in stats:  # asked for (benchmarks): (C, 3, 3), as ``kids``
+            stats["child_jacobians"] = (kids.parent, kids.child, kid_jac)
     result = out.copy() if out is model else out
     for name in ("positions", "normals", "colors", "radius", "axes"):
         arr = getattr(result, name)
