@@ -31,7 +31,7 @@ from ..errors import FormatError, ProcessingError
 from ..model import PlyElementData, PlyProperty, PlySource, PointModel, classify
 from .chunks import ChunkFile
 from .las_header import check_header, scale_offset_fault
-from .las_keep import RawLas, read_raw, restore, writable_evlrs, writable_vlrs
+from .las_keep import COPC_NOTE, RawLas, read_raw, restore, writable_evlrs, writable_vlrs
 from .ply_format import TYPE_NAMES
 
 DECODE_CHUNK = 50_000  # points per read (LAZ's default chunk): a corrupt body names this chunk
@@ -75,8 +75,9 @@ class LasSource:
 
     @property
     def format_name(self) -> str:
-        return (f"LAS {self.header.version} point format {self.point_format_id}"
-                + (" (LAZ)" if self.compressed else ""))
+        kind = " (COPC)" if self.raw is not None and self.raw.copc else \
+            " (LAZ)" if self.compressed else ""
+        return f"LAS {self.header.version} point format {self.point_format_id}{kind}"
 
     @property
     def comments(self) -> list[str]:
@@ -456,6 +457,8 @@ def _write_records(header, points: np.ndarray, out: Path, evlrs=None,
     do_compress = out.suffix.lower() == ".laz"
     original = header
     header, evlrs = _kept_header(header, evlrs, raw)
+    if raw is not None and raw.copc:
+        warnings.warn(f"{out}: {COPC_NOTE}", stacklevel=3)
     with laspy.open(out, mode="w", header=header, do_compress=do_compress) as writer:
         writer.write_points(laspy.PackedPointRecord(points, header.point_format))
         if evlrs:
@@ -525,6 +528,8 @@ class LasWriter:
         self._raw = raw
         self.header, evlrs = _kept_header(header, evlrs, raw)
         self.out = Path(out)
+        if raw is not None and raw.copc:
+            warnings.warn(f"{self.out}: {COPC_NOTE}", stacklevel=2)
         self._evlrs = evlrs
         self._writer = laspy.open(self.out, mode="w", header=self.header,
                                   do_compress=self.out.suffix.lower() == ".laz")

@@ -17,6 +17,9 @@ What a save keeps and what it changes (docs/guides/lidar.md):
   is the same; otherwise counted from ``return_number`` (1..15; when no point sets it and the
   input counted every point as a first return, every point is counted so again), and the
   legacy fields filled only where the input filled them;
+- COPC (a LAZ 1.4 whose ``copc`` VLRs and hierarchy EVLR describe an octree of its point
+  chunks): read as the LAZ it is; written as plain LAZ 1.4 (or LAS) without the ``copc``
+  records, whose octree the rewritten chunks no longer follow (a warning says so);
 - changed as they must: the bounding box (from the written coordinates), scale and offset when
   deformed coordinates need them moved, the offset to the points, the VLR count and the LAZ
   bit of the point format byte when the output's compression differs from the input's (the
@@ -48,6 +51,11 @@ class RawLas:
     evlrs: tuple[bytes, ...] | None
 
     @property
+    def copc(self) -> bool:
+        """The file is a COPC (Cloud Optimized Point Cloud): it holds the ``copc`` info VLR."""
+        return any(_user(r) == COPC_USER for r in self.vlrs)
+
+    @property
     def minor(self) -> int:
         return self.head[25]
 
@@ -58,9 +66,23 @@ class RawLas:
         return struct.unpack_from("<I", self.head, 107)[0]
 
 
+COPC_USER = b"copc"
+COPC_NOTE = ("written as plain LAZ 1.4: the COPC octree (its copc VLRs and hierarchy) is not "
+             "kept")
+
+
+def _user(record: bytes) -> bytes:
+    return record[2:18].split(b"\0", 1)[0]
+
+
 def _is_laszip(record: bytes) -> bool:
-    return (record[2:18].split(b"\0", 1)[0] == LASZIP_USER
-            and struct.unpack_from("<H", record, 18)[0] == LASZIP_RECORD)
+    return _user(record) == LASZIP_USER and struct.unpack_from("<H", record, 18)[0] == \
+        LASZIP_RECORD
+
+
+def _kept(records) -> list[bytes]:
+    """The records a save writes back: all but the LAZ one (the writer's own) and COPC's."""
+    return [r for r in records if not _is_laszip(r) and _user(r) != COPC_USER]
 
 
 def _records(f, start: int, count: int, end: int, head: int, long: bool) -> list[bytes]:
@@ -115,14 +137,14 @@ def _opaque(record: bytes, head: int):
 def writable_vlrs(raw: RawLas) -> list:
     """The input's VLRs (the LAZ one left out: the writer makes its own) as opaque laspy VLRs:
     laspy writes their payloads unchanged, so every record keeps its length and place."""
-    return [_opaque(r, VLR_HEAD) for r in raw.vlrs if not _is_laszip(r)]
+    return [_opaque(r, VLR_HEAD) for r in _kept(raw.vlrs)]
 
 
 def writable_evlrs(raw: RawLas) -> list | None:
     """The input's EVLRs as opaque laspy VLRs (None when they were not kept)."""
     if raw.evlrs is None:
         return None
-    return [_opaque(r, EVLR_HEAD) for r in raw.evlrs]
+    return [_opaque(r, EVLR_HEAD) for r in _kept(raw.evlrs)]
 
 
 def _counted(head: bytearray, written: bytes, raw: RawLas) -> None:
@@ -203,7 +225,7 @@ def restore(out: str | Path, raw: RawLas) -> None:
             _counted(head, written, raw)
         f.seek(0)
         f.write(bytes(head))
-        kept_vlrs = [r for r in raw.vlrs if not _is_laszip(r)]
+        kept_vlrs = _kept(raw.vlrs)
         places = [p for p in _walk(written, header_size, n_vlrs, VLR_HEAD, False)
                   if not _is_laszip(written[p[0]:p[0] + VLR_HEAD])]
         _put_records(f, written, places, kept_vlrs, 0)
@@ -213,5 +235,5 @@ def restore(out: str | Path, raw: RawLas) -> None:
             tail = f.read()
             _put_records(f, tail, [(at + start, n) for at, n in
                                    _walk(tail, 0, count, EVLR_HEAD, True)],
-                         list(raw.evlrs), start)
+                         _kept(raw.evlrs), start)
 
