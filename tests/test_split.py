@@ -291,3 +291,24 @@ def test_editor_save_splits_like_deform_byte_for_byte(tmp_path: Path) -> None:
     assert again.stats["split_splats"] > 0
     assert (tmp_path / "again.ply").read_bytes() == saved.model.read_bytes()
     assert load(saved.model).n_points > model.n_points
+
+
+def test_streamed_splat_edit_keeps_the_count_and_warns(tmp_path: Path) -> None:
+    """Streamed edits do not split yet (issue 46 item 3): every chunk keeps its rows (a split
+    chunk would break the writer's count) and the summary carries the one warning line."""
+    from splatdeform.edit.stream import run_stream
+
+    model = gaussian_bar(6000, seed=2)
+    model.gaussians.scale_log += np.float32(np.log(4.0))
+    save(model, tmp_path / "x.ply")
+    cfg = parse_edit({
+        "input": "x.ply", "output": "y.ply",
+        "regions": {"units": "relative",
+                    "fixed": [{"box": {"min": [0, 0, 0], "max": [0.4, 1, 1]}}],
+                    "handle": [{"box": {"min": [0.6, 0, 0], "max": [1, 1, 1]}}]},
+        "handle": {"transform": {"pivot": [0.6, 0.5, 0.5],
+                                 "rotate": {"axis": [0, 0, 1], "degrees": 90}}},
+        "fit": {"tolerance": 2e-3, "max_centers": 600}}, "test")
+    result = run_stream(cfg, tmp_path, output=tmp_path / "y.ply", chunk=1_500, quiet=True)
+    assert load(tmp_path / "y.ply").n_points == model.n_points
+    assert "not applied to streamed" in result.stats["split_note"]

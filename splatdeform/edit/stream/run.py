@@ -77,7 +77,7 @@ def deform_chunk(src: ChunkFile, start: int, stop: int, labels: np.ndarray,
         fit=shared.fit, basis=basis,
         groups=[df.Group("regions.handle", (0, 4), np.arange(mov.size), frame)])
     out = df.apply(deformation, model, shared.delta_c, moving_matrix=shared.matrix,
-                   covariance=shared.covariance)
+                   covariance=shared.covariance, split="off")  # chunks keep their counts
     if not np.isfinite(out.positions).all():
         raise ProcessingError("the deformation produced non-finite positions; check the "
                               "regions and the transform")
