@@ -261,7 +261,10 @@ def build_parser() -> argparse.ArgumentParser:
         "convert", help="any format to any format, with an optional whole-scene similarity",
         description="Convert IN to OUT (formats by extension). --rotate-euler, --scale and "
                     "--translate take PlayCanvas splat-transform's convention (-r, -s, -t; "
-                    "measured with 3.7.0): the same numbers give the same scene in both tools. "
+                    "measured with 3.7.0): the same numbers give the same scene in both tools, "
+                    "except for .spz inputs, which splat-transform 3.7.0 reads without the SPZ "
+                    "specification's RUB -> RDF turn (its scene comes out 180 degrees about x "
+                    "from ours; we follow the specification and PlayCanvas's own PLY). "
                     "Euler angles in degrees about the fixed axes x, then y, then z, in "
                     "splat-transform's frame (the file's turned 180 degrees about z); applied "
                     "as rotate, scale, translate. Positions, normals, splat axes, scales, "
