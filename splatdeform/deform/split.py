@@ -68,6 +68,7 @@ AFFINE_FLOOR = 1e-6  # below this on every axis the field is affine across the s
 SIGMA_EXTENT = 2.0  # sigma points at +- this many standard deviations
 MAX_CHILDREN = 8  # per split splat
 GROWTH_CAP = 0.3  # new splats (children - parents) <= this x moved (non-fixed) splats
+SIGMA_BLOCK = 1 << 16  # splats per block of sigma points (bounds the temporaries)
 
 # rest points (M, 3) -> deformed positions (M, 3), and the Jacobians (M, 3, 3) when asked
 Field = Callable[[np.ndarray, bool], tuple[np.ndarray, np.ndarray | None]]
@@ -439,21 +440,22 @@ class FitField:
         the backend's rounding), l_k = |h + A h + (r(x + h) - r(x - h)) / 2| with A the
         polynomial part's linear map."""
         m = centers.shape[0]
-        if m == 0:
-            return np.zeros((0, 3))
-        steps = sigma_steps(sigma, rot)
-        r = np.empty((m * 7, 3))
-        if np.any(self._rbf_fit.weights[4:] @ self.delta):
-            for lo, hi, disp, _ in self._chunks(self._rbf_fit, sigma_points(centers, steps),
-                                                False):
-                r[lo:hi] = disp
-        else:  # no RBF part: the field is affine
-            r[:] = 0.0
-        r = r.reshape(m, 7, 3)
-        plus, minus = r[:, 1:4], r[:, 4:7]
-        second = np.linalg.norm(plus + minus - 2 * r[:, :1], axis=2) / 2
-        first = np.linalg.norm(steps + steps @ self.linear.T + (plus - minus) / 2, axis=2)
-        return ratio(second, first)
+        out = np.zeros((m, 3))
+        if m == 0 or not np.any(self._rbf_fit.weights[4:] @ self.delta):
+            return out  # no RBF part: the field is affine, e_k = 0 exactly
+        for lo in range(0, m, SIGMA_BLOCK):  # bounded temporaries: 7 points per splat
+            hi = min(m, lo + SIGMA_BLOCK)
+            steps = sigma_steps(sigma[lo:hi], rot[lo:hi])
+            r = np.empty(((hi - lo) * 7, 3))
+            for a, b, disp, _ in self._chunks(self._rbf_fit, sigma_points(centers[lo:hi], steps),
+                                              False):
+                r[a:b] = disp
+            r = r.reshape(hi - lo, 7, 3)
+            plus, minus = r[:, 1:4], r[:, 4:7]
+            second = np.linalg.norm(plus + minus - 2 * r[:, :1], axis=2) / 2
+            first = np.linalg.norm(steps + steps @ self.linear.T + (plus - minus) / 2, axis=2)
+            out[lo:hi] = ratio(second, first)
+        return out
 
 
 def fit_field(deformation, delta_c: np.ndarray) -> FitField:
