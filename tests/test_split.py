@@ -312,3 +312,22 @@ def test_streamed_splat_edit_keeps_the_count_and_warns(tmp_path: Path) -> None:
     result = run_stream(cfg, tmp_path, output=tmp_path / "y.ply", chunk=1_500, quiet=True)
     assert load(tmp_path / "y.ply").n_points == model.n_points
     assert "not applied to streamed" in result.stats["split_note"]
+
+
+def test_a_stored_basis_keeps_the_sigma_points_basis_once_per_fit(bent) -> None:
+    """With a stored basis (the editor, --reuse, poses in turn) the sigma points' RBF basis is
+    computed once per fit and each pose is one product; it agrees with one-shot evaluation."""
+    from splatdeform.deform.split_field import FitField, fit_field
+
+    model, deformation, delta_c, *_ = bent
+    kept = deformation._split_sigma_basis  # left by the fixture's apply
+    half = df.apply(deformation, model, 0.5 * delta_c, split="auto")
+    assert deformation._split_sigma_basis is kept and half.n_points >= model.n_points
+    rows = deformation.free_idx
+    sigma, rot = sp._frames(model.gaussians.scale_log[rows], model.gaussians.rotation[rows])
+    stored = fit_field(deformation, delta_c)
+    assert stored.store is deformation
+    one_shot = FitField(deformation.fit, delta_c, backend=stored.backend)
+    a = stored.curvature(model.positions[rows], sigma, rot)
+    b = one_shot.curvature(model.positions[rows], sigma, rot)
+    assert np.abs(a - b).max() < 1e-3 * sp.CURVE_LIMIT  # float32 rounding, far below the limit

@@ -56,6 +56,16 @@ from math import comb
 
 import numpy as np
 
+from splatdeform.deform.split_field import (  # noqa: F401 - the split's public names
+    SIGMA_EXTENT,
+    Field,
+    FitField,
+    basis_field,
+    fit_field,
+    ratio,
+    sigma_points,
+    sigma_steps,
+)
 from splatdeform.errors import InputError
 from splatdeform.geometry import quaternion_to_matrix
 from splatdeform.model import Gaussians, PointModel
@@ -65,13 +75,8 @@ DEFAULT_SPLIT = "auto"  # on by default (issue 46): benchmarks/bench_needles.py 
 STRETCH_LIMIT = 2.0  # longest axis of N R S / longest rest axis above this: split
 CURVE_LIMIT = 0.1  # second-order / first-order term over +-2 sigma above this: split
 AFFINE_FLOOR = 1e-6  # below this on every axis the field is affine across the splat: never split
-SIGMA_EXTENT = 2.0  # sigma points at +- this many standard deviations
 MAX_CHILDREN = 8  # per split splat
 GROWTH_CAP = 0.3  # new splats (children - parents) <= this x moved (non-fixed) splats
-SIGMA_BLOCK = 1 << 16  # splats per block of sigma points (bounds the temporaries)
-
-# rest points (M, 3) -> deformed positions (M, 3), and the Jacobians (M, 3, 3) when asked
-Field = Callable[[np.ndarray, bool], tuple[np.ndarray, np.ndarray | None]]
 
 
 @dataclass
@@ -95,29 +100,13 @@ def _frames(scale_log: np.ndarray, rotation: np.ndarray) -> tuple[np.ndarray, np
     return np.exp(np.asarray(scale_log, np.float64)), quaternion_to_matrix(rotation)
 
 
-def sigma_steps(sigma: np.ndarray, rot: np.ndarray) -> np.ndarray:
-    """(M, 3 axes, 3 xyz) the steps h_k = :data:`SIGMA_EXTENT` s_k a_k to the sigma points."""
-    return (rot * (SIGMA_EXTENT * sigma)[:, None, :]).transpose(0, 2, 1)
-
-
-def sigma_points(centers: np.ndarray, steps: np.ndarray) -> np.ndarray:
-    """(M * 7, 3) the sigma points x, x + h_k, x - h_k (k = 0..2) of M splats, splat-major."""
-    c = np.asarray(centers, np.float64)[:, None, :]
-    return np.concatenate([c, c + steps, c - steps], axis=1).reshape(-1, 3)
-
-
-def ratio(second: np.ndarray, first: np.ndarray) -> np.ndarray:
-    """(M, 3) second / first (0 where the first-order term is 0)."""
-    return np.divide(second, first, out=np.zeros_like(second), where=first > 0)
-
-
 def curvature(centers: np.ndarray, sigma: np.ndarray, rot: np.ndarray,
               field: Field) -> np.ndarray:
     """(M, 3) second-order / first-order term of ``field`` along each principal axis over
     +-:data:`SIGMA_EXTENT` sigma (0 where the first-order term is 0), from 7 sigma points.
     A :class:`FitField` answers from its RBF part alone (:meth:`FitField.curvature`: exactly 0
     for an affine field); any other field from its values at the sigma points."""
-    if isinstance(field, FitField):
+    if hasattr(field, "curvature"):  # a FitField
         return field.curvature(centers, sigma, rot)
     m = centers.shape[0]
     f, _ = field(sigma_points(centers, sigma_steps(sigma, rot)), False)
@@ -389,94 +378,6 @@ def split_splats(model: PointModel, out: PointModel, rows: np.ndarray, jac: np.n
     if result.source is not None and result.source.element("vertex") is not None:
         result = replace(result, source=replace(result.source, quantised=None))
     return concat(result, take(deformed, np.flatnonzero(~first)))
-
-
-class FitField:
-    """The deformation x + d(x) of an RBF ``fit`` under control displacements ``delta_c``
-    (k, 3) at any rest points, through the backend the centres use (:func:`oneshot_chunks`:
-    OpenCL float32 with double accumulation, or the float64 numpy reference), a chunk at a time
-    from the combined weights W delta_c (nothing of size points x k is stored).
-
-    Called as a :data:`Field`: (M, 3) rest points -> float64 (M, 3) positions and (M, 3, 3)
-    Jacobians I + grad d when asked. :meth:`curvature` is the rule's bend test from the RBF
-    part alone."""
-
-    def __init__(self, fit, delta_c: np.ndarray, *, backend: str = "numpy",
-                 device: str | None = None) -> None:
-        from splatdeform.basis.oneshot import combined_fit
-
-        self.fit, self.delta = fit, np.asarray(delta_c, np.float64)
-        self.backend, self.device = backend, device
-        combined = combined_fit(fit, self.delta).weights  # (4 + n, 3)
-        # the polynomial part [1, p] . W delta_c is affine: d d_a / d x_b = W[1 + b, a] / scale
-        self.linear = combined[1:4].T / float(fit.normalization.scale)  # (3, 3)
-        rbf = np.array(fit.weights, np.float64)
-        rbf[:4] = 0.0  # the RBF part alone: sum_j |p - s_j|^3 (W delta_c)_j
-        self._rbf_fit = replace(fit, weights=rbf)
-
-    def _chunks(self, fit, points: np.ndarray, gradients: bool):
-        from splatdeform.basis.oneshot import oneshot_chunks
-
-        return oneshot_chunks(points, fit, self.delta, gradients=gradients,
-                              backend=self.backend, device=self.device)
-
-    def __call__(self, points: np.ndarray, gradients: bool
-                 ) -> tuple[np.ndarray, np.ndarray | None]:
-        pts = np.asarray(points, np.float64)
-        moved = pts.copy()
-        jac = np.empty((pts.shape[0], 3, 3)) if gradients else None
-        for lo, hi, disp, grad in self._chunks(self.fit, pts, gradients):
-            moved[lo:hi] += disp
-            if jac is not None:
-                jac[lo:hi] = grad
-        if jac is not None:
-            jac[:, [0, 1, 2], [0, 1, 2]] += 1.0
-        return moved, jac
-
-    def curvature(self, centers: np.ndarray, sigma: np.ndarray, rot: np.ndarray) -> np.ndarray:
-        """(M, 3) the rule's e_k / l_k from the RBF part r(x) at the 7 sigma points: the
-        affine part's second difference is zero, so e_k = |r(x + h) + r(x - h) - 2 r(x)| / 2
-        (exactly 0 when the RBF weights W delta_c are 0: an affine field never splits, whatever
-        the backend's rounding), l_k = |h + A h + (r(x + h) - r(x - h)) / 2| with A the
-        polynomial part's linear map."""
-        m = centers.shape[0]
-        out = np.zeros((m, 3))
-        if m == 0 or not np.any(self._rbf_fit.weights[4:] @ self.delta):
-            return out  # no RBF part: the field is affine, e_k = 0 exactly
-        for lo in range(0, m, SIGMA_BLOCK):  # bounded temporaries: 7 points per splat
-            hi = min(m, lo + SIGMA_BLOCK)
-            steps = sigma_steps(sigma[lo:hi], rot[lo:hi])
-            r = np.empty(((hi - lo) * 7, 3))
-            for a, b, disp, _ in self._chunks(self._rbf_fit, sigma_points(centers[lo:hi], steps),
-                                              False):
-                r[a:b] = disp
-            r = r.reshape(hi - lo, 7, 3)
-            plus, minus = r[:, 1:4], r[:, 4:7]
-            second = np.linalg.norm(plus + minus - 2 * r[:, :1], axis=2) / 2
-            first = np.linalg.norm(steps + steps @ self.linear.T + (plus - minus) / 2, axis=2)
-            out[lo:hi] = ratio(second, first)
-        return out
-
-
-def fit_field(deformation, delta_c: np.ndarray) -> FitField:
-    """The :class:`FitField` of a deformation: through its one-shot basis's backend, else
-    (a stored basis) OpenCL where a device exists, else the numpy reference."""
-    from splatdeform.basis.oneshot import DeferredBasis
-
-    basis = deformation.basis
-    if isinstance(basis, DeferredBasis):
-        return FitField(deformation.fit, delta_c, backend=basis.backend, device=basis.device)
-    from splatdeform.basis import opencl
-
-    backend = "opencl" if opencl.opencl_available(None) else "numpy"
-    return FitField(deformation.fit, delta_c, backend=backend)
-
-
-def basis_field(fit, delta_c: np.ndarray) -> Field:
-    """The deformation of ``fit`` through the float64 numpy reference (:class:`FitField` on
-    ``numpy``): deterministic whatever backend made the points' own basis (the benchmark's
-    reference uses it)."""
-    return FitField(fit, delta_c, backend="numpy")
 
 
 def check_mode(split: str) -> str:
