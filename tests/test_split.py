@@ -331,3 +331,32 @@ def test_a_stored_basis_keeps_the_sigma_points_basis_once_per_fit(bent) -> None:
     a = stored.curvature(model.positions[rows], sigma, rot)
     b = one_shot.curvature(model.positions[rows], sigma, rot)
     assert np.abs(a - b).max() < 1e-3 * sp.CURVE_LIMIT  # float32 rounding, far below the limit
+
+
+def test_one_shot_split_keeps_fixed_and_handle_rows(bent) -> None:
+    """As ``deform`` runs it (the basis deferred, one-shot): fixed rows bit-identical and in
+    order, handle rows as unsplit, children only after the originals."""
+    model, deformation, delta_c, matrix, *_ = bent
+    cfg = parse_edit({
+        "input": "x.ply", "output": "y.ply",
+        "regions": {"units": "relative",
+                    "fixed": [{"box": {"min": [0, 0, 0], "max": [0.4, 1, 1]}}],
+                    "handle": [{"box": {"min": [0.6, 0, 0], "max": [1, 1, 1]}}]},
+        "handle": {"transform": {"pivot": [0.6, 0.5, 0.5],
+                                 "rotate": {"axis": [0, 0, 1], "degrees": 90}}},
+        "fit": {"tolerance": 2e-3, "max_centers": 600}}, "test")
+    lazy = precompute(cfg, model, Path("."), stored=False)
+    delta, mat = plain.control_displacement(cfg, model, lazy)
+    stats: dict = {}
+    out = df.apply(lazy, model, delta, moving_matrix=mat, stats=stats)
+    off = df.apply(lazy, model, delta, moving_matrix=mat, split="off")
+    n = model.n_points
+    assert stats["split_splats"] > 0 and out.n_points > n
+    keep = ~np.isin(np.arange(n), stats["parent_rows"]) & ~np.isin(
+        np.arange(n), lazy.free_idx)
+    for name in ("scale_log", "rotation", "opacity", "sh_dc"):
+        assert getattr(out.gaussians, name)[:n][keep].tobytes() == \
+            getattr(off.gaussians, name)[keep].tobytes()
+    assert out.positions[:n][keep].tobytes() == off.positions[keep].tobytes()
+    fixed = lazy.fixed
+    assert out.positions[:n][fixed].tobytes() == model.positions[fixed].tobytes()
