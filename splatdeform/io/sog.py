@@ -36,7 +36,7 @@ import numpy as np
 from ..errors import FormatError, InputError
 from ..model import PointModel
 from .inflate import check_declared, inflate_zip_member
-from .kmeans import kmeans_1d, kmeans_rows
+from .kmeans import codebook_1d, kmeans_rows
 from .regular import member_path, open_regular, read_regular
 from .splat_model import to_model
 from .splats import (
@@ -452,7 +452,7 @@ def _palette_size(n: int, mode: str = "fast") -> int:
 
 
 def encode(f: SplatFields, *, keep: SogCodes | None = None, same: np.ndarray | None = None,
-           iterations: int = 10, effort: int = 25, sh_quality: str | None = None
+           iterations: int = 10, effort: int = 75, sh_quality: str | None = None
            ) -> dict[str, bytes]:
     """The SOG members (``meta.json`` and the images) of ``f``, splats in their given order.
     ``sh_quality``: the SH encoder (:data:`QUALITIES`; None: the :func:`quality` in force).
@@ -497,7 +497,7 @@ def encode(f: SplatFields, *, keep: SogCodes | None = None, same: np.ndarray | N
     # log scales and sh0 through 256-entry codebooks
     scales, book = _codebook_codes(f.scale_log, keep.scales if reuse else None,
                                    _old_book(keep, "scales") if reuse else None, same)
-    meta["scales"] = {"codebook": book.tolist(), "files": FILES["scales"]}
+    meta["scales"] = {"codebook": _short(book), "files": FILES["scales"]}
     out[FILES["scales"][0]] = _webp(scales, width, height, effort)
     dc, book = _codebook_codes(f.sh_dc, keep.sh0[:, :3] if reuse else None,
                                _old_book(keep, "sh0") if reuse else None, same)
@@ -506,7 +506,7 @@ def encode(f: SplatFields, *, keep: SogCodes | None = None, same: np.ndarray | N
     alpha = np.clip(np.round(sigmoid(f.opacity) * 255), 0, 255).astype(np.uint8)
     if reuse:
         alpha[same] = keep.sh0[same, 3]
-    meta["sh0"] = {"codebook": book.tolist(), "files": FILES["sh0"]}
+    meta["sh0"] = {"codebook": _short(book), "files": FILES["sh0"]}
     out[FILES["sh0"][0]] = _webp(np.concatenate([dc, alpha[:, None]], axis=1), width, height,
                                  effort)
     k = f.sh_rest.shape[2]
@@ -518,6 +518,12 @@ def encode(f: SplatFields, *, keep: SogCodes | None = None, same: np.ndarray | N
         out.update(members)
     out["meta.json"] = json.dumps(meta, separators=(",", ":")).encode()
     return out
+
+
+def _short(book: np.ndarray) -> list[float]:
+    """A float32 codebook as the shortest decimals that read back to the same float32 values
+    (a double's repr of each would take twice the text in meta.json)."""
+    return [float(str(v)) for v in np.asarray(book, dtype=np.float32)]
 
 
 def _old_book(keep: SogCodes, key: str) -> np.ndarray:
@@ -535,8 +541,8 @@ def _codebook_codes(values: np.ndarray, old_codes: np.ndarray | None,
         used = np.unique(old_codes[same])
         fixed = old_book[used]
         data = values[~same]
-    book = kmeans_1d(np.asarray(data, dtype=np.float32).ravel(), CODEBOOK, fixed=fixed,
-                     fill=np.asarray(values, dtype=np.float32).ravel())
+    book = codebook_1d(np.asarray(data, dtype=np.float32).ravel(), CODEBOOK, fixed=fixed,
+                       fill=np.asarray(values, dtype=np.float32).ravel())
     if old_codes is None:
         return nearest_1d(book, values), book
     # the kept entries stay at their old indices (same value, same code); the k-means' other
@@ -608,7 +614,7 @@ def _encode_sh(f: SplatFields, keep: SogCodes | None, same: np.ndarray | None,
     label_px[:, 0] = all_labels & 0xFF
     label_px[:, 1] = all_labels >> 8
     members[FILES["shN"][1]] = _webp(label_px, width, height, effort)
-    shn = {"count": count, "bands": {3: 1, 8: 2, 15: 3}[k], "codebook": book.tolist(),
+    shn = {"count": count, "bands": {3: 1, 8: 2, 15: 3}[k], "codebook": _short(book),
            "files": FILES["shN"]}
     return shn, members
 
