@@ -237,23 +237,26 @@ def head_cost(name: str | Path, head: bytes, size: int, suffix: str | None = Non
 
 
 def deform_bytes(cost: FileCost, neighbors: int = 10,
-                 max_centers: int = DEFAULT_MAX_CENTERS, *, stored: bool = False) -> int:
+                 max_centers: int = DEFAULT_MAX_CENTERS, *, stored: bool = False,
+                 growth: float = 0.0) -> int:
     """Peak bytes of the in-memory ``deform`` of a file of this cost (above BASE_BYTES): the
     load, the per-point arrays, and the fit's matrices (constraint rows x centers, with the
     modules the run imports on the way; measured up to ~200 MiB at 2000 centers whatever the
     point count, see tests/test_memory.py); ``stored``: the basis is kept (``--reuse``)
-    rather than evaluated one-shot."""
+    rather than evaluated one-shot; ``growth``: the most the deformed copy may grow by, as a
+    fraction of the points (split splats: :data:`splatdeform.deform.split.GROWTH_CAP`)."""
     per_point = DEFORM_BYTES_PER_POINT + KNN_BYTES_PER_NEIGHBOR * 3 * (neighbors + 1) + \
         (STORED_BASIS_BYTES_PER_POINT if stored else 0)
     return cost.load_bytes + cost.points * (per_point + cost.record_bytes) + \
-        FIT_BYTES_PER_CENTER * max_centers
+        int(growth * cost.points * cost.record_bytes) + FIT_BYTES_PER_CENTER * max_centers
 
 
 def deform_peak(cost: FileCost, neighbors: int = 10,
-                max_centers: int = DEFAULT_MAX_CENTERS, *, stored: bool = False) -> int:
+                max_centers: int = DEFAULT_MAX_CENTERS, *, stored: bool = False,
+                growth: float = 0.0) -> int:
     """Peak bytes of the whole process for an in-memory ``deform``: :data:`BASE_BYTES` plus
     :func:`deform_bytes` (what the stream-or-not choice and the batch guard compare)."""
-    return BASE_BYTES + deform_bytes(cost, neighbors, max_centers, stored=stored)
+    return BASE_BYTES + deform_bytes(cost, neighbors, max_centers, stored=stored, growth=growth)
 
 
 def stream_chunk(budget: int, record_bytes: int, fixed_bytes: int) -> int:

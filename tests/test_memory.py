@@ -119,3 +119,16 @@ def test_stream_sizes_fit_their_budget() -> None:
                 assert chunk * (4 * record + STREAM_BYTES_PER_POINT) <= (budget - fixed) / 4
     small, big = stream_caps(256 * 2**20, fixed), stream_caps(2**30, fixed)
     assert 0 < small[0] < big[0] and 0 < small[1] < big[1]
+
+
+def test_split_growth_and_a_stored_basis_are_counted() -> None:
+    """The estimate counts what a run may add: split children (gaussians.split: auto, up to
+    GROWTH_CAP of the points) and a stored basis (--reuse)."""
+    from splatdeform.deform.split import GROWTH_CAP
+    from splatdeform.io.format import FileCost
+    from splatdeform.memory import STORED_BASIS_BYTES_PER_POINT, deform_bytes
+
+    cost = FileCost(points=1_000_000, size=248_000_000, record_bytes=248, load_bytes=500 * 2**20)
+    plain = deform_bytes(cost)
+    assert deform_bytes(cost, growth=GROWTH_CAP) - plain == int(GROWTH_CAP * 248 * 1_000_000)
+    assert deform_bytes(cost, stored=True) - plain == STORED_BASIS_BYTES_PER_POINT * 1_000_000

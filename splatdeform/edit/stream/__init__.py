@@ -77,8 +77,11 @@ def edit_choice(cfg, in_path: Path, budget: int | None, *, whole: str | None = N
     if ext not in COSTED or not in_path.is_file():   # estimated when loaded (splat formats)
         return memory.choose(0, budget, streamable=False, name=in_path)
     cost = memory.file_cost(in_path)
+    from splatdeform.deform.split import GROWTH_CAP
+
     need = memory.deform_peak(cost, cfg.boundary.neighbors, cfg.fit.max_centers,
-                              stored=whole == "--reuse")
+                              stored=whole == "--reuse",
+                              growth=GROWTH_CAP if cfg.gaussians.split == "auto" else 0.0)
     why = "" if ext in STREAMABLE else f"{ext} files do not stream"
     why = why or stream_refusal(cfg)
     # decided here, once: an edit that cannot stream runs in memory under the default budget
