@@ -130,5 +130,5 @@ def test_split_growth_and_a_stored_basis_are_counted() -> None:
 
     cost = FileCost(points=1_000_000, size=248_000_000, record_bytes=248, load_bytes=500 * 2**20)
     plain = deform_bytes(cost)
-    assert deform_bytes(cost, growth=GROWTH_CAP) - plain == int(GROWTH_CAP * 248 * 1_000_000)
+    assert deform_bytes(cost, growth=GROWTH_CAP) - plain == int(GROWTH_CAP * 1_000_000 * 248)
     assert deform_bytes(cost, stored=True) - plain == STORED_BASIS_BYTES_PER_POINT * 1_000_000
