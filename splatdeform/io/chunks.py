@@ -47,8 +47,15 @@ class ChunkFile:
         """The raw records of points [start, stop) (structured array)."""
         raise NotImplementedError
 
+    #: {(start, stop): Future of read(start, stop)}: :func:`map_chunks`'s read-ahead
+    _ahead: dict | None = None
+
     def read(self, start: int, stop: int) -> PointModel:
-        """Points [start, stop) as a model (every property)."""
+        """Points [start, stop) as a model (every property); the read-ahead's model when
+        :func:`map_chunks` already read this range in its reader thread."""
+        ahead = self._ahead.pop((start, stop), None) if self._ahead else None
+        if ahead is not None:
+            return ahead.result()
         return self.model_of(self.rows(start, stop))
 
     def nonfinite(self, rows: np.ndarray) -> np.ndarray:
@@ -104,21 +111,56 @@ class ChunkWriter:
 
 def map_chunks(src: ChunkFile, dst: str | Path, fn: ChunkFn, chunk: int, *,
                progress: Callable[[int], None] | None = None,
-               before_rename: Callable[[], None] | None = None) -> Path:
+               before_rename: Callable[[], None] | None = None,
+               read_ahead: bool = False) -> Path:
     """The one chunk loop: ``fn(start, stop)`` for every range of ``chunk`` points of ``src``,
     its records written in ``src``'s format to ``dst`` atomically (a temporary file beside it,
     renamed at the end; removed on any error). ``progress(n)``: told after each chunk;
     ``before_rename``: a last check that may still refuse (nothing is replaced then).
-    ``src`` is closed at the end. Returns ``dst``."""
+    ``src`` is closed at the end. Returns ``dst``.
+
+    Reading and writing overlap the computing: the records go to the file from a writer
+    thread (in order; one chunk's records in flight), and with ``read_ahead`` (for an ``fn``
+    that reads its own range through ``src.read(start, stop)`` and nothing else from ``src``)
+    a reader thread reads the next range's model while ``fn`` works on this one. Either way
+    one more chunk is held than the loop alone would; the threads are waited for before
+    ``src`` closes or the output is renamed or removed."""
+    from concurrent.futures import ThreadPoolExecutor
+
     from .atomic import atomic_path
 
     dst = Path(dst)
+    ranges = list(chunk_ranges(src.n_points, chunk))
+    reader = ThreadPoolExecutor(1, "splatdeform-read") if read_ahead and len(ranges) > 1 \
+        else None
     with src, atomic_path(dst) as tmp:
         writer = ChunkWriter(src, tmp)
-        for start, stop in chunk_ranges(src.n_points, chunk):
-            writer.write(*fn(start, stop))
-            if progress is not None:
-                progress(stop - start)
+        pending = None   # the writer thread's last write
+        with ThreadPoolExecutor(1, "splatdeform-write") as out:
+            try:
+                if reader is not None:
+                    src._ahead = {}
+
+                    def ahead(i: int) -> None:
+                        if i < len(ranges):
+                            src._ahead[ranges[i]] = reader.submit(
+                                lambda a, b: src.model_of(src.rows(a, b)), *ranges[i])
+                    ahead(0)
+                for i, (start, stop) in enumerate(ranges):
+                    if reader is not None:
+                        ahead(i + 1)
+                    records = fn(start, stop)
+                    if pending is not None:
+                        pending.result()
+                    pending = out.submit(writer.write, *records)
+                    if progress is not None:
+                        progress(stop - start)
+                if pending is not None:
+                    pending.result()
+            finally:
+                if reader is not None:
+                    reader.shutdown(wait=True, cancel_futures=True)
+                    src._ahead = None
         if before_rename is not None:
             before_rename()
         writer.close()

@@ -606,7 +606,7 @@ class PlyChunkWriter:
         self.stream.write(src.header_bytes(props))
 
     def write(self, rows: np.ndarray) -> None:
-        self.stream.write(rows.tobytes())
+        self.stream.write(np.ascontiguousarray(rows).view(np.uint8))  # no bytes copy
 
     def close(self) -> None:
         self.src.copy_tail(self.stream)

@@ -146,7 +146,7 @@ def second_pass_local(src: ChunkFile, plan: Plan, shared: Shared, out: Path, chu
                       quiet: bool) -> None:
     progress = Progress("pass 5 (basis + apply + write)", src.n_points, quiet=quiet)
     map_chunks(src, out, lambda a, b: deform_chunk(src, a, b, plan.labels[a:b], shared), chunk,
-               progress=progress.update)
+               progress=progress.update, read_ahead=True)
     progress.finish()
 
 
