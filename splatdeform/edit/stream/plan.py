@@ -164,19 +164,6 @@ def _at_rows(selectors, start: int) -> list:
                        else leaf) for s in selectors]
 
 
-def handle_extent_pass(src: ChunkFile, labels: np.ndarray, centroid: np.ndarray,
-                       vt: np.ndarray, chunk: int, quiet: bool) -> np.ndarray:
-    extent = np.zeros(3)
-    progress = Progress("pass 2b (handle extent)", src.n_points, quiet=quiet)
-    for a, b in chunk_ranges(src.n_points, chunk):
-        pts = src.positions(a, b)[labels[a:b] == HANDLE]
-        if pts.size:
-            extent = np.maximum(extent, np.abs((pts - centroid) @ vt.T).max(axis=0))
-        progress.update(b - a)
-    progress.finish()
-    return extent
-
-
 def labels_pass(src: ChunkFile, cfg: EditConfig, base_dir: Path, lo: np.ndarray,
                 hi: np.ndarray, chunk: int, quiet: bool, max_handle: int = 2**62):
     """(labels (N,) uint8, handle positions (Nh, 3) float64 or None when there are more
@@ -226,12 +213,28 @@ def labels_pass(src: ChunkFile, cfg: EditConfig, base_dir: Path, lo: np.ndarray,
         seconds
 
 
+class HandleExtent:
+    """The handle's extent along its axes (pass 2b read the file once more for it), gathered
+    during pass 3's read of the positions instead of a pass of its own."""
+
+    def __init__(self, labels: np.ndarray, centroid: np.ndarray, vt: np.ndarray) -> None:
+        self.labels, self.centroid, self.vt = labels, centroid, vt
+        self.extent = np.zeros(3)
+
+    def __call__(self, a: int, b: int, positions: np.ndarray) -> None:
+        pts = positions[self.labels[a:b] == HANDLE]
+        if pts.size:
+            self.extent = np.maximum(self.extent,
+                                     np.abs((pts - self.centroid) @ self.vt.T).max(axis=0))
+
+
 def gather_border(src: ChunkFile, labels: np.ndarray, lo: np.ndarray, hi: np.ndarray,
-                  radius: float, chunk: int, quiet: bool, max_points: int):
+                  radius: float, chunk: int, quiet: bool, max_points: int,
+                  each: HandleExtent | None = None):
     """Two passes: voxels of edge radius/2 by label, then the points in voxels within two
     voxels of another label, and of those the points within ``radius`` of another label.
     Returns (global indices (S,) int64, positions (S, 3), labels (S,), distance to the other
-    label (S,))."""
+    label (S,)). ``each(start, stop, positions)``: told every chunk of pass 3."""
     n = src.n_points
     edge = radius / 2.0
     dims = np.maximum(np.ceil((hi - lo) / edge).astype(np.int64), 1)
@@ -240,7 +243,10 @@ def gather_border(src: ChunkFile, labels: np.ndarray, lo: np.ndarray, hi: np.nda
     free_keys, region_keys = [], []
     progress = Progress("pass 3 (border voxels)", n, quiet=quiet)
     for a, b in chunk_ranges(n, chunk):
-        keys = voxel_keys(src.positions(a, b), lo, edge, dims)
+        p = src.positions(a, b)
+        if each is not None:
+            each(a, b, p)
+        keys = voxel_keys(p, lo, edge, dims)
         lab = labels[a:b]
         free_keys = merge_keys(free_keys, np.unique(keys[lab == FREE]))
         region_keys = merge_keys(region_keys, np.unique(keys[lab != FREE]))
@@ -281,17 +287,19 @@ _GATHER = 2.0
 
 
 def _gather(src: ChunkFile, labels: np.ndarray, lo: np.ndarray, hi: np.ndarray, radius: float,
-            diag: float, chunk: int, quiet: bool, max_points: int):
+            diag: float, chunk: int, quiet: bool, max_points: int,
+            each: HandleExtent | None = None):
     """(reach, indices, positions, labels, distances) of :func:`gather_border` at ``reach`` =
     _GATHER x ``radius`` (at most the diagonal), or at ``radius`` itself when that many points
     would not fit ``max_points``."""
     reach = min(_GATHER * radius, diag)
     if reach > radius:
         try:
-            return (reach, *gather_border(src, labels, lo, hi, reach, chunk, quiet, max_points))
-        except ProcessingError:
+            return (reach, *gather_border(src, labels, lo, hi, reach, chunk, quiet, max_points,
+                                          each))
+        except ProcessingError:   # ``each`` (a running maximum) may see the chunks again
             pass
-    return (radius, *gather_border(src, labels, lo, hi, radius, chunk, quiet, max_points))
+    return (radius, *gather_border(src, labels, lo, hi, radius, chunk, quiet, max_points, each))
 
 
 def build_plan(src: ChunkFile, cfg: EditConfig, base_dir: Path, *, chunk: int, quiet: bool,
@@ -304,15 +312,16 @@ def build_plan(src: ChunkFile, cfg: EditConfig, base_dir: Path, *, chunk: int, q
     lo, hi, sample, timings["bbox"] = bbox_pass(src, chunk, quiet)
     labels, handle_pos, moments, timings["regions"] = labels_pass(
         src, cfg, base_dir, lo, hi, chunk, quiet, max_handle)
+    extent = None
     if handle_pos is not None:
         frame = handle_frame(handle_pos)
-    else:
-        frame = frame_from_moments(moments, lambda c, vt: handle_extent_pass(
-            src, labels, c, vt, chunk, quiet))
-        handle_pos = moments.centroid_and_axes()[0][None, :]  # the centroid pivot
+    else:   # the frame's checks now; its extent from pass 3 (no pass 2b of its own)
+        frame_from_moments(moments, lambda c, vt: np.ones(3))
+        centroid, _, vt = moments.centroid_and_axes()
+        extent = HandleExtent(labels, centroid, vt)
+        handle_pos = centroid[None, :]  # the centroid pivot
     whole = as_chunk(PointModel(positions=handle_pos), lo, hi)
     matrix = handle_matrix(cfg, whole, np.ones(handle_pos.shape[0], dtype=bool))
-    delta_c = delta_for_transform(frame.control_points, matrix)
     del handle_pos, whole
     rings = cfg.boundary.continuity + 1
     k = cfg.boundary.neighbors
@@ -324,7 +333,11 @@ def build_plan(src: ChunkFile, cfg: EditConfig, base_dir: Path, *, chunk: int, q
     gathered = None
     for _attempt in range(6):
         if gathered is None or radius > gathered[0]:  # passes 3 and 4, once in the usual case
-            gathered = _gather(src, labels, lo, hi, radius, diag, chunk, quiet, max_border)
+            gathered = _gather(src, labels, lo, hi, radius, diag, chunk, quiet, max_border,
+                               extent)
+            if extent is not None:   # every chunk seen once: the frame as pass 2b gave it
+                frame = frame_from_moments(moments, lambda c, vt, e=extent.extent: e)
+                extent = None
         within = gathered[4] < radius   # the border set of this radius, as its own passes
         gidx, pos, lab, dist = (a[within] for a in gathered[1:])
         kth = kth_distance(pos, k) if pos.shape[0] > 1 else np.zeros(pos.shape[0])
@@ -338,6 +351,7 @@ def build_plan(src: ChunkFile, cfg: EditConfig, base_dir: Path, *, chunk: int, q
             break
         radius = min(max(needed, radius) * 1.5, diag)
     del gathered
+    delta_c = delta_for_transform(frame.control_points, matrix)
     if outliers:
         warnings.warn(f"{src.path}: {outliers} points near the region borders have their "
                       f"{k} nearest neighbours farther than the border band ({radius:.3g}); "
