@@ -153,7 +153,7 @@ def header_size(path: Path) -> int:
 
 
 def edit_config(folder: Path, scan: Path, out: Path) -> Path:
-    cfg = folder / f"{scan.stem}_to_{out.stem}.yaml"
+    cfg = folder / f"{scan.name}_to_{out.name}.yaml"   # the PLY's and the LAZ's apart
     cfg.write_text(yaml.safe_dump(dict(EDIT, input=str(scan), output=str(out))))
     return cfg
 

@@ -260,8 +260,9 @@ def deform_peak(cost: FileCost, neighbors: int = 10,
 
 
 #: the most points a streamed chunk holds, whatever the budget: bigger chunks run slower, their
-#: arrays no longer in the CPU caches (5M bend, pass 5 on 2 cores: 231k points a chunk 3.1-3.3 s,
-#: 131k 2.2 s, 65k 2.2-2.3 s, 33k 2.4-2.5 s; convert PLY->PLY: 1M 0.86 s, 65k 0.45 s)
+#: arrays no longer in the CPU caches (the 5M bend of a LAZ, pass 5 on 2 cores: 231k points a
+#: chunk 3.1-3.3 s, 131k 2.2 s, 65k 2.2-2.3 s, 33k 2.4-2.5 s; of the same points as PLY 1.1-1.3 s
+#: at any of these; a PLY->PLY copy: 1M 0.86 s, 65k 0.45 s)
 STREAM_CHUNK_MAX = 131_072
 
 
