@@ -240,6 +240,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="a name the browser may reach the editor by (the Host header), "
                         "besides loopback names and addresses and --host; repeatable (others "
                         "are refused: DNS rebinding)")
+    p.add_argument("--memory-budget", metavar="SIZE",
+                   help="a cap: the editor holds the whole model, its fit and its basis in "
+                        "memory; a model whose estimate is over SIZE is refused (e.g. 2GB; "
+                        "config memory_budget; default half the RAM)")
     p.add_argument("--viewer", choices=("page",), default="page",
                    help="page (default, the only one): the editor's WebGL2 page, deforming on "
                         "the browser's GPU")

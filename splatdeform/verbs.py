@@ -268,7 +268,7 @@ def cmd_edit(args: argparse.Namespace) -> int:
     if not 0 <= args.port <= 65535:
         raise InputError(f"--port: expected 0..65535, got {args.port}")
     return run(args.path, host=args.host, port=args.port, save_dir=args.save_dir,
-               allow_hosts=tuple(args.allow_host or ()))
+               allow_hosts=tuple(args.allow_host or ()), memory_budget=args.memory_budget)
 
 
 def _edit_view(cfg, args: argparse.Namespace):

@@ -38,6 +38,7 @@ import numpy as np
 
 from ..resources import resource_path
 from . import payload
+from .budget import check_budget
 from .controller import EditorController
 from .foreground import serve_until, stop_on_signals
 from .security import HostRule, default_save_folder, exposure_warning, new_token, refusal
@@ -447,11 +448,14 @@ class _Handler(BaseHTTPRequestHandler):
 
 def make_server(path: str | Path, host: str = "127.0.0.1", port: int = 8080,
                 save_dir: str | Path | None = None,
-                allow_hosts: tuple[str, ...] = ()) -> EditorHTTPServer:
+                allow_hosts: tuple[str, ...] = (),
+                memory_budget: str | int | None = None) -> EditorHTTPServer:
     """Load MODEL or EDIT.yaml and bind the page's server (the next free port when ``port``
     is taken; 0: any free port). Saves go into ``save_dir`` (default: the folder of the file
     opened), by file name only. ``allow_hosts``: names the ``Host`` header may give besides
-    loopback and ``host`` (``--allow-host``)."""
+    loopback and ``host`` (``--allow-host``). ``memory_budget``: ``--memory-budget``; a
+    model over the budget is refused before it is read (:func:`.budget.check_budget`)."""
+    check_budget(path, memory_budget)
     controller = EditorController.open(path)
     session = Session(controller, default_save_folder(controller, save_dir))
     for p in ([port] if port == 0 else range(port, min(port + 20, 65536))):
@@ -464,10 +468,10 @@ def make_server(path: str | Path, host: str = "127.0.0.1", port: int = 8080,
 
 def run(path: str, *, host: str = "127.0.0.1", port: int = 8080,
         save_dir: str | Path | None = None, ready: threading.Event | None = None,
-        allow_hosts: tuple[str, ...] = ()) -> int:
+        allow_hosts: tuple[str, ...] = (), memory_budget: str | int | None = None) -> int:
     """Serve the page, print its URL (with its token), block until Ctrl-C / SIGTERM; returns
     0. An address other than loopback prints a warning naming the exposure."""
-    server = make_server(path, host, port, save_dir, tuple(allow_hosts))
+    server = make_server(path, host, port, save_dir, tuple(allow_hosts), memory_budget)
     warning = exposure_warning(host, server.server_address[1])
     if warning:
         print(warning, file=sys.stderr, flush=True)

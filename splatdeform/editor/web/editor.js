@@ -257,12 +257,13 @@ function fitFigures(st) {
   const f = st.fit && st.fit.stats;
   if (!f || !('centers' in f)) return '';
   const n = (v) => (typeof v === 'number' ? v.toLocaleString('en-US') : String(v));
-  const g = (v) => (typeof v === 'number' ? v.toPrecision(3) : String(v));
+  // 3 significant digits (0.000495, 1.2e-7), a zero as 0 (toPrecision gives '0.00')
+  const g = (v) => (typeof v !== 'number' ? String(v) : v === 0 ? '0' : String(+v.toPrecision(3)));
   const kept = f.kept !== undefined && f.kept !== null && f.kept !== f.constraints ? ` (kept ${n(f.kept)})` : '';
   const c = st.counts || {};
   return `method ${f.method} · centers ${n(f.centers)}\n` +
     `constraints ${n(f.constraints)}${kept}\n` +
-    `boundary error ${g(f.residual)} (tolerance ${g(f.tolerance)}${f.converged === false ? ', not converged' : ''})\n` +
+    `boundary error ${g(f.residual)}${kept ? ' over the kept constraints' : ''} (tolerance ${g(f.tolerance)}${f.converged === false ? ', not converged' : ''})\n` +
     `regions: fixed ${n(c.fixed)} · handle ${n(c.handle)} · free ${n(c.free)}` +
     (f.seconds !== undefined ? ` · ${g(f.seconds)} s` : '');
 }
