@@ -17,6 +17,7 @@ from pathlib import Path
 from splatdeform.edit.config import load_edit
 
 from ..errors import InputError
+from ..io import extension_of
 from ..memory import budget_bytes, choose, default_budget, deform_peak, file_cost
 
 WHY_NOT = "the editor holds the whole model, its fit and its basis in memory"
@@ -37,7 +38,7 @@ def check_budget(path: str | Path, flag: str | int | None = None) -> int:
     estimate is over the budget: ``flag`` (``--memory-budget``), else the YAML's
     ``memory_budget``, else half the RAM. Returns the estimate in bytes."""
     path = Path(path)
-    if path.suffix.lower() in (".yaml", ".yml"):
+    if extension_of(path) in (".yaml", ".yml"):   # as EditorController.open decides
         cfg = load_edit(path)
         model = path.resolve().parent / cfg.input
         config_value, neighbors, centers = (cfg.memory_budget, cfg.boundary.neighbors,
