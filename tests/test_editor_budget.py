@@ -79,12 +79,13 @@ def _fit_figures(states: list[dict]) -> list[str]:
     assert fn, "fitFigures not found in editor.js"
     script = fn.group(0) + f"for (const st of {json.dumps(states)}) " \
         "console.log(JSON.stringify(fitFigures(st)));"
-    out = subprocess.run(["node", "-e", script], capture_output=True, text=True, timeout=60,
-                         check=True).stdout
+    from data_tools.splat_transform import node_bin  # the oracles' node (fails if missing)
+
+    out = subprocess.run([str(node_bin() / "node"), "-e", script], capture_output=True,
+                         text=True, timeout=60, check=True).stdout
     return [json.loads(line) for line in out.splitlines()]
 
 
-@pytest.mark.skipif(shutil.which("node") is None, reason="node is not installed")
 def test_fit_figures_keep_three_significant_digits():
     def state(residual: float, kept: int) -> dict:
         return {"fit": {"stats": {"method": "exact-kept", "centers": 505, "constraints": 1112,
