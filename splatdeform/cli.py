@@ -333,10 +333,9 @@ def _quiet_dask_logs() -> None:
     "tornado.application"), which would add a traceback to the one "interrupted" line. Silence
     those loggers before the main thread unwinds (only when Dask was imported)."""
     if "distributed" in sys.modules:
-        import logging
+        from .dask_client import silence_dask_logs
 
-        for name in ("distributed", "asyncio", "tornado"):
-            logging.getLogger(name).setLevel(logging.CRITICAL + 1)
+        silence_dask_logs()
 
 
 def _on_sigterm(signum, frame) -> None:

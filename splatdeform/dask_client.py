@@ -76,6 +76,17 @@ def dask_client(scheduler: Any = None, workers: int | None = None, *,
         yield client
 
 
+def silence_dask_logs() -> None:
+    """Silence Dask's, asyncio's and tornado's loggers, every child logger included:
+    distributed's sync() can log a NameError traceback through "tornado.application" when a
+    signal cuts a call short, and distributed's logging config sets that child's own level
+    (error), which a parent's level does not override."""
+    prefixes = ("distributed", "asyncio", "tornado")
+    names = [n for n in list(logging.root.manager.loggerDict) if n.startswith(prefixes)]
+    for name in {*prefixes, *names}:
+        logging.getLogger(name).setLevel(logging.CRITICAL + 1)
+
+
 @contextlib.contextmanager
 def _closing(*close: Callable[[], Any]) -> Iterator[None]:
     """Run ``close`` functions after the block, with Ctrl-C / SIGTERM held; silence Dask's and
@@ -84,10 +95,7 @@ def _closing(*close: Callable[[], Any]) -> Iterator[None]:
         yield
     except BaseException as exc:
         if not isinstance(exc, Exception):
-            # tornado too: distributed's sync() can log a NameError traceback through
-            # "tornado.application" when a signal cuts a call short (seen in 1 of ~20 runs)
-            for name in ("distributed", "asyncio", "tornado"):
-                logging.getLogger(name).setLevel(logging.CRITICAL + 1)
+            silence_dask_logs()
         raise
     finally:
         with deferred_signals():
@@ -95,4 +103,5 @@ def _closing(*close: Callable[[], Any]) -> Iterator[None]:
                 fn()
 
 
-__all__ = ["CONNECT_TIMEOUT_S", "INSTALL_HINT", "dask_client", "require_dask"]
+__all__ = ["CONNECT_TIMEOUT_S", "INSTALL_HINT", "dask_client", "require_dask",
+           "silence_dask_logs"]
