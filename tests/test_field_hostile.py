@@ -376,11 +376,14 @@ def test_files_that_are_no_npz(made, tmp_path, capsys):
     refused(capsys, tmp_path / "short.npz", made / "in.ply", tmp_path / "o.ply", "centers")
 
 
+# VmHWM (kB), not ru_maxrss: Linux carries the forking parent's peak into a child's ru_maxrss
+# across exec, so under a grown pytest process every child read ~1.2 GB
 PEAK = """
-import resource, sys
+import sys
 from splatdeform.cli import main
 code = main(["apply", sys.argv[1], sys.argv[2], "-o", sys.argv[3]])
-print(code, resource.getrusage(resource.RUSAGE_SELF).ru_maxrss)
+hwm = [ln for ln in open("/proc/self/status") if ln.startswith("VmHWM:")][0].split()[1]
+print(code, hwm)
 """
 
 
