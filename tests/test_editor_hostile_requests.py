@@ -15,7 +15,6 @@ never a traceback, a hang or a file written outside the save folder.
 from __future__ import annotations
 
 import hashlib
-import http.client
 import json
 import socket
 import subprocess
@@ -27,6 +26,10 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from editor_client import Client as BaseClient
+from editor_client import raw as _raw
+from editor_client import request as _request
+from editor_client import strict_json as _strict_json
 from helpers import cpu_time
 
 import splatdeform as sd
@@ -37,53 +40,8 @@ from splatdeform.editor.security import HostRule
 N = 800
 
 
-def _strict_json(body: bytes):
-    """The body as JSON, refusing NaN / Infinity (what the page's ``JSON.parse`` accepts)."""
-    def refuse(name: str):
-        raise AssertionError(f"the answer holds {name}: not valid JSON")
-
-    return json.loads(body, parse_constant=refuse)
-
-
-def _request(port: int, method: str, path: str, *, body: bytes | None = None,
-             headers: dict[str, str] | None = None, timeout: float = 20
-             ) -> tuple[int, bytes]:
-    conn = http.client.HTTPConnection("127.0.0.1", port, timeout=timeout)
-    try:
-        conn.request(method, path, body=body, headers=headers or {})
-        resp = conn.getresponse()
-        return resp.status, resp.read()
-    finally:
-        conn.close()
-
-
-def _raw(port: int, data: bytes, timeout: float = 10) -> bytes:
-    """Send ``data`` as is, return all the server answers until it closes."""
-    with socket.create_connection(("127.0.0.1", port), timeout=timeout) as sock:
-        sock.sendall(data)
-        out = b""
-        while chunk := sock.recv(65536):
-            out += chunk
-        return out
-
-
-class Client:
-    """The page's requests to one server (token header, JSON actions)."""
-
-    def __init__(self, port: int, token: str) -> None:
-        self.port, self.token = port, token
-
-    def act(self, req: dict | bytes, **headers: str) -> tuple[int, dict]:
-        body = req if isinstance(req, bytes) else json.dumps(req).encode()
-        status, out = _request(self.port, "POST", "/api/action", body=body,
-                               headers={"X-Editor-Token": self.token,
-                                        "Content-Type": "application/json", **headers})
-        return status, _strict_json(out)
-
-    def ok(self, req: dict) -> dict:
-        status, out = self.act(req)
-        assert status == 200, out.get("error")
-        return out
+class Client(BaseClient):
+    """The shared client (tests/editor_client.py) with this file's refusal check."""
 
     def refused(self, req: dict | bytes, *words: str) -> str:
         status, out = self.act(req)
