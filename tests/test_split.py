@@ -293,9 +293,9 @@ def test_editor_save_splits_like_deform_byte_for_byte(tmp_path: Path) -> None:
     assert load(saved.model).n_points > model.n_points
 
 
-def test_streamed_splat_edit_keeps_the_count_and_warns(tmp_path: Path) -> None:
-    """Streamed edits do not split yet (issue 46 item 3): every chunk keeps its rows (a split
-    chunk would break the writer's count) and the summary carries the one warning line."""
+def test_streamed_splat_edit_splits(tmp_path: Path) -> None:
+    """Streamed edits split too (issue 46 item 3; tests/test_stream_split.py: the in-memory
+    file byte for byte): the header counts the children, no warning line."""
     from splatdeform.edit.stream import run_stream
 
     model = gaussian_bar(6000, seed=2)
@@ -310,8 +310,9 @@ def test_streamed_splat_edit_keeps_the_count_and_warns(tmp_path: Path) -> None:
                                  "rotate": {"axis": [0, 0, 1], "degrees": 90}}},
         "fit": {"tolerance": 2e-3, "max_centers": 600}}, "test")
     result = run_stream(cfg, tmp_path, output=tmp_path / "y.ply", chunk=1_500, quiet=True)
-    assert load(tmp_path / "y.ply").n_points == model.n_points
-    assert "not applied to streamed" in result.stats["split_note"]
+    assert result.stats["split_splats"] > 0 and "split_note" not in result.stats
+    assert load(tmp_path / "y.ply").n_points == \
+        model.n_points + result.stats["split_children"] - result.stats["split_splats"]
 
 
 def test_a_stored_basis_keeps_the_sigma_points_basis_once_per_fit(bent) -> None:

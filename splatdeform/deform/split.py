@@ -322,6 +322,72 @@ def concat(a: PointModel, b: PointModel) -> PointModel:
 Transform = Callable[[PointModel, PointModel, np.ndarray, np.ndarray, str, dict | None], None]
 
 
+def wanted(model: PointModel, rows: np.ndarray, jac: np.ndarray, field: Field
+           ) -> tuple[np.ndarray, SplitPlan]:
+    """The candidate splats ``rows`` (R,) (Jacobians ``jac`` (R, 3, 3)) with finite centres,
+    scales and rotations (R',) and the rule's :class:`SplitPlan` for them, before the cap.
+    Each splat's decision depends on that splat alone (the streamed path tests the splats a
+    chunk at a time and caps them all at once)."""
+    g = model.gaussians
+    finite = np.isfinite(model.positions[rows]).all(axis=1) & \
+        np.isfinite(g.scale_log[rows]).all(axis=1) & np.isfinite(g.rotation[rows]).all(axis=1)
+    rows, jac = rows[finite], jac[finite]
+    sigma, rot = _frames(g.scale_log[rows], g.rotation[rows])
+    curv = curvature(model.positions[rows], sigma, rot, field) if rows.size else np.zeros((0, 3))
+    return rows, plan(g.scale_log[rows], g.rotation[rows], jac, curv)
+
+
+def deformed_children(model: PointModel, rows: np.ndarray, counts: np.ndarray, field: Field,
+                      *, covariance: str, transform: Transform, stats: dict | None = None,
+                      dtype=None) -> tuple[Children, PointModel, np.ndarray]:
+    """The children of splats ``rows`` (P,) with ``counts`` (P, 3) (:func:`children`), each
+    moved by ``field`` at its own centre and deformed by its own J (``transform``): the
+    rest-state :class:`Children`, the deformed children (C points, :func:`take` rows of
+    ``model``; positions of ``dtype``, default the model's) and their Jacobians (C, 3, 3)."""
+    kids = children(model, rows, counts)
+    rest = take(model, kids.parent)
+    rest.positions = kids.centers
+    rest.gaussians.scale_log = kids.scale_log
+    if kids.opacity is not None:
+        rest.gaussians.opacity = kids.opacity
+    moved_pos, kid_jac = field(kids.centers, True)
+    deformed = rest.copy()
+    deformed.positions = moved_pos.astype(model.positions.dtype if dtype is None else dtype)
+    transform(rest, deformed, np.arange(rest.n_points), kid_jac, covariance, stats)
+    return kids, deformed, kid_jac
+
+
+def put_first(out: PointModel, kids: Children, deformed: PointModel, *,
+              copy: bool = False) -> PointModel:
+    """``out`` (a copy with ``copy``) with each split parent's row holding its child 0 (the
+    rows of ``deformed`` where ``kids.child`` is 0); the PLY source's quantised codes
+    dropped."""
+    first = kids.child == 0
+    result = out.copy() if copy else out
+    for name in ("positions", "normals", "colors", "radius", "axes"):
+        arr = getattr(result, name)
+        if arr is not None:
+            arr[kids.parent[first]] = getattr(deformed, name)[first]
+    for name in ("scale_log", "rotation", "opacity", "sh_dc", "sh_rest"):
+        arr = getattr(result.gaussians, name)
+        if arr is not None:
+            arr[kids.parent[first]] = getattr(deformed.gaussians, name)[first]
+    if result.source is not None and result.source.element("vertex") is not None:
+        result = replace(result, source=replace(result.source, quantised=None))
+    return result
+
+
+def count_stats(stats: dict | None, chosen: SplitPlan) -> None:
+    """Add ``chosen``'s split_capped, split_splats and split_children to ``stats``."""
+    if stats is None:
+        return
+    split = chosen.split
+    stats["split_capped"] = stats.get("split_capped", 0) + chosen.capped
+    stats["split_splats"] = stats.get("split_splats", 0) + int(split.sum())
+    stats["split_children"] = stats.get("split_children", 0) + \
+        int(chosen.counts[split].prod(axis=1).sum())
+
+
 def split_splats(model: PointModel, out: PointModel, rows: np.ndarray, jac: np.ndarray,
                  field: Field, *, moved: int, covariance: str, transform: Transform,
                  stats: dict | None = None) -> PointModel:
@@ -335,48 +401,22 @@ def split_splats(model: PointModel, out: PointModel, rows: np.ndarray, jac: np.n
     g = model.gaussians
     if g is None or model.faces is not None or rows.size == 0:
         return out
-    finite = np.isfinite(model.positions[rows]).all(axis=1) & \
-        np.isfinite(g.scale_log[rows]).all(axis=1) & np.isfinite(g.rotation[rows]).all(axis=1)
-    rows, jac = rows[finite], jac[finite]
-    sigma, rot = _frames(g.scale_log[rows], g.rotation[rows])
-    curv = curvature(model.positions[rows], sigma, rot, field) if rows.size else np.zeros((0, 3))
-    wanted = plan(g.scale_log[rows], g.rotation[rows], jac, curv)
-    chosen = cap(wanted, moved)
+    rows, want = wanted(model, rows, jac, field)
+    chosen = cap(want, moved)
+    count_stats(stats, chosen)
     split = chosen.split
-    if stats is not None:
-        stats["split_capped"] = stats.get("split_capped", 0) + chosen.capped
-        stats["split_splats"] = stats.get("split_splats", 0) + int(split.sum())
-        stats["split_children"] = stats.get("split_children", 0) + \
-            int(chosen.counts[split].prod(axis=1).sum())
     if not split.any():
         return out
-    kids = children(model, rows[split], chosen.counts[split])
-    rest = take(model, kids.parent)
-    rest.positions = kids.centers
-    rest.gaussians.scale_log = kids.scale_log
-    if kids.opacity is not None:
-        rest.gaussians.opacity = kids.opacity
-    moved_pos, kid_jac = field(kids.centers, True)
-    deformed = rest.copy()
-    deformed.positions = moved_pos.astype(out.positions.dtype)
-    transform(rest, deformed, np.arange(rest.n_points), kid_jac, covariance, stats)
+    kids, deformed, kid_jac = deformed_children(
+        model, rows[split], chosen.counts[split], field, covariance=covariance,
+        transform=transform, stats=stats, dtype=out.positions.dtype)
     first = kids.child == 0
     if stats is not None:  # the parent row of every appended child, in output order
         stats["parent_rows"] = np.concatenate([stats.get("parent_rows", np.zeros(0, np.int64)),
                                                kids.parent[~first]])
         if "child_jacobians" in stats:  # asked for (benchmarks): (C, 3, 3), as ``kids``
             stats["child_jacobians"] = (kids.parent, kids.child, kid_jac)
-    result = out.copy() if out is model else out
-    for name in ("positions", "normals", "colors", "radius", "axes"):
-        arr = getattr(result, name)
-        if arr is not None:
-            arr[kids.parent[first]] = getattr(deformed, name)[first]
-    for name in ("scale_log", "rotation", "opacity", "sh_dc", "sh_rest"):
-        arr = getattr(result.gaussians, name)
-        if arr is not None:
-            arr[kids.parent[first]] = getattr(deformed.gaussians, name)[first]
-    if result.source is not None and result.source.element("vertex") is not None:
-        result = replace(result, source=replace(result.source, quantised=None))
+    result = put_first(out, kids, deformed, copy=out is model)
     return concat(result, take(deformed, np.flatnonzero(~first)))
 
 

@@ -14,7 +14,7 @@ A :class:`ChunkFile` is a context manager: leaving it closes what its reader kee
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
 
 import numpy as np
@@ -74,7 +74,9 @@ class ChunkFile:
 
     def writer(self, out: Path, props: list | None):
         """An open writer of ``out`` in this file's format (``write(records)``, ``close()``),
-        the input's header and other elements kept; ``props``: :meth:`encode`'s properties."""
+        the input's header and other elements kept; ``props``: :meth:`encode`'s properties.
+        A format that can write more records than it reads (PLY: split splats) also takes
+        ``extra``, the records written beyond ``n_points`` (its header counts them)."""
         raise NotImplementedError
 
     def close(self) -> None:
@@ -91,15 +93,18 @@ class ChunkFile:
 class ChunkWriter:
     """Writes chunks' records into ``tmp`` in ``src``'s format (PLY: header, rows, other
     elements verbatim; LAS/LAZ: the input's header, VLRs and EVLRs), opened at the first chunk
-    (which gives the output properties); a file of no points gets the header alone."""
+    (which gives the output properties); a file of no points gets the header alone. ``extra``:
+    records written after the input's ``n_points`` (split splats' children; PLY only), counted
+    in the header written first."""
 
-    def __init__(self, src: ChunkFile, tmp: Path) -> None:
-        self.src, self.tmp = src, tmp
+    def __init__(self, src: ChunkFile, tmp: Path, extra: int = 0) -> None:
+        self.src, self.tmp, self.extra = src, tmp, int(extra)
         self.out = None
 
     def write(self, rows: np.ndarray, props: list | None) -> None:
         if self.out is None:
-            self.out = self.src.writer(self.tmp, props)
+            self.out = self.src.writer(self.tmp, props, extra=self.extra) if self.extra \
+                else self.src.writer(self.tmp, props)
         self.out.write(rows)
 
     def close(self) -> None:
@@ -112,12 +117,16 @@ class ChunkWriter:
 def map_chunks(src: ChunkFile, dst: str | Path, fn: ChunkFn, chunk: int, *,
                progress: Callable[[int], None] | None = None,
                before_rename: Callable[[], None] | None = None,
-               read_ahead: bool = False) -> Path:
+               read_ahead: bool = False, extra: int = 0,
+               appendix: Callable[[], Iterable[np.ndarray]] | None = None) -> Path:
     """The one chunk loop: ``fn(start, stop)`` for every range of ``chunk`` points of ``src``,
     its records written in ``src``'s format to ``dst`` atomically (a temporary file beside it,
     renamed at the end; removed on any error). ``progress(n)``: told after each chunk;
     ``before_rename``: a last check that may still refuse (nothing is replaced then).
-    ``src`` is closed at the end. Returns ``dst``.
+    ``src`` is closed at the end. Returns ``dst``. ``extra`` and ``appendix``: ``extra`` more
+    records (split splats' children, PLY only), written after the chunks' from the record
+    arrays ``appendix()`` yields (the header, written first, counts them; a count that does
+    not match is an error and nothing is written).
 
     Reading and writing overlap the computing: the records go to the file from a writer
     thread (in order; one chunk's records in flight), and with ``read_ahead`` (for an ``fn``
@@ -134,7 +143,7 @@ def map_chunks(src: ChunkFile, dst: str | Path, fn: ChunkFn, chunk: int, *,
     reader = ThreadPoolExecutor(1, "splatdeform-read") if read_ahead and len(ranges) > 1 \
         else None
     with src, atomic_path(dst) as tmp:
-        writer = ChunkWriter(src, tmp)
+        writer = ChunkWriter(src, tmp, extra)
         pending = None   # the writer thread's last write
         with ThreadPoolExecutor(1, "splatdeform-write") as out:
             try:
@@ -157,6 +166,8 @@ def map_chunks(src: ChunkFile, dst: str | Path, fn: ChunkFn, chunk: int, *,
                         progress(stop - start)
                 if pending is not None:
                     pending.result()
+                for block in appendix() if appendix is not None else ():
+                    writer.write(block, None)
             finally:
                 if reader is not None:
                     reader.shutdown(wait=True, cancel_futures=True)

@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 from numpy.lib.recfunctions import structured_to_unstructured
 
-from ..errors import FormatError, InputError
+from ..errors import FormatError, InputError, ProcessingError
 from ..model import (
     MAX_COORDINATE,
     Gaussians,
@@ -573,9 +573,11 @@ class PlyChunks(ChunkFile):
         dtype = np.dtype([(p.name, self.byte_order + p.dtype) for p in vertex.properties])
         return vertex.data.astype(dtype, copy=False), vertex.properties
 
-    def header_bytes(self, props: list[PlyProperty]) -> bytes:
-        """The output header: vertex element with ``props``, the other elements as read."""
-        elements = [PlyElementData("vertex", props, np.empty(self.n_points, dtype=[]))]
+    def header_bytes(self, props: list[PlyProperty], extra: int = 0) -> bytes:
+        """The output header: vertex element with ``props`` (``extra`` more rows than read),
+        the other elements as read."""
+        elements = [PlyElementData("vertex", props,
+                                   np.empty(self.n_points + extra, dtype=[]))]
         elements += [PlyElementData(n, p, np.empty(c, dtype=[]))
                      for n, c, p in self.header.elements[1:]]
         source = PlySource(elements, self.header.comments, self.header.obj_info, False,
@@ -592,23 +594,31 @@ class PlyChunks(ChunkFile):
                     break
                 out.write(block)
 
-    def writer(self, out: Path, props: list | None) -> PlyChunkWriter:
-        return PlyChunkWriter(self, out, props)
+    def writer(self, out: Path, props: list | None, extra: int = 0) -> PlyChunkWriter:
+        return PlyChunkWriter(self, out, props, extra)
 
 
 class PlyChunkWriter:
-    """Streams vertex records into ``out``: the header first, the input's other elements
-    verbatim at :meth:`close` (flushed to disk)."""
+    """Streams vertex records into ``out``: the header first (``extra`` more vertices than
+    the input's: split splats' children), the input's other elements verbatim at
+    :meth:`close` (flushed to disk), after checking that the header's count was written."""
 
-    def __init__(self, src: PlyChunks, out: Path, props: list[PlyProperty]) -> None:
+    def __init__(self, src: PlyChunks, out: Path, props: list[PlyProperty],
+                 extra: int = 0) -> None:
         self.src = src
+        self.expected, self.written = src.n_points + int(extra), 0
         self.stream = open(out, "wb")
-        self.stream.write(src.header_bytes(props))
+        self.stream.write(src.header_bytes(props, int(extra)))
 
     def write(self, rows: np.ndarray) -> None:
         self.stream.write(np.ascontiguousarray(rows).view(np.uint8))  # no bytes copy
+        self.written += len(rows)
 
     def close(self) -> None:
+        if self.written != self.expected:   # the header's count is final: never a short file
+            self.stream.close()
+            raise ProcessingError(f"{self.src.path}: wrote {self.written:,} vertices, the "
+                                  f"header counts {self.expected:,} (internal error)")
         self.src.copy_tail(self.stream)
         self.stream.flush()
         os.fsync(self.stream.fileno())

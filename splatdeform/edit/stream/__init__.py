@@ -164,10 +164,8 @@ def run_stream(cfg, base_dir: str | Path = ".", *, output: str | Path | None = N
                        free_points=int(np.count_nonzero(plan.labels == 0)),
                        diagonal=float(np.linalg.norm(plan.hi - plan.lo)) or 1.0,
                        border_points=plan.border_points, chunk=chunk)
-    if cfg.gaussians.split == "auto" and n and src.read(0, 1).gaussians is not None:
-        stats["split_note"] = ("warning: gaussians.split: auto is not applied to streamed "
-                               "edits yet; every splat was written whole (raise "
-                               "--memory-budget to split)")
+    if plan.split is not None:   # gaussians.split: auto, decided by the split test pass
+        stats.update(plan.split.stats())
     timings = dict(plan.timings)
     timings["load"] = sum(timings.pop(k, 0.0) for k in ("bbox", "regions", "border"))
     timings["total"] = time.perf_counter() - t0

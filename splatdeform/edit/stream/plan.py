@@ -87,6 +87,7 @@ class Plan:
     border_points: int
     radius: float
     timings: dict[str, float] = field(default_factory=dict)
+    split: object = None  # the split test's Decision (splatdeform.edit.stream.split), or None
 
 
 def chunk_ranges(n: int, chunk: int):

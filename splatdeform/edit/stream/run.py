@@ -7,7 +7,8 @@ bit-exact and free points differ only by the basis backend's rounding. On Dask, 
 their chunk from the shared file, deform it and write it as a part file (written to a temporary
 name and renamed, so a recomputed chunk rewrites the same part); the client then assembles the
 parts in order into the output, atomically. The fitted deformation (centers, weights, frame,
-delta_c) is scattered once.
+delta_c) is scattered once. With ``gaussians.split: auto`` a split test pass decides which
+splats split before pass 5 (:mod:`splatdeform.edit.stream.split`).
 """
 
 from __future__ import annotations
@@ -17,6 +18,7 @@ import os
 import shutil
 import tempfile
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -45,16 +47,15 @@ class Shared:
     backend: str
     device: str | None
     covariance: str = DEFAULT_COVARIANCE  # gaussians.covariance
+    split: str = "off"  # gaussians.split
 
 
-def deform_chunk(src: ChunkFile, start: int, stop: int, labels: np.ndarray,
-                 shared: Shared):
-    """Deform points [start, stop): returns (rows or records, PLY properties or None). Free
-    points by one-shot evaluation of d(x) and J(x) (:mod:`splatdeform.basis.oneshot`): the
-    chunk's basis is never stored."""
+def chunk_deformation(model, labels: np.ndarray, shared: Shared) -> df.Deformation:
+    """The chunk's :class:`~splatdeform.deform.Deformation`: free points by one-shot
+    evaluation of d(x) and J(x) (:mod:`splatdeform.basis.oneshot`, never stored), handle
+    points by the frame."""
     from splatdeform.basis.oneshot import deferred_basis
 
-    model = src.read(start, stop)
     free = np.flatnonzero(labels == FREE)
     mov = np.flatnonzero(labels == HANDLE)
     frame = shared.frame
@@ -66,9 +67,9 @@ def deform_chunk(src: ChunkFile, start: int, stop: int, labels: np.ndarray,
         k = shared.fit.weights.shape[1]
         basis = Basis(np.zeros((0, k)), np.zeros((0, k, 3)) if needs_grad else None)
     grads = frame.coordinate_gradients()
-    n = stop - start
+    n = labels.size
     empty = np.empty(0, dtype=np.int64)
-    deformation = df.Deformation(
+    return df.Deformation(
         n_points=n, fixed=labels == FIXED, moving=labels == HANDLE, free_idx=free,
         moving_idx=mov, moving_coords=frame.coordinates(model.positions[mov]),
         moving_gradients=np.broadcast_to(grads, (mov.size, 4, 3)),
@@ -76,11 +77,34 @@ def deform_chunk(src: ChunkFile, start: int, stop: int, labels: np.ndarray,
         constraint_rhs=np.empty((0, 4)), control_points=frame.control_points,
         fit=shared.fit, basis=basis,
         groups=[df.Group("regions.handle", (0, 4), np.arange(mov.size), frame)])
-    out = df.apply(deformation, model, shared.delta_c, moving_matrix=shared.matrix,
-                   covariance=shared.covariance, split="off")  # chunks keep their counts
-    if not np.isfinite(out.positions).all():
+
+
+def _finite(model) -> None:
+    if not np.isfinite(model.positions).all():
         raise ProcessingError("the deformation produced non-finite positions; check the "
                               "regions and the transform")
+
+
+def deform_chunk(src: ChunkFile, start: int, stop: int, labels: np.ndarray,
+                 shared: Shared, split: tuple[np.ndarray, np.ndarray] | None = None,
+                 children: Callable[[np.ndarray], None] | None = None):
+    """Deform points [start, stop): returns (rows or records, PLY properties or None).
+    ``split``: (chunk rows (P,), counts (P, 3)) of the splats that split (the split test's
+    :class:`~splatdeform.edit.stream.split.Decision`): their rows hold child 0 and
+    ``children(records)`` receives the other children's records, in order."""
+    model = src.read(start, stop)
+    deformation = chunk_deformation(model, labels, shared)
+    out = df.apply(deformation, model, shared.delta_c, moving_matrix=shared.matrix,
+                   covariance=shared.covariance, split="off")  # split below, as decided
+    _finite(out)
+    if split is not None and split[0].size:
+        from splatdeform.edit.stream.split import chunk_children
+
+        def emit(kids) -> None:
+            _finite(kids)
+            children(src.encode(kids)[0])
+
+        chunk_children(model, out, deformation, shared.delta_c, *split, shared.covariance, emit)
     try:
         return src.encode(out)
     except ProcessingError as exc:
@@ -90,23 +114,65 @@ def deform_chunk(src: ChunkFile, start: int, stop: int, labels: np.ndarray,
             "--memory-budget to move the offset)") from exc
 
 
-def _part_name(parts: Path, start: int) -> Path:
-    return parts / f"part_{start:014d}.npy"
+def chunk_wants(src: ChunkFile, start: int, stop: int, labels: np.ndarray, shared: Shared):
+    """The split test of points [start, stop): the splats the rule wants to split
+    (:func:`splatdeform.edit.stream.split.chunk_wants`)."""
+    from splatdeform.edit.stream import split as ss
+
+    model = src.read(start, stop)
+    return ss.chunk_wants(model, chunk_deformation(model, labels, shared), shared.delta_c,
+                          start)
 
 
-def dask_part(path: str, start: int, stop: int, labels: np.ndarray, shared: Shared,
-              parts: str) -> str:
-    """A Dask task: deform one chunk and write it as a part (idempotent: tmp + rename).
+def dask_wants(path: str, start: int, stop: int, labels: np.ndarray, shared: Shared):
+    """A Dask task: the split test of one chunk (small arrays back)."""
+    with open_chunks(path) as src:
+        return chunk_wants(src, start, stop, labels, shared)
 
-    Returns "" without writing when the parts folder is gone: the run was stopped (Ctrl-C,
-    SIGTERM, an error) and removed it; a task still running then must not bring it back (which
-    is why this does not use :func:`atomic_write`, which creates missing folders)."""
-    folder = Path(parts)
-    if not folder.is_dir():
-        return ""
-    src = open_chunks(path)
-    rows, _ = deform_chunk(src, start, stop, labels, shared)
-    final = _part_name(folder, start)
+
+def may_split(src: ChunkFile, shared: Shared) -> bool:
+    """True when a streamed edit may split splats: ``gaussians.split: auto``, a file of
+    splats and a field with an RBF part (an affine field never splits)."""
+    if shared.split != "auto" or not src.n_points or src.read(0, 1).gaussians is None:
+        return False
+    return bool(np.any(np.asarray(shared.fit.weights, np.float64)[4:] @ shared.delta_c))
+
+
+def split_test(src: ChunkFile, plan: Plan, shared: Shared, chunk: int, quiet: bool,
+               client=None, shared_f=None):
+    """The split test pass (:mod:`splatdeform.edit.stream.split`): which splats split, the
+    growth cap over the whole file applied. None when nothing can split. On Dask
+    (``client``), ``shared_f``: ``shared`` scattered once for the whole run."""
+    from splatdeform.edit.stream.split import decide
+
+    if not may_split(src, shared):
+        return None
+    progress = Progress("split test (which splats split)", src.n_points, quiet=quiet)
+    ranges = list(chunk_ranges(src.n_points, chunk))
+    if client is None:
+        wants = []
+        for a, b in ranges:
+            wants.append(chunk_wants(src, a, b, plan.labels[a:b], shared))
+            progress.update(b - a)
+    else:
+        futures = [client.submit(dask_wants, str(src.path), a, b, plan.labels[a:b], shared_f,
+                                 key=f"splatdeform-wants-{a}-{b}-{id(plan)}", retries=2,
+                                 pure=False) for a, b in ranges]
+        wants = []
+        for fut, (a, b) in zip(futures, ranges, strict=True):
+            wants.append(fut.result())
+            progress.update(b - a)
+    progress.finish()
+    moved = int(src.n_points - np.count_nonzero(plan.labels == FIXED))
+    return decide(wants, moved)
+
+
+def _part_name(parts: Path, start: int, what: str = "part") -> Path:
+    return parts / f"{what}_{start:014d}.npy"
+
+
+def _save_part(folder: Path, final: Path, rows: np.ndarray) -> str:
+    """Write ``rows`` as ``final`` (tmp + rename); "" when the folder is gone."""
     try:
         fd, tmp = tempfile.mkstemp(dir=folder, prefix=f".{final.stem}.", suffix=".tmp")
     except FileNotFoundError:
@@ -121,6 +187,26 @@ def dask_part(path: str, start: int, stop: int, labels: np.ndarray, shared: Shar
         with contextlib.suppress(OSError):
             os.unlink(tmp)
     return str(final)
+
+
+def dask_part(path: str, start: int, stop: int, labels: np.ndarray, shared: Shared,
+              parts: str, split: tuple[np.ndarray, np.ndarray] | None = None) -> str:
+    """A Dask task: deform one chunk and write it as a part (idempotent: tmp + rename); with
+    ``split`` (see :func:`deform_chunk`) its children other than child 0 as a children part.
+
+    Returns "" without writing when the parts folder is gone: the run was stopped (Ctrl-C,
+    SIGTERM, an error) and removed it; a task still running then must not bring it back (which
+    is why this does not use :func:`atomic_write`, which creates missing folders)."""
+    folder = Path(parts)
+    if not folder.is_dir():
+        return ""
+    kids: list[np.ndarray] = []
+    with open_chunks(path) as src:
+        rows, _ = deform_chunk(src, start, stop, labels, shared, split, kids.append)
+    if kids and not _save_part(folder, _part_name(folder, start, "children"),
+                               np.concatenate(kids)):
+        return ""
+    return _save_part(folder, _part_name(folder, start), rows)
 
 
 def _remove_parts(parts: Path, futures) -> None:
@@ -143,25 +229,41 @@ def _out_props(src: ChunkFile, plan: Plan, shared: Shared):
 
 
 def second_pass_local(src: ChunkFile, plan: Plan, shared: Shared, out: Path, chunk: int,
-                      quiet: bool) -> None:
+                      quiet: bool, decision=None) -> None:
+    """Pass 5 in this process; ``decision``: the split test's (None: nothing splits), its
+    children spilled beside the output and appended after the chunks."""
+    from splatdeform.edit.stream.split import Spill
+
     progress = Progress("pass 5 (basis + apply + write)", src.n_points, quiet=quiet)
-    map_chunks(src, out, lambda a, b: deform_chunk(src, a, b, plan.labels[a:b], shared), chunk,
-               progress=progress.update, read_ahead=True)
+    if decision is None or not decision.rows.size:
+        map_chunks(src, out, lambda a, b: deform_chunk(src, a, b, plan.labels[a:b], shared),
+                   chunk, progress=progress.update, read_ahead=True)
+    else:
+        spill = Spill(out)
+        try:
+            map_chunks(src, out, lambda a, b: deform_chunk(
+                src, a, b, plan.labels[a:b], shared, decision.within(a, b), spill.write),
+                chunk, progress=progress.update, read_ahead=True, extra=decision.extra,
+                appendix=lambda: spill.blocks(chunk))
+        finally:
+            spill.close()
     progress.finish()
 
 
 def second_pass_dask(src: ChunkFile, plan: Plan, shared: Shared, out: Path, chunk: int,
-                     quiet: bool, client) -> None:
+                     quiet: bool, client, decision=None, shared_f=None) -> None:
     from distributed import as_completed
 
     parts = Path(tempfile.mkdtemp(dir=out.parent, prefix=f".{out.stem}.parts."))
     progress = Progress("pass 5 on Dask (basis + apply + parts)", src.n_points, quiet=quiet)
     futures = {}
     try:
-        shared_f = client.scatter(shared, broadcast=True)
+        if shared_f is None:
+            shared_f = client.scatter(shared, broadcast=True)
         for a, b in chunk_ranges(src.n_points, chunk):
+            split = None if decision is None else decision.within(a, b)
             fut = client.submit(dask_part, str(src.path), a, b, plan.labels[a:b], shared_f,
-                                str(parts), key=f"splatdeform-part-{a}-{b}-{id(plan)}",
+                                str(parts), split, key=f"splatdeform-part-{a}-{b}-{id(plan)}",
                                 retries=2, pure=False)
             futures[fut] = (a, b)
         for fut in as_completed(list(futures)):
@@ -170,8 +272,13 @@ def second_pass_dask(src: ChunkFile, plan: Plan, shared: Shared, out: Path, chun
             progress.update(b - a)
         progress.finish()
         props = _out_props(src, plan, shared)
+        kids = [a for a, _ in chunk_ranges(src.n_points, chunk)
+                if _part_name(parts, a, "children").is_file()]
         map_chunks(src, out, lambda a, _b: (np.load(_part_name(parts, a), allow_pickle=False),
-                                            props), chunk)
+                                            props), chunk,
+                   extra=0 if decision is None else decision.extra,
+                   appendix=lambda: (np.load(_part_name(parts, a, "children"),
+                                             allow_pickle=False) for a in kids))
     finally:
         with deferred_signals():  # a second Ctrl-C must not leave the folder behind
             _remove_parts(parts, futures)
@@ -190,12 +297,16 @@ def stream_deform(src: ChunkFile, cfg, base_dir: Path, out: Path, *, chunk: int,
     if check_fit is not None:
         check_fit(plan.border.fit)  # warns, or raises before any output
     shared = Shared(plan.border.fit, plan.frame, plan.matrix, plan.delta_c, cfg.backend,
-                    cfg.device, cfg.gaussians.covariance)
+                    cfg.device, cfg.gaussians.covariance, cfg.gaussians.split)
     t0 = time.perf_counter()
+    # one scatter for both passes (scattering the same object twice shares its key)
+    shared_f = None if client is None else client.scatter(shared, broadcast=True)
+    plan.split = split_test(src, plan, shared, chunk, quiet, client, shared_f)
+    plan.timings["split_test"] = time.perf_counter() - t0   # part of apply, as in memory
     if client is None:
-        second_pass_local(src, plan, shared, out, chunk, quiet)
+        second_pass_local(src, plan, shared, out, chunk, quiet, plan.split)
     else:
-        second_pass_dask(src, plan, shared, out, chunk, quiet, client)
+        second_pass_dask(src, plan, shared, out, chunk, quiet, client, plan.split, shared_f)
     plan.timings["apply"] = time.perf_counter() - t0
     return plan
 

@@ -1,0 +1,147 @@
+"""``gaussians.split: auto`` on a streamed or Dask ``deform``: the in-memory rule, decided once
+for the whole file before anything is written (issue 46).
+
+The rule (:mod:`splatdeform.deform.split`) decides each free splat from that splat alone (its J
+at the centre and the field at its sigma points); only the growth cap looks at every splat at
+once. So a *split test* pass reads the file a chunk at a time and keeps the splats the rule
+wants to split (row, children per axis, excess: 19 bytes each, never the others), then the cap
+runs on all of them as in memory. Pass 5 then knows which splats split and the exact output
+count (the PLY header, written first, counts the children): each chunk writes its rows with a
+split parent's row holding its child 0, and the other children (in parent-row, child order) go
+to a spill file (Dask: one children part per chunk) appended after every original row. The
+output is the in-memory file's rows in the in-memory order: byte-identical where the backend
+gives each point the same values whatever the chunking (one-shot evaluation does).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import tempfile
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from splatdeform.deform import split as sp
+
+#: children deformed at once in pass 5 (bounds the temporaries of a heavily split chunk)
+CHILD_BLOCK = 1 << 16
+
+
+@dataclass
+class Decision:
+    """The split of a whole streamed file: ``rows`` (S,) int64 ascending, the splats that
+    split; ``counts`` (S, 3) children per rest axis; ``capped``: splats the rule wanted that
+    the growth cap kept whole."""
+
+    rows: np.ndarray
+    counts: np.ndarray
+    capped: int = 0
+
+    @property
+    def children(self) -> int:
+        return int(self.counts.prod(axis=1).sum())
+
+    @property
+    def extra(self) -> int:
+        """Records the output holds beyond the input's (children minus the parents)."""
+        return self.children - int(self.rows.size)
+
+    def within(self, start: int, stop: int) -> tuple[np.ndarray, np.ndarray]:
+        """(chunk-local rows (P,), counts (P, 3)) of the splats of rows [start, stop)."""
+        a, b = np.searchsorted(self.rows, [start, stop])
+        return self.rows[a:b] - start, self.counts[a:b]
+
+    def stats(self) -> dict[str, int]:
+        """split_splats, split_children, split_capped as the in-memory apply counts them."""
+        return {"split_splats": int(self.rows.size), "split_children": self.children,
+                "split_capped": int(self.capped)}
+
+
+#: a chunk's wanted splits: (global rows (W,) int64, counts (W, 3) uint8, excess (W,))
+Wants = tuple[np.ndarray, np.ndarray, np.ndarray]
+
+
+def chunk_wants(model, deformation, delta_c: np.ndarray, start: int) -> Wants:
+    """The splats of a chunk (rows from ``start``) the rule wants to split, before the cap:
+    J at the free centres and the bend test through :func:`splatdeform.deform.split.fit_field`
+    of the chunk's (one-shot) ``deformation``, as the in-memory apply computes them."""
+    free = deformation.free_idx
+    if model.gaussians is None or free.size == 0:
+        return np.zeros(0, np.int64), np.ones((0, 3), np.int64), np.zeros(0)
+    field = sp.fit_field(deformation, delta_c)
+    with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
+        _, jac = field(model.positions[free], True)
+        rows, want = sp.wanted(model, free, jac, field)
+    keep = want.split
+    return (rows[keep].astype(np.int64) + start, want.counts[keep].astype(np.uint8),
+            want.excess[keep])
+
+
+def decide(wants: list[Wants], moved: int) -> Decision:
+    """The growth cap (:func:`splatdeform.deform.split.cap` over ``moved`` non-fixed splats)
+    on every chunk's wants, in row order (the in-memory tie order)."""
+    if not wants:
+        return Decision(np.zeros(0, np.int64), np.ones((0, 3), np.int64))
+    rows = np.concatenate([w[0] for w in wants])
+    counts = np.concatenate([w[1] for w in wants]).reshape(-1, 3).astype(np.int64)
+    excess = np.concatenate([w[2] for w in wants])
+    chosen = sp.cap(sp.SplitPlan(counts, excess), moved)
+    keep = chosen.split
+    return Decision(rows[keep], chosen.counts[keep], chosen.capped)
+
+
+def chunk_children(model, out, deformation, delta_c: np.ndarray, rows: np.ndarray,
+                   counts: np.ndarray, covariance: str, emit: Callable) -> None:
+    """Split a deformed chunk: ``out`` (the chunk deformed whole, changed in place) gets each
+    split parent's child 0 in its row; ``emit(children)`` receives the other children (a model
+    per block of at most :data:`CHILD_BLOCK`, in parent-row then child order)."""
+    from splatdeform.deform.model_apply import _transform_attributes
+
+    if rows.size == 0:
+        return
+    field = sp.fit_field(deformation, delta_c)
+    per = counts.prod(axis=1)
+    edges = np.searchsorted(np.cumsum(per), np.arange(CHILD_BLOCK, int(per.sum()), CHILD_BLOCK),
+                            side="right")
+    for lo, hi in zip(np.r_[0, edges], np.r_[edges, rows.size], strict=True):
+        if hi <= lo:
+            continue
+        with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
+            kids, deformed, _ = sp.deformed_children(
+                model, rows[lo:hi], counts[lo:hi], field, covariance=covariance,
+                transform=_transform_attributes, dtype=out.positions.dtype)
+        sp.put_first(out, kids, deformed)
+        emit(sp.take(deformed, np.flatnonzero(kids.child != 0)))
+
+
+class Spill:
+    """Children's records of a local pass 5, in order, in a temporary file beside the output
+    (removed on close): appended after every original row."""
+
+    def __init__(self, out: Path) -> None:
+        fd, name = tempfile.mkstemp(dir=out.parent, prefix=f".{out.stem}.children.",
+                                    suffix=".tmp")
+        self.path, self.file, self.dtype, self.count = Path(name), os.fdopen(fd, "w+b"), None, 0
+
+    def write(self, records: np.ndarray) -> None:
+        self.dtype = records.dtype
+        self.file.write(np.ascontiguousarray(records).view(np.uint8))
+        self.count += len(records)
+
+    def blocks(self, size: int) -> Iterator[np.ndarray]:
+        """The records written, ``size`` at a time."""
+        if not self.count:
+            return
+        self.file.flush()
+        self.file.seek(0)
+        for _ in range(0, self.count, size):
+            yield np.fromfile(self.file, dtype=self.dtype, count=size)
+
+    def close(self) -> None:
+        with contextlib.suppress(OSError):
+            self.file.close()
+        with contextlib.suppress(OSError):
+            os.unlink(self.path)
