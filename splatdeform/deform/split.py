@@ -65,6 +65,7 @@ from splatdeform.deform.split_field import (  # noqa: F401 - the split's public 
     ratio,
     sigma_points,
     sigma_steps,
+    split_like_oneshot,
 )
 from splatdeform.errors import InputError
 from splatdeform.geometry import quaternion_to_matrix
@@ -332,6 +333,8 @@ def wanted(model: PointModel, rows: np.ndarray, jac: np.ndarray, field: Field
     finite = np.isfinite(model.positions[rows]).all(axis=1) & \
         np.isfinite(g.scale_log[rows]).all(axis=1) & np.isfinite(g.rotation[rows]).all(axis=1)
     rows, jac = rows[finite], jac[finite]
+    if getattr(field, "own_jacobians", False) and rows.size:  # as a one-shot run (--reuse)
+        jac = field(model.positions[rows], True)[1]
     sigma, rot = _frames(g.scale_log[rows], g.rotation[rows])
     curv = curvature(model.positions[rows], sigma, rot, field) if rows.size else np.zeros((0, 3))
     return rows, plan(g.scale_log[rows], g.rotation[rows], jac, curv)

@@ -22,6 +22,7 @@ import numpy as np
 SIGMA_EXTENT = 2.0  # sigma points at +- this many standard deviations
 SIGMA_BLOCK = 1 << 16  # splats per block of sigma points (bounds the temporaries)
 _STORE_ATTR = "_split_sigma_basis"  # (sigma points (7M, 3), RBF basis (7M, k)) on the store
+_ONESHOT_ATTR = "_split_oneshot"  # (backend, device) of a stored-basis deformation's split
 
 # rest points (M, 3) -> deformed positions (M, 3), and the Jacobians (M, 3, 3) when asked
 Field = Callable[[np.ndarray, bool], tuple[np.ndarray, np.ndarray | None]]
@@ -53,6 +54,10 @@ class FitField:
     Called as a :data:`Field`: (M, 3) rest points -> float64 (M, 3) positions and (M, 3, 3)
     Jacobians I + grad d when asked. :meth:`curvature` is the rule's bend test from the RBF
     part alone."""
+
+    #: True: the split tests the splats with this field's J at their centres, not the
+    #: caller's (a stored basis's J, rounded otherwise): see :func:`split_like_oneshot`
+    own_jacobians = False
 
     def __init__(self, fit, delta_c: np.ndarray, *, backend: str = "numpy",
                  device: str | None = None, store: object | None = None) -> None:
@@ -142,10 +147,27 @@ def fit_field(deformation, delta_c: np.ndarray) -> FitField:
     basis = deformation.basis
     if isinstance(basis, DeferredBasis) and basis.stored is None:
         return FitField(deformation.fit, delta_c, backend=basis.backend, device=basis.device)
+    oneshot = getattr(deformation, _ONESHOT_ATTR, None)
+    if oneshot is not None:  # split_like_oneshot: as a run without the stored basis
+        field = FitField(deformation.fit, delta_c, backend=oneshot[0], device=oneshot[1])
+        field.own_jacobians = True
+        return field
     from splatdeform.basis import opencl
 
     backend = "opencl" if opencl.opencl_available(None) else "numpy"
     return FitField(deformation.fit, delta_c, backend=backend, store=deformation)
+
+
+def split_like_oneshot(deformation, backend: str, device: str | None) -> None:
+    """Make ``deformation`` (a stored basis: ``deform --reuse``) split exactly as a one-shot
+    run with ``backend`` / ``device`` would: the split test's J at the centres, the sigma
+    points and the children all one-shot through that backend (the same decisions and the
+    same children bytes as without ``--reuse``; the stored basis still moves the unsplit
+    points). The sigma points' basis is not kept: 7 x free splats x centres floats (6 GB for
+    150k splats and 1,500 centres) to save one evaluation per run."""
+    from splatdeform.basis import resolve_backend
+
+    setattr(deformation, _ONESHOT_ATTR, (resolve_backend(backend, device), device))
 
 
 def basis_field(fit, delta_c: np.ndarray) -> Field:

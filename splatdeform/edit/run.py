@@ -175,6 +175,10 @@ def run_edit(config: EditPlan | EditConfig | dict | str | Path,
     elif points_fit is None:  # reused (a points: edit was fitted above)
         timings.update({"rings": 0.0, "fit": 0.0, "basis": 0.0})
         check_converged(deformation.fit, cfg, warn)
+    if reuse is not None and model.gaussians is not None and cfg.gaussians.split == "auto":
+        from splatdeform.deform.split import split_like_oneshot
+
+        split_like_oneshot(deformation, cfg.backend, cfg.device)  # as without --reuse
     if log:
         from splatdeform.edit.selection import counts_of_deformation, format_counts, moving_label
 

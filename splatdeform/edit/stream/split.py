@@ -26,7 +26,8 @@ import numpy as np
 
 from splatdeform.deform import split as sp
 
-#: children deformed at once in pass 5 (bounds the temporaries of a heavily split chunk)
+#: at most this many children deformed at once in pass 5 (bounds the temporaries of a
+#: heavily split chunk; a chunk's own size when smaller)
 CHILD_BLOCK = 1 << 16
 
 
@@ -97,14 +98,16 @@ def chunk_children(model, out, deformation, delta_c: np.ndarray, rows: np.ndarra
                    counts: np.ndarray, covariance: str, emit: Callable) -> None:
     """Split a deformed chunk: ``out`` (the chunk deformed whole, changed in place) gets each
     split parent's child 0 in its row; ``emit(children)`` receives the other children (a model
-    per block of at most :data:`CHILD_BLOCK`, in parent-row then child order)."""
+    per block of at most the chunk's size or :data:`CHILD_BLOCK` children, in parent-row then
+    child order; each child depends on its parent alone, so blocks change nothing)."""
     from splatdeform.deform.model_apply import _transform_attributes
 
     if rows.size == 0:
         return
     field = sp.fit_field(deformation, delta_c)
     per = counts.prod(axis=1)
-    edges = np.searchsorted(np.cumsum(per), np.arange(CHILD_BLOCK, int(per.sum()), CHILD_BLOCK),
+    block = max(sp.MAX_CHILDREN, min(CHILD_BLOCK, model.n_points))
+    edges = np.searchsorted(np.cumsum(per), np.arange(block, int(per.sum()), block),
                             side="right")
     for lo, hi in zip(np.r_[0, edges], np.r_[edges, rows.size], strict=True):
         if hi <= lo:
