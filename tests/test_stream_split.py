@@ -149,3 +149,32 @@ def test_reuse_splits_like_without_it(scene: Path) -> None:
         pos = [np.stack([d[c] for c in "xyz"], axis=1).astype(float) for d in (out, mem)]
         assert np.abs(pos[0] - pos[1]).max() < 1e-6 * np.ptp(pos[1], axis=0).max()
     assert (scene / "reuse1.ply").read_bytes() == (scene / "reuse2.ply").read_bytes()
+
+
+def test_render_draws_the_split_file(scene: Path) -> None:
+    """``deform --render`` (render_result) on a split result draws the written model,
+    children included, framed with the input as one scene: the same pixels as rendering the
+    input and the written file together; the streamed result's image draws its (split)
+    output file the same way."""
+    from PIL import Image
+
+    from splatdeform.edit.images import edit_view, render_result
+    from splatdeform.render import render_comparison
+
+    def read_png(path: Path) -> np.ndarray:
+        return np.asarray(Image.open(path).convert("RGB"))
+
+    cfg = parse_edit(dict(_edit(), render={"size": [320, 160]}), "test")
+    result = run_edit(cfg, scene, output=scene / "r.ply")
+    assert result.deformed.n_points > N
+    render_result(result, cfg, scene / "r.png")
+    files = render_comparison(load(scene / "x.ply"), load(scene / "r.ply"), None,
+                              edit_view(cfg), one_scene=True)
+    assert np.array_equal(read_png(scene / "r.png"), files)
+    unsplit = run_edit(parse_edit(dict(_edit(split="off"), render={"size": [320, 160]}),
+                                  "test"), scene, output=scene / "u.ply")
+    render_result(unsplit, cfg, scene / "u.png")
+    assert not np.array_equal(read_png(scene / "u.png"), files)   # the children show
+    streamed = run_stream(cfg, scene, output=scene / "rs.ply", chunk=CHUNK, quiet=True)
+    render_result(streamed, cfg, scene / "rs.png", input_path=scene / "x.ply")
+    assert np.array_equal(read_png(scene / "rs.png"), files)

@@ -81,7 +81,9 @@ def render_result(result: EditResult, cfg: EditConfig, out: str | Path, *,
     before/after image). ``view``: default :func:`edit_view` with ``render.up``,
     ``render.roll`` and ``render.camera`` (a camera file wins over the other view keys).
     ``color``: ``--color`` (else ``render.color``). A streamed result (no model in memory)
-    renders ``input_path`` beside the output file, sampled within ``budget`` bytes."""
+    renders ``input_path`` beside the output file, sampled within ``budget`` bytes. A result
+    whose splats split (``gaussians.split: auto``) draws the written model, children
+    included, beside the input (an animation's frames are drawn unsplit by the shader)."""
     from splatdeform.render import render_deformation_comparison, render_frames
 
     frames = render_frames_count(cfg, frames)
@@ -100,6 +102,14 @@ def render_result(result: EditResult, cfg: EditConfig, out: str | Path, *,
     from splatdeform.render.colors import colored
 
     model = colored(result.model, color or opts.color, view.up or default_up([result.model]))
+    deformed = result.deformed
+    if frames < 2 and deformed is not None and deformed.n_points != result.model.n_points:
+        from splatdeform.render import render_comparison
+
+        after = colored(deformed, color or opts.color, view.up or default_up([result.model]))
+        render_comparison(model, after, target, view, one_scene=True)   # split: the file
+        result.timings["render"] = time.perf_counter() - t0
+        return target
     values, gradients = full_basis(result.deformation)
     if frames >= 2:
         render_frames(model, values, gradients, result.delta_c, frames, target, view,
@@ -132,6 +142,7 @@ def render_streamed(result: EditResult, input_path: Path, target: Path, frames: 
     before, after = (colored(m, color, up) for m in models)
     if before.n_points == after.n_points and before.colors is not None:
         after = replace(after, colors=before.colors)   # one colour scale: the input's
-    render_comparison(before, after, target, view, labels=("before", "after"))
+    render_comparison(before, after, target, view, labels=("before", "after"),
+                      one_scene=True)   # one scene, also when splats split
     if inputs[0].sampled:
         print(inputs[0].line())

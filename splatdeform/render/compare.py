@@ -88,6 +88,7 @@ def render_comparison(
     labels: Sequence[str] = ("before", "after"),
     overlays: Sequence[Overlay] = (),
     closeup: str | os.PathLike[str] | None = None,
+    one_scene: bool | None = None,
 ) -> np.ndarray:
     """Render two CPU-side models side by side, or ``before`` alone when ``after`` is None.
     ``view.size`` is one panel (W, H). One camera frames both when they are one scene before
@@ -98,8 +99,12 @@ def render_comparison(
     PNG to ``out_path`` (atomically) and the first panel's camera to ``OUT.camera.json`` when
     given; returns the composed (H', W', 3) uint8 image. ``closeup``: a second PNG (and its
     camera file) of the same scene framed on the points that moved (:func:`closeup_camera`),
-    written only when ``after`` is the same scene and something moved."""
+    written only when ``after`` is the same scene and something moved. ``one_scene``: True
+    when ``after`` is ``before`` edited even though the counts differ (split splats: the
+    children after the original rows; None: :func:`same_scene`)."""
     models = [before] if after is None else [before, after]
+    if after is not None and one_scene is None:
+        one_scene = same_scene(before, after)
     renderer = Renderer(view.size)
     try:
         extra = [np.asarray(o.points, np.float64) for o in overlays]
@@ -108,13 +113,14 @@ def render_comparison(
         def framed(group: list[PointModel]) -> Camera:
             return view.framed([m.positions for m in group] + extra, models, aspect)
 
-        if after is None or same_scene(before, after):
+        if after is None or one_scene:
             cameras = [framed(models)] * len(models)
         else:
             cameras = [framed([m]) for m in models]
         close = None
-        if closeup is not None and after is not None and same_scene(before, after):
-            close = closeup_camera(view, before.positions, after.positions, models, aspect,
+        if closeup is not None and after is not None and one_scene:
+            close = closeup_camera(view, before.positions,  # the original rows come first
+                                   after.positions[:before.n_points], models, aspect,
                                    cameras[0])
         images, close_images = [], []
         for model, cam in zip(models, cameras, strict=True):
