@@ -266,8 +266,9 @@ class GaussiansCfg(_Strict):
         "`limited`: J Sigma J^T, axis ratio growing at most 2x")
     split: Literal["auto", "off"] = Field(
         DEFAULT_SPLIT, description="`auto`: split free-region splats one Gaussian cannot "
-        "follow into children (the written file; the editor's live pose and render images "
-        "draw them unsplit); `off`: keep the splat count")
+        "follow into children (the written file, streamed or not, and `deform --render`; the "
+        "editor's live pose and animation frames draw them unsplit); `off`: keep the splat "
+        "count")
 
 
 UpAxis = Literal["+x", "+y", "+z", "-x", "-y", "-z"]
