@@ -74,6 +74,22 @@ def cofactor_apply(jac: np.ndarray, vectors: np.ndarray) -> np.ndarray:
     return out.T
 
 
+def cofactor_apply_one(jac: np.ndarray, vectors: np.ndarray) -> np.ndarray:
+    """:func:`cofactor_apply` for one J (3, 3) shared by every vector (a rigid handle's
+    points): the same products and sums, the J terms computed once, so the same bits.
+    jac: (3, 3); vectors: (N, 3). Returns (N, 3), not normalised."""
+    a, b, c, d, e, f, g, h, i = np.asarray(jac).reshape(9)
+    x, y, z = np.ascontiguousarray(np.asarray(vectors).T)
+    out = np.empty((3, x.shape[0]), dtype=np.result_type(jac, vectors))
+    for row, (p, q, r) in zip(out, ((e * i - h * f, f * g - i * d, d * h - g * e),
+                                    (h * c - b * i, i * a - c * g, g * b - a * h),
+                                    (b * f - e * c, c * d - f * a, a * e - d * b)), strict=True):
+        np.multiply(x, p, out=row)
+        row += y * q
+        row += z * r
+    return out.T
+
+
 def normalize_rows(v: np.ndarray) -> np.ndarray:
     """Rows scaled to unit length; zero rows stay zero. (N, 3) -> (N, 3)."""
     length = np.linalg.norm(v, axis=1, keepdims=True)

@@ -20,6 +20,10 @@ from splatdeform.deform.split import DEFAULT_SPLIT
 from splatdeform.errors import InputError
 from splatdeform.model import PointModel
 
+#: rows per block of the moving points' positions and of every point's attribute work (J,
+#: cof(J) n, the normals' lengths): its temporaries stay in cache, the peak near input + output
+APPLY_ROWS = 1 << 15
+
 
 def _deform_gaussians(model: PointModel, out: PointModel, idx: np.ndarray,
                       jac: np.ndarray, covariance: str, stats: dict | None) -> None:
@@ -43,11 +47,14 @@ def _deform_gaussians(model: PointModel, out: PointModel, idx: np.ndarray,
 
 def _transform_attributes(model: PointModel, out: PointModel, idx: np.ndarray,
                           jac: np.ndarray, covariance: str = DEFAULT_COVARIANCE,
-                          stats: dict | None = None) -> None:
+                          stats: dict | None = None, constant: bool = False) -> None:
+    """Normals, axes, radii and splats of points ``idx`` (M,) by their J (M, 3, 3);
+    ``constant``: every row of ``jac`` is the same (a rigid handle), cof(J) formed once."""
     cof = None
     if model.normals is not None:
         normals = model.normals[idx]
-        cof = ap.cofactor_apply(jac, normals)
+        cof = (ap.cofactor_apply_one(jac[0], normals) if constant
+               else ap.cofactor_apply(jac, normals))
         out.normals[idx] = ap.transform_normals(jac, normals, cofactor=cof)
     if model.axes is not None:
         out.axes[idx] = ap.transform_axes(jac, model.axes[idx])
@@ -170,10 +177,14 @@ def _apply(deformation: Deformation, model: PointModel, delta: np.ndarray,
     for group, _ in pairs:
         covered[group.rows] = True
     if not covered.all():  # rows no 4x4 map overwrites below move by their coordinates
-        out.positions[mov] = model.positions[mov] + deformation.moving_coords @ delta
+        coords = deformation.moving_coords
+        for s in range(0, mov.size, APPLY_ROWS):
+            rows = mov[s:s + APPLY_ROWS]
+            out.positions[rows] = model.positions[rows] + coords[s:s + APPLY_ROWS] @ delta
     for group, matrix in pairs:
-        rows = mov[group.rows]
-        out.positions[rows] = apply_affine(matrix, model.positions[rows])
+        for s in range(0, group.rows.size, APPLY_ROWS):
+            rows = mov[group.rows[s:s + APPLY_ROWS]]
+            out.positions[rows] = apply_affine(matrix, model.positions[rows])
     if needs_jac:
         if not oneshot:
             if deformation.basis.gradients is None:
@@ -181,9 +192,7 @@ def _apply(deformation: Deformation, model: PointModel, delta: np.ndarray,
             grads = deformation.basis.gradients.astype(np.float64, copy=False)
             jac_free = ap.jacobians(grads, delta)
             _transform_attributes(model, out, free, jac_free, covariance, stats)
-        _transform_attributes(model, out, mov,
-                              ap.jacobians(np.ascontiguousarray(deformation.moving_gradients),
-                                           delta), covariance, stats)
+        _moving_attributes(deformation, model, out, delta, covariance, stats)
         if split == "auto" and model.gaussians is not None:  # issue 37
             from splatdeform.deform.split import fit_field, split_splats
 
@@ -192,6 +201,28 @@ def _apply(deformation: Deformation, model: PointModel, delta: np.ndarray,
                                covariance=covariance, transform=_transform_attributes,
                                stats=stats)
     return out
+
+
+def _moving_attributes(deformation: Deformation, model: PointModel, out: PointModel,
+                       delta: np.ndarray, covariance: str, stats: dict | None) -> None:
+    """Normals, axes, radii and splats of the moving points, APPLY_ROWS at a time. A handle's
+    gradients are one (k, 3) row broadcast (a stride-0 view): J is then the same for every
+    point, formed once from one block's product (whose rows all agree) and cof(J) once."""
+    mov = deformation.moving_idx
+    grads = deformation.moving_gradients
+    shared = None
+    if mov.size and grads.strides[0] == 0:
+        block = ap.jacobians(np.ascontiguousarray(grads[:min(APPLY_ROWS, mov.size)]), delta)
+        if (block == block[:1]).all():
+            shared = block
+    for s in range(0, mov.size, APPLY_ROWS):
+        rows = mov[s:s + APPLY_ROWS]
+        if shared is not None:
+            jac = shared[:rows.size]
+        else:
+            jac = ap.jacobians(np.ascontiguousarray(grads[s:s + APPLY_ROWS]), delta)
+        _transform_attributes(model, out, rows, jac, covariance, stats,
+                              constant=shared is not None)
 
 
 def _apply_oneshot(deformation: Deformation, model: PointModel, out: PointModel,
@@ -222,7 +253,9 @@ def _apply_oneshot(deformation: Deformation, model: PointModel, out: PointModel,
         jac[:, 0, 0] += 1
         jac[:, 1, 1] += 1
         jac[:, 2, 2] += 1
-        _transform_attributes(model, out, rows, jac, covariance, stats)
+        for s in range(0, hi - lo, APPLY_ROWS):  # cache-sized blocks of the attribute work
+            _transform_attributes(model, out, rows[s:s + APPLY_ROWS], jac[s:s + APPLY_ROWS],
+                                  covariance, stats)
         if jac_all is not None:
             jac_all[lo:hi] = jac
     return jac_all

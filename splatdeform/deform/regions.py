@@ -27,12 +27,15 @@ class Group:
     columns: (start, stop): its columns of delta_c (k rows of delta_c in all).
     rows: (Nm,) int64 positions of its points in ``Deformation.moving_idx``.
     frame: a handle's affine frame (its points then get the handle's 4x4 map verbatim).
+    constraints: what the columns of a kind without a moving region were fitted to (the
+    control-point pairs' :class:`~splatdeform.deform.points.PointsFit`), else None.
     """
 
     name: str
     columns: tuple[int, int]
     rows: np.ndarray
     frame: AffineFrame | None = None
+    constraints: object | None = None
 
 
 
@@ -116,7 +119,17 @@ def short_name(name: str) -> str:
 def moving_columns(n_points: int, metaphors: list[Metaphor]
                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[Group]]:
     """Stack the metaphors' columns: moving_idx (Nh,), coords (Nh, k), gradients (Nh, k, 3)
-    and the groups. A point's row is zero outside its own metaphor's columns."""
+    and the groups. A point's row is zero outside its own metaphor's columns. One metaphor
+    with sorted distinct indices: its own arrays, no copy (a handle's gradients stay the
+    broadcast view of its one (4, 3) row)."""
+    if len(metaphors) == 1 and _strictly_increasing(metaphors[0].idx):
+        mph = metaphors[0]
+        idx = np.asarray(mph.idx, dtype=np.int64)
+        coords = np.asarray(mph.coords, dtype=np.float64)
+        grads = np.asarray(mph.gradients, dtype=np.float64)
+        if coords.shape == (idx.size, mph.k) and grads.shape == (idx.size, mph.k, 3):
+            return idx, coords, grads, [Group(mph.name, (0, mph.k), np.arange(idx.size),
+                                              mph.frame)]
     owner = np.full(n_points, -1, dtype=np.int64)
     for j, mph in enumerate(metaphors):
         taken = owner[mph.idx] >= 0
@@ -139,6 +152,12 @@ def moving_columns(n_points: int, metaphors: list[Metaphor]
         groups.append(Group(mph.name, (start, start + mph.k), rows, mph.frame))
         start += mph.k
     return moving_idx, coords, grads, groups
+
+
+def _strictly_increasing(idx: np.ndarray) -> bool:
+    """Indices (M,) sorted with no repeats (what ``flatnonzero`` of a mask gives)."""
+    idx = np.asarray(idx)
+    return idx.ndim == 1 and bool((idx[1:] > idx[:-1]).all())
 
 
 def layout(model: PointModel, fixed: np.ndarray, metaphors: list[Metaphor], *,
