@@ -13,6 +13,7 @@ import pytest
 from conftest import shared_file
 
 from splatdeform.cli import main
+from splatdeform.errors import FormatError
 from splatdeform.io import load, pcd
 
 OSD = "pcd/osd_learn0_organized.pcd"
@@ -82,3 +83,51 @@ def test_lzf_round_trips_and_compresses(data):
     assert pcd.lzf_decompress("x", packed, len(data)) == data
     if len(set(data)) < 10 and len(data) > 1000:
         assert len(packed) < len(data) / 10
+
+
+def _blocks():
+    """(LZF block, declared raw size) pairs: valid, declared too short or too long, corrupted
+    bytes, cut short (seeded)."""
+    rng = np.random.default_rng(11)
+    out = []
+    for raw in (b"abcabcabcabc" * 20, bytes(1000), rng.bytes(300),
+                b"xyz" * 500 + rng.bytes(50)):
+        packed = pcd.lzf_compress(raw)
+        out += [(packed, len(raw) + d) for d in (0, 1, -1, 5, -5)]
+        for _ in range(40):
+            bad = bytearray(packed)
+            bad[rng.integers(len(bad))] = rng.integers(256)
+            out.append((bytes(bad[:rng.integers(1, len(bad) + 1)]), len(raw)))
+    return out
+
+
+def _outcome(decode, block, size):
+    try:
+        return bytes(decode("x", block, size))
+    except FormatError as exc:
+        return str(exc)
+
+
+def test_direct_liblzf_decode_is_python_lzfs():
+    """The reader's decoder (liblzf's lzf_decompress called straight into an array) gives
+    python-lzf's bytes and, for a bad block, the same error line."""
+    assert pcd._direct_lzf() is not None   # python-lzf's module exports liblzf's function
+    kinds = set()
+    for block, size in _blocks():
+        want = _outcome(pcd.lzf_decompress, block, size)
+        assert _outcome(pcd.lzf_decode, block, size) == want
+        assert _outcome(pcd.lzf_decode, np.frombuffer(block, np.uint8), size) == want
+        kinds.add(want[:70] if isinstance(want, str) else "ok")
+    assert len(kinds) >= 4, kinds   # decoded, corrupt, too long and too short all met
+
+
+def test_reader_without_the_direct_decoder_reads_the_same(tmp_path, monkeypatch):
+    src = shared_file("scans/bunny.ply")
+    packed = tmp_path / "packed.pcd"
+    assert main(["convert", str(src), str(packed), "--pcd-data", "binary_compressed"]) == 0
+    direct = load(packed)
+    monkeypatch.setattr(pcd, "_DIRECT_LZF", [None])   # python-lzf's decompress instead
+    assert pcd._direct_lzf() is None
+    plain = load(packed)
+    assert np.array_equal(direct.positions, plain.positions)
+    assert direct.source.data.tobytes() == plain.source.data.tobytes()

@@ -303,6 +303,54 @@ def lzf_decompress(path, data: bytes | memoryview, size: int) -> bytes:
     return out
 
 
+#: liblzf's own ``lzf_decompress`` in python-lzf's compiled module, called through ctypes
+#: (:func:`lzf_decode`); [None] where the module does not export it
+_DIRECT_LZF: list = []
+
+
+def _direct_lzf():
+    if not _DIRECT_LZF:
+        import ctypes
+
+        import lzf
+
+        try:
+            fn = ctypes.CDLL(lzf.__file__, use_errno=True).lzf_decompress
+            fn.restype = ctypes.c_uint
+            fn.argtypes = [ctypes.c_void_p, ctypes.c_uint, ctypes.c_void_p, ctypes.c_uint]
+        except (OSError, AttributeError, TypeError):   # not a shared object, or no such symbol
+            fn = None
+        _DIRECT_LZF.append(fn)
+    return _DIRECT_LZF[0]
+
+
+def lzf_decode(path, data: bytes | np.ndarray, size: int) -> np.ndarray:
+    """(size,) uint8: what :func:`lzf_decompress` returns, with its checks and error lines,
+    decoded by the same compiled liblzf straight into the array: python-lzf's module exports
+    liblzf's ``lzf_decompress``, called here through ctypes with python-lzf's arguments (room
+    for ``size`` bytes), which spares python-lzf's copy of the output and lets go of the
+    GIL; python-lzf's ``decompress`` where the module does not export it."""
+    direct = _direct_lzf()
+    if direct is None or size == 0:
+        return np.frombuffer(lzf_decompress(path, data, size), dtype=np.uint8)
+    import ctypes
+    import errno
+
+    out = np.empty(size, dtype=np.uint8)
+    ctypes.set_errno(0)
+    block = np.frombuffer(data, dtype=np.uint8)   # no copy (bytes, or _read's array)
+    got = direct(block.ctypes.data, len(block), out.ctypes.data, size)
+    if got == 0 and ctypes.get_errno() == errno.EINVAL:
+        raise FormatError(f"{path}: PCD binary_compressed block is corrupt")
+    if got == 0:
+        raise FormatError(f"{path}: PCD binary_compressed block is corrupt (it does not "
+                          f"decode within the {size:,} bytes its header says)")
+    if got != size:
+        raise FormatError(f"{path}: PCD binary_compressed block decodes to {got:,} bytes, "
+                          f"its header says {size:,}")
+    return out
+
+
 def lzf_compress(data: bytes | memoryview) -> bytes:
     """``data`` as an LZF stream (liblzf's format and compressor, which PCL's binary_compressed
     uses), through python-lzf; incompressible data costs at most a byte in 32 more."""
@@ -373,37 +421,69 @@ def _packed_color(word: bytes) -> int:
 
 
 def read_source(path: str | Path) -> tuple[PcdSource, int]:
+    """(source with its records, body offset) of the PCD file at ``path``."""
+    source, at, _ = _read(path)
+    return source, at
+
+
+def _read(path: str | Path) -> tuple[PcdSource, int, dict[str, np.ndarray] | None]:
+    """:func:`read_source`'s (source, body offset) and, for binary_compressed, the decoded
+    block's columns ({field: (N,) or (N, COUNT) view}, one field's values after another as the
+    block holds them; None for the other encodings). The header is parsed from the file's first
+    bytes and checked against its size; a binary or compressed body is read alone (the
+    compressed block straight into the bytes the decoder takes, no copy of the file)."""
     path = Path(path)
     with open_regular(path) as fh:
-        raw = fh.read()
-    source, at = parse_header(path, raw)
-    points = source.width * source.height
-    dtype = source.data.dtype
-    texts = None
-    if source.encoding == "binary":
-        data = np.frombuffer(raw, dtype=dtype, count=points, offset=at).copy()
-    elif source.encoding == "binary_compressed":
-        packed = _check_block(path, raw, at, points, dtype.itemsize, len(raw))
-        size = points * dtype.itemsize
-        block = lzf_decompress(path, memoryview(raw)[at + 8:at + 8 + packed], size)
-        data = np.empty(points, dtype=dtype)
-        offset = 0
-        for name in source.fields:
-            sub = dtype[name]
-            width = sub.itemsize * points
-            column = np.frombuffer(block, dtype=sub.base, count=points * (sub.itemsize //
-                                   sub.base.itemsize), offset=offset)
-            data[name] = column.reshape(data[name].shape)
-            offset += width
-    else:
-        data, texts = _parse_ascii(path, raw[at:], source, points)
-    return replace(source, data=data, ascii_text=texts), at
+        size = os.fstat(fh.fileno()).st_size
+        head = fh.read(HEAD_BYTES + 8)
+        source, at = parse_header(path, head, size)
+        points = source.width * source.height
+        dtype = source.data.dtype
+        if source.encoding == "binary_compressed":
+            packed = _check_block(path, head, at, points, dtype.itemsize, size)
+            fh.seek(at + 8)
+            block = np.empty(packed, dtype=np.uint8)   # numpy's large pages: fewer faults
+            block = block[:fh.readinto(block)]
+        elif source.encoding == "binary":
+            fh.seek(at)
+            data = np.fromfile(fh, dtype=dtype, count=points)
+            if len(data) != points:   # the file shrank after its size was read
+                raise FormatError(f"{path}: PCD binary body ends after {len(data):,} of "
+                                  f"{points:,} points")
+            return replace(source, data=data), at, None
+        else:
+            fh.seek(at)
+            body = fh.read()
+    if source.encoding == "ascii":
+        data, texts = _parse_ascii(path, body, source, points)
+        return replace(source, data=data, ascii_text=texts), at, None
+    raw = lzf_decode(path, block, points * dtype.itemsize)
+    del block
+    data = np.empty(points, dtype=dtype)
+    columns, offset = {}, 0
+    for name in source.fields:
+        sub = dtype[name]
+        column = np.frombuffer(raw, dtype=sub.base, count=points * (sub.itemsize //
+                               sub.base.itemsize), offset=offset).reshape(data[name].shape)
+        data[name] = column
+        columns[name] = column
+        offset += sub.itemsize * points
+    return replace(source, data=data), at, columns
 
 
-def _columns(data: np.ndarray, names: tuple[str, ...]) -> np.ndarray | None:
+def _columns(data: np.ndarray, names: tuple[str, ...],
+             columns: dict[str, np.ndarray] | None = None) -> np.ndarray | None:
+    """(N, len(names)) float64 of those fields of the records ``data`` (None when one is
+    missing), filled column by column (no float64 temporaries), from ``columns`` (the same
+    fields' values, contiguous) where given."""
     if not all(n in (data.dtype.names or ()) for n in names):
         return None
-    return np.stack([data[n].astype(np.float64) for n in names], axis=1)
+    if any(data.dtype[n].shape for n in names):   # a COUNT > 1 field: (N, 3, COUNT) as before
+        return np.stack([data[n].astype(np.float64) for n in names], axis=1)
+    out = np.empty((len(data), len(names)), dtype=np.float64)
+    for i, n in enumerate(names):
+        out[:, i] = data[n] if columns is None else columns[n]
+    return out
 
 
 def _colors(data: np.ndarray) -> np.ndarray | None:
@@ -435,20 +515,20 @@ def xyz_of(data: np.ndarray) -> np.ndarray:
 
 
 def read_model(path: str | Path, *, drop_nonfinite: bool = False) -> PointModel:
-    source, _ = read_source(path)
+    source, _, columns = _read(path)
     data = source.data
-    positions = xyz_of(data)
+    positions = _columns(data, ("x", "y", "z"), columns)
     source = organized_holes(path, source, positions)
     if source.finite is not None:
-        data, positions = source.rows, positions[source.finite]
-    bad = nonfinite_points(path, positions, drop_nonfinite)
-    if bad.any():
+        data, positions, columns = source.rows, positions[source.finite], None
+    if not np.isfinite(positions).all():   # the usual case: no per-point mask
+        bad = nonfinite_points(path, positions, drop_nonfinite)
         keep = ~bad
         source = replace(source, data=data[keep], width=int(keep.sum()), height=1,
                          ascii_text=None if source.ascii_text is None
                          else source.ascii_text[keep])
-        data, positions = source.data, positions[keep]
-    normals = _columns(data, ("normal_x", "normal_y", "normal_z"))
+        data, positions, columns = source.data, positions[keep], None
+    normals = _columns(data, ("normal_x", "normal_y", "normal_z"), columns)
     if normals is not None and not np.isfinite(normals).all():
         normals = None
     colors = _colors(data)
