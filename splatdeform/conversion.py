@@ -202,11 +202,11 @@ def convert(src: str | Path, dst: str | Path, sim: Similarity | None = None, *,
     """
     from . import memory
     from .io import FORMATS, STREAMABLE, SUPPORTED, check_writable, extension_of, load, save
-    from .io.atomic import check_io_paths
+    from .io.plan import plan_io
 
     src, dst = Path(src), Path(dst)
     sim = sim or similarity()
-    check_io_paths([("input", src)], [("output", dst)])
+    plan_io([("input", src)], [("output", dst)])
     ext_in, ext_out = extension_of(src), extension_of(dst)
     if ext_out not in FORMATS:
         raise InputError(f"output {dst}: unknown extension {ext_out or '(none)'!r}; expected "
@@ -238,10 +238,14 @@ def convert(src: str | Path, dst: str | Path, sim: Similarity | None = None, *,
 def _copy_ply(src: Path, dst: Path) -> bool:
     """A binary PLY point cloud converted to PLY with no transform, chunk by chunk: the load +
     save's bytes at close to the speed of reading the file (small chunks stay in the CPU
-    caches; a whole load + save of 5M points took 4x a bare numpy read-modify-write, this
-    ~1x). False, with nothing written, where the chunk reader does not take the file (ascii,
-    a mesh, list properties, no points) or a chunk fails: the whole load then runs and gives
-    its own error (a NaN's index counted over the file, not the chunk)."""
+    caches; a whole load + save of 5M points took 4x a bare numpy read-modify-write). Where
+    the file's property types make the load + save of a record its own bytes
+    (:func:`_verbatim_checks`), a chunk's records are written as read once they pass the
+    load's checks; otherwise (and for a chunk holding a NaN the save could change) each chunk
+    goes through the chunk model and back. False, with nothing written, where the chunk
+    reader does not take the file (ascii, a mesh, list properties, no points) or a chunk fails:
+    the whole load then runs and gives its own error (a NaN's index counted over the file, not
+    the chunk)."""
     from .io import open_chunks
     from .io.chunks import map_chunks
     from .memory import STREAM_CHUNK_MAX
@@ -254,12 +258,66 @@ def _copy_ply(src: Path, dst: Path) -> bool:
         chunks.close()
         return False
     chunk = max(8_192, min(STREAM_CHUNK_MAX, (2 << 20) // max(chunks.record_bytes, 1)))
+    checks = _verbatim_checks(chunks.dtype)
+
+    def verbatim(a: int, b: int) -> tuple[np.ndarray, list]:
+        rows = chunks.rows(a, b)
+        if _rows_verbatim(chunks, rows, *checks):
+            return rows, chunks.props
+        return chunks.encode(chunks.model_of(rows))   # raises the load's error, if any
+
     try:
-        map_chunks(chunks, dst, lambda a, b: chunks.encode(chunks.read(a, b)), chunk,
-                   read_ahead=True)
+        if checks is None:
+            map_chunks(chunks, dst, lambda a, b: chunks.encode(chunks.read(a, b)), chunk,
+                       read_ahead=True)
+        else:
+            map_chunks(chunks, dst, verbatim, chunk)
     except Exception:   # noqa: BLE001 - nothing written (atomic): the whole load says why
         return False
     return True
+
+
+#: the vertex properties a PLY load reads into the model and its save writes back (positions,
+#: normals, radius, surfel axes) through float64: exact for every PLY type, NaN payloads aside
+_FLOAT64_FIELDS = ("x", "y", "z", "nx", "ny", "nz", "radius", "surfel_radius",
+                   "ux", "uy", "uz", "vx", "vy", "vz")
+
+
+def _verbatim_checks(dtype: np.dtype) -> tuple[tuple[str, ...], tuple[str, ...], bool] | None:
+    """When the identity load + save of binary PLY records of ``dtype`` gives their own bytes
+    (io/ply.py's ``model_from_source`` and ``source_for_save``): what to check in each chunk,
+    as (float x/y/z fields: must be finite, float fields read through float64 other than x/y/z:
+    a NaN there goes the chunk model's way (a signalling NaN comes back quiet), whether the
+    records hold 3DGS fields (their finiteness is the load's own check)); None where a type
+    makes the save change a value: colours not uchar (the model holds them as clipped uint8),
+    3DGS log-scales or rotations not float32 (the model holds them as float32), a 64-bit
+    integer (not exact in float64)."""
+    names = dtype.names or ()
+    if any(dtype[n].kind not in "fiu" or (dtype[n].kind != "f" and dtype[n].itemsize > 4)
+           for n in names):
+        return None
+    rgb = ("red", "green", "blue")
+    if all(c in names for c in rgb) and any(dtype[c] != np.dtype("u1") for c in rgb):
+        return None
+    splat = [f"scale_{i}" for i in range(3)] + [f"rot_{i}" for i in range(4)]
+    if all(n in names for n in splat) and any(dtype[n].base.str[1:] != "f4" for n in splat):
+        return None
+    floats = [n for n in _FLOAT64_FIELDS if n in names and dtype[n].kind == "f"]
+    xyz = ("x", "y", "z")
+    return (tuple(n for n in floats if n in xyz), tuple(n for n in floats if n not in xyz),
+            any(n.startswith("scale_") for n in names))
+
+
+def _rows_verbatim(chunks, rows: np.ndarray, xyz: tuple[str, ...], nan_free: tuple[str, ...],
+                   splat: bool) -> bool:
+    """The records ``rows`` pass the load's checks (finite coordinates and 3DGS fields) and
+    come back from the load + save as they are (no NaN in ``nan_free``)."""
+    if splat:
+        if chunks.nonfinite(rows).any():
+            return False
+    elif not all(np.isfinite(rows[n]).all() for n in xyz):
+        return False
+    return not any(np.isnan(rows[n]).any() for n in nan_free)
 
 
 def _stream(src: Path, dst: Path, sim: Similarity, budget: int) -> None:
