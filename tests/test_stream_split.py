@@ -47,10 +47,17 @@ def scene(tmp_path_factory) -> Path:
     return folder
 
 
-def test_streamed_split_equals_in_memory_byte_for_byte(scene: Path) -> None:
+@pytest.mark.parametrize("block", [None, 8])   # 8: a chunk's children in blocks of 8
+def test_streamed_split_equals_in_memory_byte_for_byte(scene: Path, block, monkeypatch
+                                                       ) -> None:
+    from splatdeform.edit.stream import split as ss
+
+    if block:
+        monkeypatch.setattr(ss, "CHILD_BLOCK", block)
+    chunk = CHUNK
     mem = run_edit(parse_edit(_edit(), "test"), scene, output=scene / "mem2.ply")
     result = run_stream(parse_edit(_edit(), "test"), scene, output=scene / "st.ply",
-                        chunk=CHUNK, quiet=True)
+                        chunk=chunk, quiet=True)
     for key in ("split_splats", "split_children", "split_capped"):
         assert result.stats[key] == mem.stats[key], key
     assert mem.stats["split_capped"] > 0   # the cap binds: it must look at the whole file
