@@ -291,6 +291,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="SOG SH encoder: reference (default; the SH error and size of "
                         "splat-transform's) or fast (a smaller palette: measured 1.5-2.4x the "
                         "SH RMS error, half the file, 30x faster on 150k splats)")
+    p.add_argument("--sog-order", choices=("morton", "keep"),
+                   help="SOG splat order: morton (default; Z-order by position, as "
+                        "splat-transform writes it: smaller files, a SOG read back comes in that "
+                        "order) or keep (the input's order)")
     p.add_argument("--pcd-data", choices=("ascii", "binary", "binary_compressed"),
                    help="PCD DATA encoding of OUT (default: the input's; binary for a "
                         "non-PCD input)")

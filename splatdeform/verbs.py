@@ -44,6 +44,7 @@ def cmd_convert(args: argparse.Namespace) -> int:
     from .conversion import convert, parse_scale, parse_triple, similarity
     from .io.pcd import data_encoding
     from .io.sog import quality
+    from .io.sog_order import order
     from .memory import budget_bytes
 
     _check_budget_alone(args, None)
@@ -51,7 +52,7 @@ def cmd_convert(args: argparse.Namespace) -> int:
         parse_triple(args.rotate_euler, "--rotate-euler") if args.rotate_euler else None,
         parse_scale(args.scale) if args.scale is not None else None,
         parse_triple(args.translate, "--translate") if args.translate else None)
-    with quality(args.sog_quality), data_encoding(args.pcd_data):
+    with quality(args.sog_quality), order(args.sog_order), data_encoding(args.pcd_data):
         mode = convert(args.input, args.output, sim, budget=budget_bytes(args.memory_budget),
                        drop_nonfinite=args.drop_nonfinite, log=_warn)
     print(f"wrote {args.output}" + (" (streamed within the memory budget)"

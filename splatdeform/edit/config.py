@@ -253,6 +253,9 @@ class SaveCfg(_Strict):
         default=None, description=".spz version written (null: 4; 3 for older readers)")
     sog_quality: Literal["reference", "fast"] | None = Field(  # SOG SH encoder (reference)
         default=None, description="The SOG writer's SH encoder (null: `reference`)")
+    sog_order: Literal["morton", "keep"] | None = Field(  # SOG splat order (morton)
+        default=None, description="The SOG writer's splat order (null: `morton`, Z-order by "
+        "position as splat-transform writes it; `keep`: the input's)")
     pcd_data: Literal["ascii", "binary", "binary_compressed"] | None = Field(  # input's own
         default=None, description="The PCD `DATA` encoding written (null: the input's own)")
 

@@ -11,7 +11,9 @@ log scales (``scales``, RGB): indices into a 256-entry codebook; ``sh0``: RGB in
 16-bit palette label (``shN_labels`` R + 256 G) and a palette image of 64 entries per row, each
 entry K pixels (one per coefficient) whose RGB index a third 256-entry codebook.
 The codebooks are seeded, deterministic k-means (:mod:`.kmeans`); the images are written as
-lossless, exact WebP (Pillow) so the stored codes are the codes.
+lossless, exact WebP (Pillow) so the stored codes are the codes. The writers store the splats
+in Morton order (:mod:`.sog_order`; ``sog_order: keep``: the given order), as splat-transform
+does: a scene read back comes in that order.
 
 Axes: the SOG specification states x right, y up, z back; the pinned splat-transform writes and
 reads SOG in PLY space (no flip; a PLY converted to SOG and back keeps its coordinates), and a
@@ -124,7 +126,8 @@ class _Files:
             self._fh = open_regular(path, what="SOG bundle")
             try:
                 self.zip = zipfile.ZipFile(self._fh)
-            except (zipfile.BadZipFile, OSError, EOFError, ValueError) as exc:
+            except (zipfile.BadZipFile, OSError, EOFError, ValueError,
+                    NotImplementedError) as exc:   # e.g. a flipped "version needed" byte
                 self._fh.close()
                 raise FormatError(f"{path}: not a SOG bundle (a ZIP archive expected): "
                                   f"{exc}") from None
@@ -148,7 +151,8 @@ class _Files:
         except PermissionError:
             raise FormatError(f"{self.path}: cannot read the SOG file {name} (permission "
                               "denied)") from None
-        except (zipfile.BadZipFile, OSError, EOFError, ValueError, RuntimeError) as exc:
+        except (zipfile.BadZipFile, OSError, EOFError, ValueError, RuntimeError,
+                NotImplementedError) as exc:
             if isinstance(exc, InputError):
                 raise
             raise FormatError(f"{self.path}: cannot read SOG member {name}: {exc}") from None
@@ -480,7 +484,11 @@ def encode(f: SplatFields, *, keep: SogCodes | None = None, same: np.ndarray | N
     if reuse:
         old_min = np.asarray(keep.meta["means"]["mins"], dtype=np.float64)
         old_max = np.asarray(keep.meta["means"]["maxs"], dtype=np.float64)
-        if (mins >= old_min).all() and (maxs <= old_max).all():
+        # the untouched splats keep their codes: only the others must fit the old range (a
+        # decoded position can round a hair outside it)
+        moved = logp[~same]
+        if not len(moved) or ((moved.min(axis=0) >= old_min).all() and
+                              (moved.max(axis=0) <= old_max).all()):
             mins, maxs = old_min, old_max
     span = np.where(maxs > mins, maxs - mins, 1.0)
     q16 = np.clip(np.round((logp - mins) / span * 65535), 0, 65535).astype(np.uint16)
@@ -622,10 +630,12 @@ def _encode_sh(f: SplatFields, keep: SogCodes | None, same: np.ndarray | None,
 
 
 def write_model(model: PointModel, path: Path, stream) -> None:
-    """Write ``model`` (3D Gaussian splats) as a SOG ZIP bundle to ``stream``."""
+    """Write ``model`` (3D Gaussian splats) as a SOG ZIP bundle to ``stream``, the splats in
+    the order :mod:`.sog_order` sets (Morton by default)."""
     fields = fields_of(model, path, ".sog")
     note_lossy(path, ".sog", LOSSES, model)
-    members = encode(fields, **_kept(model, fields))
+    fields, kept = _in_order(fields, _kept(model, fields))
+    members = encode(fields, **kept)
     _check_readable(path, fields.count, members)
     with zipfile.ZipFile(stream, "w", compression=zipfile.ZIP_STORED) as bundle:
         for name in ("meta.json", *[m for m in members if m != "meta.json"]):
@@ -635,12 +645,13 @@ def write_model(model: PointModel, path: Path, stream) -> None:
 
 def write_folder(model: PointModel, path: Path) -> None:
     """Write ``model`` as a SOG folder: ``path`` (the meta.json) and its images beside it, each
-    file atomically, the meta.json last."""
+    file atomically, the meta.json last; the splats in the order :mod:`.sog_order` sets."""
     from .atomic import atomic_write
 
     fields = fields_of(model, path, "SOG (meta.json)")
     note_lossy(path, "SOG", LOSSES, model)
-    members = encode(fields, **_kept(model, fields))
+    fields, kept = _in_order(fields, _kept(model, fields))
+    members = encode(fields, **kept)
     _check_readable(path, fields.count, members)
     for name in [m for m in members if m != "meta.json"] + ["meta.json"]:
         with atomic_write(path if name == "meta.json" else path.parent / name) as stream:
@@ -667,3 +678,27 @@ def _kept(model: PointModel, fields: SplatFields) -> dict:
         return {}
     same = unchanged_rows(model, fields)
     return {} if same is None else {"keep": codes, "same": same}
+
+
+def _in_order(fields: SplatFields, kept: dict) -> tuple[SplatFields, dict]:
+    """``fields`` and encode()'s keep/same in the order the splats are stored
+    (:mod:`.sog_order`): Morton order unless ``keep`` is in force or every splat still holds
+    the codes of the SOG it was read from (a re-save of an unchanged scene keeps its file's
+    order; decoded positions can fall on the other side of a Morton cell's edge)."""
+    from dataclasses import replace
+
+    from .sog_order import current, morton_order, take
+
+    if current() == "keep" or (kept and kept["same"].all()):
+        return fields, kept
+    perm = morton_order(fields.positions)
+    if np.array_equal(perm, np.arange(fields.count)):
+        return fields, kept
+    fields = take(fields, perm)
+    if kept:
+        codes = kept["keep"]
+        kept = {"keep": replace(codes, means=codes.means[perm], quats=codes.quats[perm],
+                                scales=codes.scales[perm], sh0=codes.sh0[perm],
+                                labels=None if codes.labels is None else codes.labels[perm]),
+                "same": kept["same"][perm]}
+    return fields, kept
