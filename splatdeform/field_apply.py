@@ -135,12 +135,28 @@ def apply_file(field_path: str | Path, model_path: str | Path, out: str | Path, 
     chunk = stream_chunk(choice.budget, src.record_bytes,
                          int(getattr(cost, "reader_bytes", 0)) + 160 * 2**20)
 
-    def part(a: int, b: int):
-        return src.encode(_finite(fld.apply(src.read(a, b), backend, support=stats,
-                                            split="off"),  # chunks keep their row counts
-                                  field_path, model_path))
+    from splatdeform.edit.stream.split import Spill, field_children, field_split
 
-    with naming_output(out), _naming_field(field_path, model_path):
-        map_chunks(src, out, part, chunk, before_rename=lambda: check_support(  # the last check
-            stats, fld, field_path, model_path, out, extrapolate))
+    with _naming_field(field_path, model_path):   # gaussians.split: decided for the file
+        decision = field_split(fld, src, chunk, backend)
+    spill = Spill(out) if decision is not None and decision.rows.size else None
+
+    def part(a: int, b: int):
+        model = src.read(a, b)
+        moved = _finite(fld.apply(model, backend, support=stats, split="off"),  # split below
+                        field_path, model_path)
+        if spill is not None:   # child 0 in its parent's row, the others spilled in order
+            field_children(fld, model, moved, a, b, decision, backend, lambda kids: spill.write(
+                src.encode(_finite(kids, field_path, model_path))[0]))
+        return src.encode(moved)
+
+    try:
+        with naming_output(out), _naming_field(field_path, model_path):
+            map_chunks(src, out, part, chunk, before_rename=lambda: check_support(  # last check
+                stats, fld, field_path, model_path, out, extrapolate),
+                extra=0 if spill is None else decision.extra,
+                appendix=None if spill is None else lambda: spill.blocks(chunk))
+    finally:
+        if spill is not None:
+            spill.close()
     return out, True

@@ -185,3 +185,26 @@ def test_render_draws_the_split_file(scene: Path) -> None:
     streamed = run_stream(cfg, scene, output=scene / "rs.ply", chunk=CHUNK, quiet=True)
     render_result(streamed, cfg, scene / "rs.png", input_path=scene / "x.ply")
     assert np.array_equal(read_png(scene / "rs.png"), files)
+
+
+def test_streamed_field_apply_splits_like_in_memory(scene: Path) -> None:
+    """``apply FIELD MODEL`` streamed (``--memory-budget 64MB``) splits by the field's
+    ``gaussians.split`` as the in-memory apply does: the same file byte for byte (and the one
+    ``deform`` wrote)."""
+    import yaml
+
+    cfg = scene / "field_edit.yaml"
+    cfg.write_text(yaml.safe_dump(dict(_edit(), output="fd.ply")))
+    assert main(["deform", str(cfg), "--save-field", str(scene / "f.npz"), "--quiet"]) == 0
+    assert main(["apply", str(scene / "f.npz"), str(scene / "x.ply"), "-o",
+                 str(scene / "fm.ply")]) == 0
+    from splatdeform.field_apply import apply_file
+    from splatdeform.memory import parse_size
+
+    _, streamed = apply_file(scene / "f.npz", scene / "x.ply", scene / "fs.ply",
+                             budget=parse_size("64MB"))
+    assert streamed
+    assert load(scene / "fm.ply").n_points > N
+    assert (scene / "fs.ply").read_bytes() == (scene / "fm.ply").read_bytes()
+    assert (scene / "fm.ply").read_bytes() == (scene / "fd.ply").read_bytes()
+    assert not [p for p in scene.iterdir() if p.name.startswith(".")]

@@ -148,3 +148,32 @@ class Spill:
             self.file.close()
         with contextlib.suppress(OSError):
             os.unlink(self.path)
+
+
+def field_split(fld, src, chunk: int, backend: str | None) -> Decision | None:
+    """The split test of a streamed ``apply`` of a saved field ``fld`` (its
+    ``gaussians.split``, default ``auto``) on the chunk file ``src``: the chunks' deformations
+    as :meth:`splatdeform.field.Field.apply` makes them, the cap over the whole file's moved
+    splats. None when nothing can split (``off``, no splats, an affine field)."""
+    from splatdeform.io.chunks import chunk_ranges
+
+    if fld.meta.get("gaussians", {}).get("split", sp.DEFAULT_SPLIT) != "auto" or \
+            not src.n_points or src.read(0, 1).gaussians is None or \
+            not np.any(np.asarray(fld.fit.weights, np.float64)[4:] @ fld.delta_c):
+        return None
+    wants, moved = [], 0
+    for a, b in chunk_ranges(src.n_points, chunk):
+        model = src.read(a, b)
+        deformation = fld.deformation(model, backend)
+        moved += model.n_points - int(np.count_nonzero(deformation.fixed))
+        wants.append(chunk_wants(model, deformation, fld.delta_c, a))
+    return decide(wants, moved)
+
+
+def field_children(fld, model, out, start: int, stop: int, decision: Decision,
+                   backend: str | None, emit: Callable) -> None:
+    """:func:`chunk_children` of the chunk [start, stop) of a streamed field ``apply``."""
+    rows, counts = decision.within(start, stop)
+    if rows.size:
+        chunk_children(model, out, fld.deformation(model, backend), fld.delta_c, rows, counts,
+                       fld.meta.get("gaussians", {}).get("covariance", "jacobian"), emit)
