@@ -7,7 +7,14 @@ import pytest
 from conftest import shared_file
 
 from data_tools.synth import bumpy_bar
-from splatdeform.deform.rings import adjacency, border_band, boundary_rings, region_adjacency
+from splatdeform.deform.rings import (
+    adjacency,
+    band_adjacency,
+    border_band,
+    boundary_rings,
+    neighbours_of,
+    region_adjacency,
+)
 from splatdeform.edit.selectors import Box, select
 from splatdeform.errors import RegionError
 from splatdeform.io import load
@@ -34,13 +41,19 @@ def rings_of(adj, fixed, handle, count=3):
 def assert_same_rings(model: PointModel, fixed, handle, neighbors=10):
     cloud = PointModel(positions=model.positions)  # as a point cloud, whatever the file holds
     full = rings_of(adjacency(cloud, neighbors), fixed, handle)
-    band = rings_of(region_adjacency(cloud, fixed, handle, neighbors, 4), fixed, handle)
+    adj = region_adjacency(cloud, fixed, handle, neighbors, 4)
+    band = rings_of(adj, fixed, handle)
+    local = band_adjacency(cloud, fixed, handle, neighbors, 4)  # what layout() uses
+    np.testing.assert_array_equal(neighbours_of(local, handle), neighbours_of(adj, handle))
+    assert str(rings_of(local, fixed, handle)) == str(band)
     if isinstance(full, str) or isinstance(band, str):
         assert full == band
         return
-    for a, b in zip(full, band, strict=True):
-        for x, y in zip(a, b, strict=True):
+    for a, b, c in zip(full, band, rings_of(local, fixed, handle), strict=True):
+        for x, y, z in zip(a, b, c, strict=True):
             np.testing.assert_array_equal(x, y)
+            np.testing.assert_array_equal(y, z)
+            assert z.dtype == np.int64
 
 
 @pytest.mark.parametrize("name", ["scans/armadillo_oriented.ply", "scans/head_surfels.ply",

@@ -14,7 +14,7 @@ import numpy as np
 
 from splatdeform.deform.handle import AffineFrame
 from splatdeform.deform.metaphor import Metaphor
-from splatdeform.deform.rings import neighbours_of, region_adjacency, rings
+from splatdeform.deform.rings import band_adjacency, neighbours_of, rings
 from splatdeform.errors import RegionError
 from splatdeform.model import PointModel
 
@@ -180,7 +180,7 @@ def layout(model: PointModel, fixed: np.ndarray, metaphors: list[Metaphor], *,
     moving[moving_idx] = True
     name = short_name(metaphors[0].name) if len(metaphors) == 1 else "handle"
     check_regions(fixed, moving, handle_name=name)
-    adj = region_adjacency(model, fixed, moving, neighbors, continuity + 2)
+    adj = band_adjacency(model, fixed, moving, neighbors, continuity + 2)
     fixed_rings, moving_rings = region_rings(adj, fixed, moving, continuity + 1, name)
     if len(metaphors) > 1:
         first_ring = moving_rings[0]

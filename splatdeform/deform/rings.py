@@ -97,7 +97,15 @@ def knn_radius(positions: np.ndarray, k: int, seed: int = 0, box: tuple | None =
 
 def border_knn_adjacency(positions: np.ndarray, labels: np.ndarray, neighbors: int,
                          depth: int, stats: dict | None = None) -> sp.csr_matrix:
-    """Symmetric (N, N) kNN adjacency holding only the edges of points near the label borders.
+    """Symmetric (N, N) kNN adjacency holding only the edges of points near the label borders
+    (:func:`border_knn_edges` both ways)."""
+    edges = border_knn_edges(positions, labels, neighbors, depth, stats)
+    return _symmetric(edges, positions.shape[0])
+
+
+def border_knn_edges(positions: np.ndarray, labels: np.ndarray, neighbors: int,
+                     depth: int, stats: dict | None = None) -> np.ndarray:
+    """Directed kNN edges (E, 2) int64 of the points near the label borders, no self-loops.
 
     The rings (``depth`` of them) and the region checks only look at edges within a few hops of
     where the free, fixed and moving regions meet, so only those points are queried instead of
@@ -117,7 +125,7 @@ def border_knn_adjacency(positions: np.ndarray, labels: np.ndarray, neighbors: i
     n = positions.shape[0]
     k = int(min(neighbors, n - 1))
     if k <= 0:
-        return _symmetric(np.empty((0, 2), dtype=np.int64), n)
+        return np.empty((0, 2), dtype=np.int64)
     lo, hi = bounds(positions)
     radius, tree = knn_radius(positions, k, box=(lo, hi))
     extent = float((hi - lo).max())
@@ -165,11 +173,11 @@ def border_knn_adjacency(positions: np.ndarray, labels: np.ndarray, neighbors: i
                      queried=int(queried.sum()),
                      fallback=0 if search is None else search.fallback)
     if not sources:  # no label border at all (regions in separate clusters): no edges
-        return _symmetric(np.empty((0, 2), dtype=np.int64), n)
+        return np.empty((0, 2), dtype=np.int64)
     src = np.concatenate(sources)
     dst = np.concatenate(targets)
     keep = (dst != src) & (dst < n)
-    return _symmetric(np.stack([src[keep], dst[keep]], axis=1), n)
+    return np.stack([src[keep], dst[keep]], axis=1)
 
 
 def _symmetric(edges: np.ndarray, n: int) -> sp.csr_matrix:
@@ -179,6 +187,49 @@ def _symmetric(edges: np.ndarray, n: int) -> sp.csr_matrix:
     data = np.ones(len(edges), dtype=bool)
     adj = sp.coo_matrix((data, (edges[:, 0], edges[:, 1])), shape=(n, n)).tocsr()
     return (adj + adj.T).tocsr()
+
+
+class BandAdjacency:
+    """The symmetric (N, N) adjacency of :func:`_symmetric` kept over the M points that have
+    an edge (the border band): ``nodes`` (M,) sorted global indices, ``local`` (M, M) bool
+    csr. :func:`neighbours_of` and :func:`rings` give what they give on the (N, N) matrix
+    (the same rows, so the same int8 sums), with no N-long sparse product or mask per ring."""
+
+    def __init__(self, edges: np.ndarray, n: int) -> None:
+        self.n = n
+        edges = edges[edges[:, 0] != edges[:, 1]]
+        seen = np.zeros(n, dtype=bool)
+        seen[edges.ravel()] = True
+        self.nodes = np.flatnonzero(seen)
+        lookup = np.empty(n, dtype=np.int64)
+        lookup[self.nodes] = np.arange(self.nodes.size)
+        self.local = _symmetric(lookup[edges], self.nodes.size)
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return (self.n, self.n)
+
+    def neighbours_of(self, mask: np.ndarray) -> np.ndarray:
+        """Mask (N,) of points adjacent to any point of ``mask`` (N,)."""
+        out = np.zeros(self.n, dtype=bool)
+        out[self.nodes] = neighbours_of(self.local, mask[self.nodes])
+        return out
+
+    def rings(self, region: np.ndarray, free: np.ndarray, count: int) -> list[np.ndarray]:
+        """:func:`rings` on the band: global index arrays (int64), ring 1 first."""
+        return [self.nodes[r] for r in rings(self.local, region[self.nodes],
+                                             free[self.nodes], count)]
+
+
+def band_adjacency(model: PointModel, fixed: np.ndarray, moving: np.ndarray,
+                   neighbors: int = 10, depth: int = 3) -> sp.csr_matrix | BandAdjacency:
+    """:func:`region_adjacency` for the rings alone: the kNN graph as a
+    :class:`BandAdjacency` (mesh edges as the (N, N) matrix)."""
+    if model.faces is not None and model.n_faces:
+        return adjacency(model, neighbors)
+    labels = fixed.astype(np.int8) + 2 * moving.astype(np.int8)
+    edges = border_knn_edges(model.positions, labels, neighbors, depth)
+    return BandAdjacency(edges, model.n_points)
 
 
 def region_adjacency(model: PointModel, fixed: np.ndarray, moving: np.ndarray,
@@ -207,13 +258,17 @@ def adjacency(model: PointModel, neighbors: int = 10) -> sp.csr_matrix:
     return _symmetric(edges, n)
 
 
-def neighbours_of(adj: sp.csr_matrix, mask: np.ndarray) -> np.ndarray:
+def neighbours_of(adj, mask: np.ndarray) -> np.ndarray:
     """Mask (N,) of points adjacent to any point of ``mask``."""
+    if isinstance(adj, BandAdjacency):
+        return adj.neighbours_of(mask)
     return (adj @ mask.astype(np.int8)) > 0
 
 
-def rings(adj: sp.csr_matrix, region: np.ndarray, free: np.ndarray, count: int) -> list[np.ndarray]:
+def rings(adj, region: np.ndarray, free: np.ndarray, count: int) -> list[np.ndarray]:
     """The first ``count`` rings of ``region`` next to ``free``: list of index arrays (int64)."""
+    if isinstance(adj, BandAdjacency):
+        return adj.rings(region, free, count)
     taken = np.zeros_like(region)
     frontier = free
     out = []
