@@ -42,9 +42,7 @@ def cmd_apply(args: argparse.Namespace) -> int:
 
 def cmd_convert(args: argparse.Namespace) -> int:
     from .conversion import convert, parse_scale, parse_triple, similarity
-    from .io.pcd import data_encoding
-    from .io.sog import quality
-    from .io.sog_order import order
+    from .io.options import writing  # a writer's module only when its option is given
     from .memory import budget_bytes
 
     _check_budget_alone(args, None)
@@ -52,7 +50,8 @@ def cmd_convert(args: argparse.Namespace) -> int:
         parse_triple(args.rotate_euler, "--rotate-euler") if args.rotate_euler else None,
         parse_scale(args.scale) if args.scale is not None else None,
         parse_triple(args.translate, "--translate") if args.translate else None)
-    with quality(args.sog_quality), order(args.sog_order), data_encoding(args.pcd_data):
+    with writing(sog_quality=args.sog_quality, sog_order=args.sog_order,
+                 pcd_data=args.pcd_data):
         mode = convert(args.input, args.output, sim, budget=budget_bytes(args.memory_budget),
                        drop_nonfinite=args.drop_nonfinite, log=_warn)
     print(f"wrote {args.output}" + (" (streamed within the memory budget)"

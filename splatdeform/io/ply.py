@@ -14,7 +14,6 @@ from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
-from numpy.lib.recfunctions import structured_to_unstructured
 
 from ..errors import FormatError, InputError, ProcessingError
 from ..model import (
@@ -44,6 +43,10 @@ def _columns(data: np.ndarray, names: list[str] | tuple[str, ...],
     if not all(n in (data.dtype.names or ()) for n in names):
         return None
     if len({data.dtype[n] for n in names}) == 1:
+        # numpy.lib.recfunctions imports numpy.ma (~7 ms): only when a load needs it (a
+        # convert of like PLYs copies the records as read without it)
+        from numpy.lib.recfunctions import structured_to_unstructured
+
         return structured_to_unstructured(data[list(names)]).astype(dtype, copy=copy)
     return np.stack([data[n].astype(dtype) for n in names], axis=1)
 
