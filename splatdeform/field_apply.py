@@ -98,11 +98,11 @@ def apply_file(field_path: str | Path, model_path: str | Path, out: str | Path, 
     with ``indices`` selectors would stream (its indices are global), when the model lies
     entirely outside the field's support and not ``extrapolate`` (see the module)."""
     from splatdeform.io import STREAMABLE, SUPPORTED, extension_of, load, open_chunks, save
-    from splatdeform.io.atomic import check_io_paths
+    from splatdeform.io.plan import plan_io
     from splatdeform.memory import choose, deform_peak, file_cost
 
     out, field_path, model_path = Path(out), Path(field_path), Path(model_path)
-    check_io_paths([("field", field_path), ("model", model_path)], [("-o/--output", out)])
+    plan_io([("field", field_path), ("model", model_path)], [("-o/--output", out)])
     if extension_of(out) not in SUPPORTED:
         raise InputError(f"{out}: unknown output extension {extension_of(out) or '(none)'!r}; "
                          f"expected one of {', '.join(SUPPORTED)}")

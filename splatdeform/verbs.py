@@ -130,7 +130,7 @@ def cmd_deform(args: argparse.Namespace) -> int:
         image = render_result(result, cfg, render_out, frames=args.frames, view=view,
                               budget=budget, color=args.color, input_path=base / cfg.input)
         _up_note(view, [result.model])
-    points = getattr(result, "points", None)   # a points: edit's pair residuals
+    points = result.points   # a points: edit's pair residuals (None without pairs)
     if args.save_field:
         from splatdeform.field import field_of_edit
 
@@ -182,36 +182,29 @@ def cmd_select(args: argparse.Namespace) -> int:
     from splatdeform.edit.images import with_camera_file
     from splatdeform.edit.run import prepare_model
     from splatdeform.edit.selection import (
-        curve_overlays,
         format_counts,
+        kind_overlays,
         preview_model,
         select_regions,
     )
 
-    from .io.atomic import check_io_paths
+    from .io.plan import plan_io
 
     _check_budget_alone(args, None)
     cfg = load_edit(args.config)
     base = Path(args.config).resolve().parent
     if args.output is not None and not args.output.lower().endswith(".png"):
         raise InputError(f"-o/--output: expected a .png file, got {args.output!r}")
-    check_io_paths([("edit config", args.config), *input_paths(cfg, base)],
-                   [("-o/--output", f) for f in with_camera_file(Path(args.output),
-                                                                 [Path(args.output)])]
-                   if args.output is not None else [])
+    plan_io([("edit config", args.config), *input_paths(cfg, base)],
+            [("-o/--output", f) for f in with_camera_file(Path(args.output),
+                                                          [Path(args.output)])]
+            if args.output is not None else [])
     from splatdeform.edit.stream import should_stream
 
     budget = _budget(args.memory_budget, cfg.memory_budget)
     streamed = should_stream(cfg, base / cfg.input, budget) and not args.drop_nonfinite
-    pairs = None   # a points: edit's (pairs, check pairs), drawn by -o; never fitted
     try:
-        if cfg.points is not None:
-            from splatdeform.edit.metaphors import points as pts
-
-            model = prepare_model(cfg, base, {}, args.drop_nonfinite)
-            sel, *pairs = pts.select(cfg, model, base)
-            counts = sel.counts()
-        elif streamed:   # bigger than the budget: regions streamed, a sampled preview
+        if streamed:   # bigger than the budget: regions streamed, a sampled preview
             from splatdeform.edit.stream.select import stream_select
 
             counts, sample, sel = stream_select(cfg, base, budget,
@@ -223,6 +216,7 @@ def cmd_select(args: argparse.Namespace) -> int:
             counts = sel.counts()
     except InputError as exc:
         raise exc.in_file(args.config) from None
+    pairs = None if sel is None else sel.pairs   # a points: edit's; drawn by -o, never fitted
     print(format_counts(counts) + ("  (streamed within the memory budget; rings: see "
                                    "deform)" if streamed else ""))
     if pairs is not None:
@@ -238,7 +232,7 @@ def cmd_select(args: argparse.Namespace) -> int:
             args.roll = opts.roll if args.roll is None else args.roll
             args.camera = args.camera or (str(base / opts.camera) if opts.camera else None)
         view = _edit_view(cfg, args)
-        overlays, legend = curve_overlays(cfg, model, base)
+        overlays, legend = kind_overlays(cfg, model)
         if pairs is not None:
             from .render.pairs import pair_overlays
 
@@ -287,7 +281,7 @@ def _with_zoom(view, zoom: float | None):
 
 
 def cmd_render(args: argparse.Namespace) -> int:
-    from .io.atomic import check_io_paths
+    from .io.plan import plan_io
     from .render import render_comparison
 
     size = args.size   # (w, h): checked by the parser (render.limits)
@@ -297,10 +291,10 @@ def cmd_render(args: argparse.Namespace) -> int:
 
     from splatdeform.edit.images import with_camera_file
 
-    check_io_paths([("model", p) for p in args.models]
-                   + ([("--camera", args.camera)] if args.camera else []),
-                   [("-o/--output", f) for f in with_camera_file(Path(args.output),
-                                                                 [Path(args.output)])])
+    plan_io([("model", p) for p in args.models]
+            + ([("--camera", args.camera)] if args.camera else []),
+            [("-o/--output", f) for f in with_camera_file(Path(args.output),
+                                                          [Path(args.output)])])
     from dataclasses import replace
 
     from .render.camera import View

@@ -22,7 +22,7 @@ from PIL import Image
 
 import splatdeform as sd
 from data_tools.synth import bumpy_bar, sphere
-from splatdeform.edit.selection import CURVE_AFTER_COLOR, CURVE_BEFORE_COLOR
+from splatdeform.edit.metaphors.curve import CURVE_AFTER_COLOR, CURVE_BEFORE_COLOR
 from splatdeform.render.camera import View
 from splatdeform.render.compare import render_comparison
 

@@ -132,14 +132,8 @@ def _deform(folder: Path, edit: str, scan: str, backend: str, stored: bool):
     cfg = dict(EDITS[edit](()), input=scan, output="unused.ply", backend=backend)
     plan = plan_edit(cfg, folder)
     model = prepare_model(plan.cfg, folder, {})
-    if edit == "points":
-        from splatdeform.edit.metaphors import points as pts
-
-        d, pfit = pts.precompute(plan.cfg, model, folder, stored=stored)
-        delta, matrix = pts.control_displacement(plan.cfg, model, d, pfit)
-    else:
-        d = precompute(plan.cfg, model, folder, stored=stored)
-        delta, matrix = plain.control_displacement(plan.cfg, model, d)
+    d = precompute(plan.cfg, model, folder, stored=stored)   # every kind, points included
+    delta, matrix = plain.control_displacement(plan.cfg, model, d)
     assert isinstance(d.basis, DeferredBasis) != stored
     out = df.apply(d, model, delta, moving_matrix=matrix)
     if not stored:

@@ -102,7 +102,7 @@ def test_metaphor_registry_orders_the_columns():
         "curve": {"control_points": [[2.6, 0.45, 0], [3.2, 0.45, 0], [3.8, 0.45, 0]],
                   "moved_to": [[2.6, 0.45, 0], [3.2, 0.6, 0], [3.8, 0.45, 0]],
                   "degree": 2, "capture_radius": 0.2}}, "edit.yaml")
-    assert [kind.__name__.rsplit(".", 1)[1] for kind in KINDS] == ["handle", "curve"]
+    assert [kind.__name__.rsplit(".", 1)[1] for kind in KINDS] == ["handle", "curve", "points"]
     assert [key for _, key, _ in entries(cfg)] == ["handles[0]", "curve"]
     mphs = metaphors(cfg, model, None)
     assert [m.k for m in mphs] == [4, 3]

@@ -380,7 +380,6 @@ def prepare_points(model: PointModel, fixed: np.ndarray, metaphors: list[Metapho
     scale = pair_scale(pairs, tolerance, fit_fn.tolerance, model.diagonal())
     coords = np.concatenate([coords, np.zeros((coords.shape[0], 3))], axis=1)
     grads = np.concatenate([grads, np.zeros((grads.shape[0], 3, 3))], axis=1)
-    groups.append(Group("points", (k0, k), np.empty(0, dtype=np.int64), None))
     ring_lists = list(fixed_rings) + list(moving_rings)
     ring_idx = np.concatenate(ring_lists) if ring_lists else np.empty(0, dtype=np.int64)
     n_fixed_c = sum(r.size for r in fixed_rings)
@@ -416,6 +415,8 @@ def prepare_points(model: PointModel, fixed: np.ndarray, metaphors: list[Metapho
     timings["basis"] = time.perf_counter() - t0
     control = [m.control_points for m in metaphors] + [np.repeat(
         pairs.sources.mean(axis=0, keepdims=True), 3, axis=0)]
+    points_fit = PointsFit(pairs, scale, (k0, k), smoothing, tolerance)
+    groups.append(Group("points", (k0, k), np.empty(0, dtype=np.int64), None, points_fit))
     deformation = Deformation(
         n_points=n, fixed=fixed, moving=moving, free_idx=free_idx, moving_idx=moving_idx,
         moving_coords=coords, moving_gradients=grads,
@@ -424,7 +425,7 @@ def prepare_points(model: PointModel, fixed: np.ndarray, metaphors: list[Metapho
         fit=fit, basis=basis, timings=timings,
         ring_sizes=([r.size for r in fixed_rings], [r.size for r in moving_rings]),
         groups=groups, kept=kept)
-    return deformation, PointsFit(pairs, scale, (k0, k), smoothing, tolerance)
+    return deformation, points_fit
 
 
 def displacement_at(deformation: Deformation, points: np.ndarray, delta_c: np.ndarray

@@ -7,16 +7,13 @@ from __future__ import annotations
 
 from splatdeform.edit.config import EditConfig
 from splatdeform.edit.metaphors import KINDS
-from splatdeform.edit.metaphors import points as _points
-
-ALL_KINDS = (*KINDS, _points)  # the moving kinds in column order, then control-point pairs
 
 
 def refusal(cfg: EditConfig, capability: str) -> str:
     """Why this edit cannot take part in ``capability`` (``"streams"``, ``"reusable"``,
     ``"editable"``: a :class:`~splatdeform.edit.metaphors.capabilities.Capabilities` field),
     '' when it can. Asked of every kind the edit holds."""
-    for kind in ALL_KINDS:
+    for kind in KINDS:
         why = kind.CAPABILITIES.refusal([key for key, _ in kind.entries(cfg)], capability)
         if why:
             return why

@@ -21,9 +21,11 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from splatdeform.edit.config import EditConfig, input_paths, load_edit, parse_edit
+from splatdeform.edit.metaphors import hooked
 from splatdeform.edit.stream import StreamOptions, edit_choice
 from splatdeform.errors import ConfigError, InputError
-from splatdeform.io import SUPPORTED, atomic, check_writable, extension_of
+from splatdeform.io import SUPPORTED, check_writable, extension_of
+from splatdeform.io.plan import IoPlan, plan_io
 
 if TYPE_CHECKING:
     from collections.abc import Callable
@@ -45,7 +47,9 @@ class EditPlan:
     ``view`` / ``render`` / ``frames``: the edit image's view, path and frame count (None / 0:
     no image); ``source``: the config file, when the edit came from one; ``field`` /
     ``residuals``: the fitted field (``--save-field``) and the pairs' residual CSV
-    (``--residuals``) to write after the run (None: not asked)."""
+    (``--residuals``) to write after the run (None: not asked); ``io``: every path the run
+    reads and writes, checked together (:func:`splatdeform.io.plan.plan_io`; None when
+    nothing is saved)."""
 
     cfg: EditConfig
     base_dir: Path
@@ -63,6 +67,7 @@ class EditPlan:
     source: Path | None = None
     field: Path | None = None
     residuals: Path | None = None
+    io: IoPlan | None = None
 
 
 def resolve_config(config: str | Path | dict[str, Any] | EditConfig,
@@ -138,7 +143,7 @@ def plan_edit(config: str | Path | dict[str, Any] | EditConfig,
 
     In order: the view (a camera file is read); ``--residuals`` only for a points: edit; no
     output may be an input or another output, whatever the spelling or a link between them
-    (:func:`splatdeform.io.atomic.check_io_paths`, the one check, over every path the run
+    (:func:`splatdeform.io.plan.plan_io`, the one check, over every path the run
     writes: the model, the reuse cache, the image and its camera file or frames, the field,
     the residuals); the output's extension; the budget rule (``stream``: budget, Dask and
     quiet options; ``warn`` gets its warning); an animation, a field or residuals refused when
@@ -168,7 +173,7 @@ def plan_edit(config: str | Path | dict[str, Any] | EditConfig,
                         frames=frames, source=source)
     field = Path(field) if field is not None else None
     residuals = Path(residuals) if residuals is not None else None
-    if residuals is not None and cfg.points is None:
+    if residuals is not None and not hooked(cfg, "report"):
         raise InputError("--residuals: only for an edit with points: (control-point pairs)")
     outputs: list[tuple[str, Path | None]] = [(output_label, out_path), (reuse_label, reuse),
                                               ("--save-field", field),
@@ -184,7 +189,7 @@ def plan_edit(config: str | Path | dict[str, Any] | EditConfig,
     inputs += input_paths(cfg, base)
     if camera is not None:
         inputs.append(("--camera/render.camera", Path(camera)))
-    atomic.check_io_paths(inputs, outputs)
+    io = plan_io(inputs, outputs)
     if extension_of(out_path) not in SUPPORTED:  # a SOG folder's meta.json too
         raise InputError(f"{out_path}: unknown output extension {out_path.suffix!r}; "
                          f"expected one of {', '.join(SUPPORTED)}")
@@ -202,4 +207,4 @@ def plan_edit(config: str | Path | dict[str, Any] | EditConfig,
                          "--memory-budget)")
     return EditPlan(cfg, base, in_path, out_path, reuse, drop_nonfinite, streamed, options,
                     budget, choice, view, None if render is None else Path(render), frames,
-                    source, field, residuals)
+                    source, field, residuals, io)

@@ -26,7 +26,9 @@ class EditResult:
     """What one edit produced: the deformed model, the precomputed deformation, the control
     displacement delta_c (k, 3), the handle matrix (4x4, handle edits), the figures printed.
     A streamed edit has ``model``/``deformed`` None (never whole in memory) and the border
-    set's deformation."""
+    set's deformation. ``points``: what a kind with constraints of its own reported (the
+    control-point pairs' residuals: :class:`~splatdeform.edit.metaphors.points.PointsReport`),
+    else None."""
 
     model: PointModel | None
     deformed: PointModel | None
@@ -36,6 +38,7 @@ class EditResult:
     output: Path | None
     stats: Stats = field(default_factory=dict)
     timings: dict[str, float] = field(default_factory=dict)
+    points: object | None = None
 
 
 def fit_stats(deformation: df.Deformation, points: int, free_points: int) -> Stats:

@@ -14,6 +14,7 @@ import numpy as np
 from splatdeform import deform as df
 from splatdeform.edit import plain
 from splatdeform.edit.config import EditConfig
+from splatdeform.edit.metaphors import hooked
 from splatdeform.edit.plain import control_displacement, metaphors, transform_matrix  # noqa: F401
 from splatdeform.edit.plan import EditPlan, decide, plan_edit
 from splatdeform.edit.result import EditResult, edit_stats, format_report  # noqa: F401
@@ -65,14 +66,10 @@ def check_fit_range(positions: np.ndarray, path: Path) -> None:
 
 def precompute(cfg: EditConfig, model: PointModel, base_dir: Path, *,
                stored: bool = True) -> df.Deformation:
-    """Regions, rings, one fit and one basis for every handle and curve of the edit
-    (``stored=False``: the basis deferred, for one-shot evaluation by apply)."""
-    return df.prepare_metaphors(model, plain.fixed_mask(cfg, model, base_dir),
-                                plain.metaphors(cfg, model, base_dir),
-                                fit_fn=plain.fit_fn(cfg, model),
-                                basis_fn=plain.basis_fn(cfg, stored=stored),
-                                continuity=cfg.boundary.continuity,
-                                neighbors=cfg.boundary.neighbors)
+    """Regions, rings, one fit and one basis for every metaphor of the edit (``stored=False``:
+    the basis deferred, for one-shot evaluation by apply):
+    :func:`splatdeform.edit.plain.precompute`."""
+    return plain.precompute(cfg, model, base_dir, stored=stored)
 
 
 def check_converged(fit: RbfFit, cfg: EditConfig,
@@ -145,19 +142,15 @@ def run_edit(config: EditPlan | EditConfig | dict | str | Path,
         return run_stream(plan, log=log, check_fit=lambda fit: check_converged(fit, cfg, warn))
     timings: dict[str, float] = {}
     model = prepare_model(cfg, base_dir, timings, drop_nonfinite)
-    if reuse is None and cfg.points is None:  # the device opens while the rings are built
+    # the device opens while the rings are built; not beside a dense solve of a kind with its
+    # own constraints (up to 3,000 pairs: the two peaks would add)
+    if reuse is None and not hooked(cfg, "prepare"):
         from splatdeform.basis import warm_up
 
         jac = any(a is not None for a in (model.normals, model.axes, model.gaussians))
         warm_up(cfg.backend, cfg.device, 3, jac)  # one-shot: the K = 3 kernel of W delta_c
-    deformation, points_fit = None, None
-    if cfg.points is not None:
-        from splatdeform.edit.metaphors import points as pts
-
-        deformation, points_fit = pts.precompute(cfg, model, base_dir, stored=False)
-        timings.update(deformation.timings)
-        check_converged(deformation.fit, cfg, warn)
-    if reuse is not None:
+    deformation = None
+    if reuse is not None:   # never a kind that cannot be reused (the plan refused it)
         from splatdeform.edit.cache import edit_key, load_deformation
 
         key = edit_key(cfg, in_path)
@@ -167,26 +160,22 @@ def run_edit(config: EditPlan | EditConfig | dict | str | Path,
     if deformation is None:
         deformation = precompute(cfg, model, base_dir, stored=reuse is not None)  # one-shot
         timings.update(deformation.timings)
-        check_converged(deformation.fit, cfg, warn)
         if reuse is not None:
             from splatdeform.edit.cache import save_deformation
 
             save_deformation(reuse, key, deformation)
-    elif points_fit is None:  # reused (a points: edit was fitted above)
+    else:
         timings.update({"rings": 0.0, "fit": 0.0, "basis": 0.0})
-        check_converged(deformation.fit, cfg, warn)
     if reuse is not None and model.gaussians is not None and cfg.gaussians.split == "auto":
         from splatdeform.deform.split import split_like_oneshot
 
         split_like_oneshot(deformation, cfg.backend, cfg.device)  # as without --reuse
+    check_converged(deformation.fit, cfg, warn)
     if log:
         from splatdeform.edit.selection import counts_of_deformation, format_counts, moving_label
 
         log(format_counts(counts_of_deformation(deformation, moving_label(cfg))))
-    if points_fit is not None:
-        delta_c, matrix = pts.control_displacement(cfg, model, deformation, points_fit)
-    else:
-        delta_c, matrix = plain.control_displacement(cfg, model, deformation)
+    delta_c, matrix = plain.control_displacement(cfg, model, deformation)
     t0 = time.perf_counter()
     applied: dict = {}
     deformed = df.apply(deformation, model, delta_c, moving_matrix=matrix,  # checks finiteness
@@ -198,8 +187,9 @@ def run_edit(config: EditPlan | EditConfig | dict | str | Path,
                        refused_splats=int(applied.get("refused_splats", 0)),
                        **{k: int(v) for k, v in applied.items() if k.startswith("split_")})
     result = EditResult(model, deformed, deformation, delta_c, matrix, None, stats, timings)
-    if points_fit is not None:  # the pairs' residuals (``deform`` prints, --residuals writes)
-        result.points = pts.report(cfg, model, base_dir, deformation, points_fit, delta_c)
+    # a kind with constraints of its own: the pairs' residuals (``deform`` prints them,
+    # --residuals writes them)
+    result.points = plain.report(cfg, model, base_dir, deformation, delta_c)
     if plan.output is not None:
         t0 = time.perf_counter()
         with writing(**cfg.save.model_dump()):   # save: spz_version, sog_quality, pcd_data

@@ -38,13 +38,16 @@ class RegionCounts:
 
 @dataclass
 class Selection:
-    """Masks (N,) bool of one edit's regions and the ring point indices (int64 arrays)."""
+    """Masks (N,) bool of one edit's regions and the ring point indices (int64 arrays);
+    ``pairs``: a ``points:`` edit's (pairs, check pairs or None) in model units, drawn by the
+    preview (never fitted by ``select``), else None."""
 
     fixed: np.ndarray
     moving: np.ndarray
     fixed_rings: list[np.ndarray]
     moving_rings: list[np.ndarray]
     moving_name: str
+    pairs: tuple | None = None
 
     def counts(self) -> RegionCounts:
         n = int(self.fixed.size)
@@ -63,14 +66,27 @@ def moving_label(cfg: EditConfig) -> str:
 def select_regions(cfg: EditConfig, model: PointModel, base_dir: str | Path) -> Selection:
     """The edit's fixed and moving masks and rings, exactly as ``deform`` computes them (the
     same metaphors, checks and rings as :func:`splatdeform.deform.prepare_metaphors`, without
-    the fit). Raises RegionError / InputError / ConfigError like ``deform``."""
+    the fit; a kind with constraints of its own shows them: its ``select`` hook). Raises
+    RegionError / InputError / ConfigError like ``deform``."""
     from splatdeform.deform.regions import layout
+    from splatdeform.edit.metaphors import hooked
     from splatdeform.edit.plain import fixed_mask, metaphors
 
     base_dir = Path(base_dir)
-    lay = layout(model, fixed_mask(cfg, model, base_dir), metaphors(cfg, model, base_dir),
-                 continuity=cfg.boundary.continuity, neighbors=cfg.boundary.neighbors)
-    return Selection(lay.fixed, lay.moving, lay.fixed_rings, lay.moving_rings, moving_label(cfg))
+    fixed, found = fixed_mask(cfg, model, base_dir), metaphors(cfg, model, base_dir)
+    shown = None   # (pairs, check pairs or None) of a points: edit
+    for kind, _key, _entry in hooked(cfg, "select"):
+        shown = kind.select(cfg, model, base_dir, fixed, found)
+    if found or shown is None:
+        lay = layout(model, fixed, found, continuity=cfg.boundary.continuity,
+                     neighbors=cfg.boundary.neighbors)
+        return Selection(lay.fixed, lay.moving, list(lay.fixed_rings), list(lay.moving_rings),
+                         moving_label(cfg), shown)
+    from splatdeform.deform.points import _rings_of_fixed  # no moving region: pairs only
+
+    rings = _rings_of_fixed(model, fixed, cfg.boundary.continuity, cfg.boundary.neighbors) \
+        if fixed.any() else []
+    return Selection(fixed, np.zeros(model.n_points, dtype=bool), rings, [], "moving", shown)
 
 
 def counts_of_deformation(deformation, moving_name: str = "handle") -> RegionCounts:
@@ -127,30 +143,14 @@ def preview_model(model: PointModel, sel: Selection) -> PointModel:
     return replace(model, colors=region_colors(sel))
 
 
-CURVE_BEFORE_COLOR = (200, 20, 20)
-CURVE_AFTER_COLOR = (20, 160, 40)
-CONTROL_POINT_COLOR = (20, 20, 20)
+def kind_overlays(cfg: EditConfig, model: PointModel) -> tuple[list, str]:
+    """What ``select -o`` draws over the preview for the kinds that draw something of their
+    own (their ``overlays`` hook: a curve's line before and after), and the legend to append;
+    ([], "") when none does."""
+    from splatdeform.edit.metaphors import hooked
 
-
-def curve_overlays(cfg: EditConfig, model: PointModel, base_dir: str | Path
-                   ) -> tuple[list, str]:
-    """What ``select -o`` draws over a curve edit's preview (the capture band is the coloured
-    moving region): the curve snapped to the model (red), the curve after the edit (green: the
-    same knots with each control point moved by moved_to - control_points) and the snapped
-    control points (black dots); and the legend to append. ([], "") without a curve."""
-    if cfg.curve is None:
-        return [], ""
-    from splatdeform.deform.curve import SAMPLES_PER_SPAN, snapped_curve
-    from splatdeform.edit.metaphors.curve import points
-    from splatdeform.render.overlay import Overlay
-
-    given, moved, _ = points(cfg.curve, cfg.regions.units, model)
-    curve = snapped_curve(model, given, degree=cfg.curve.degree,
-                          parametrization=cfg.curve.parametrization)
-    t = np.linspace(0, 1, SAMPLES_PER_SPAN * (given.shape[0] - 1) + 1)
-    before = curve.points(t)
-    after = before + curve.weights(t) @ (moved - given)
-    overlays = [Overlay(before, "line", CURVE_BEFORE_COLOR, 3),
-                Overlay(after, "line", CURVE_AFTER_COLOR, 3),
-                Overlay(curve.control_points, "markers", CONTROL_POINT_COLOR, 4)]
-    return overlays, "; curve red, moved green"
+    drawn, legend = [], ""
+    for kind, key, entry in hooked(cfg, "overlays"):
+        more, text = kind.overlays(key, entry, model, cfg.regions.units)
+        drawn, legend = drawn + more, legend + text
+    return drawn, legend

@@ -21,8 +21,8 @@ from splatdeform.edit.writer import edit_yaml, yaml_text
 
 from .. import deform as df
 from ..errors import InputError
-from ..io import check_output_path, split_extension
 from ..io import save as save_model
+from ..io import split_extension
 from ..model import PointModel
 from . import selectors as sl
 from .state import HandleState, StaleFitError
@@ -118,14 +118,13 @@ def points_yaml(ed: EditorState, config_dir: Path) -> dict[str, Any]:
 
 def precompute(cfg, model: PointModel, base_dir: Path) -> tuple[df.Deformation, Any]:
     """Rings, fit and basis of the edit as ``deform`` computes them, and the pairs'
-    :class:`~splatdeform.deform.points.PointsFit` of a ``points:`` edit (else None)."""
-    if cfg.points is not None:
-        from splatdeform.edit.metaphors import points as pts
+    :class:`~splatdeform.deform.points.PointsFit` of a ``points:`` edit (else None: the
+    constraints of the group of a kind without a moving region)."""
+    from splatdeform.edit.plain import precompute as plain_precompute
 
-        return pts.precompute(cfg, model, base_dir)
-    from splatdeform.edit.run import precompute as plain_precompute
-
-    return plain_precompute(cfg, model, base_dir), None
+    deformation = plain_precompute(cfg, model, base_dir)
+    return deformation, next((g.constraints for g in deformation.groups
+                              if g.constraints is not None), None)
 
 
 def default_paths(ed: EditorState) -> tuple[Path, Path, Path]:
@@ -154,12 +153,7 @@ def deformed_model(ed: EditorState) -> PointModel:
                             " fit again before saving")
     ed.check_poses()
     cfg = ed.to_config()
-    if cfg.points is not None:
-        from splatdeform.edit.metaphors.points import control_displacement as points_delta
-
-        delta_c, matrix = points_delta(cfg, ed.model, ed.deformation, ed.points_fit)
-    else:
-        delta_c, matrix = control_displacement(cfg, ed.model, ed.deformation)
+    delta_c, matrix = control_displacement(cfg, ed.model, ed.deformation)
     deformed = df.apply(_one_shot(ed.deformation, ed.model, cfg), ed.model, delta_c,
                         moving_matrix=matrix, covariance=cfg.gaussians.covariance,
                         split=cfg.gaussians.split)
@@ -216,19 +210,20 @@ def _save(ed: EditorState, model_path: str | Path | None,
     out = Path(model_path) if model_path is not None else d_model
     ypath = Path(config_path) if config_path is not None else d_yaml
     png = Path(image_path) if image_path is not None else d_png
-    inputs = [ed.model_path, ed.config_path]
-    check_output_path(out, *inputs)
-    check_output_path(ypath, *inputs, out)
+    from ..io.plan import plan_io
+    from ..render.camera import camera_sidecar
+
+    outputs = [("model", out), ("edit YAML", ypath)]
+    if image:
+        outputs += [("image", png), ("image's camera file", camera_sidecar(png))]
+    # the one check of every path Save writes, as deform's plan makes it (one line naming both)
+    plan_io([("input model", ed.model_path), ("edit config", ed.config_path)], outputs)
     if ypath.suffix.lower() not in (".yaml", ".yml"):
         raise InputError(f"{ypath}: expected a .yaml edit file name")
     view = None
     if image:
-        from ..render.camera import camera_sidecar
-
-        check_output_path(png, *inputs, out, ypath)
         if png.suffix.lower() != ".png":
             raise InputError(f"{png}: expected a .png image file name")
-        check_output_path(camera_sidecar(png), *inputs, out, ypath, png)
         view = image_view(ed, image_size)   # a bad camera file fails before any write
     deformed = deformed_model(ed)
     text = yaml_text(to_yaml_dict(ed, output=out, config_dir=ypath.resolve().parent),
@@ -271,12 +266,7 @@ def render_image(ed: EditorState, png: Path, view) -> None:
     from splatdeform.render.compare import render_deformation_comparison
 
     cfg = ed.to_config()
-    if cfg.points is not None:   # the control displacement deformed_model applies
-        from splatdeform.edit.metaphors.points import control_displacement as points_delta
-
-        delta_c, _ = points_delta(cfg, ed.model, ed.deformation, ed.points_fit)
-    else:
-        delta_c, _ = control_displacement(cfg, ed.model, ed.deformation)
+    delta_c, _ = control_displacement(cfg, ed.model, ed.deformation)  # as deformed_model
     color = cfg.render.color if cfg.render is not None else None
     model = colored(ed.model, color, view.up or default_up([ed.model]))
     values, gradients = df.full_basis(ed.deformation)

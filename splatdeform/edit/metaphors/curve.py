@@ -14,6 +14,12 @@ from splatdeform.edit.metaphors.capabilities import Capabilities
 from splatdeform.errors import ConfigError
 from splatdeform.model import PointModel
 
+#: ``select -o`` colours (uint8 RGB): the curve snapped to the model, after the edit, its
+#: control points
+CURVE_BEFORE_COLOR = (200, 20, 20)
+CURVE_AFTER_COLOR = (20, 160, 40)
+CONTROL_POINT_COLOR = (20, 20, 20)
+
 CAPABILITIES = Capabilities(streams=0, why={"streams": "curve: curve edits do not stream yet"})
 
 
@@ -28,6 +34,11 @@ def basis_key(entry: CurveCfg) -> dict:
 
 def label(n: int) -> str:
     return "curve band" if n == 1 else "curve bands"
+
+
+def columns(entry: CurveCfg) -> None:
+    """A curve's basis columns depend on the model (its snapped control points)."""
+    return None
 
 
 def metaphor(key: str, entry: CurveCfg, ctx: Any) -> Metaphor:
@@ -57,3 +68,23 @@ def points(c: CurveCfg, units: str, model: PointModel) -> tuple[np.ndarray, np.n
 
     check_curve_points(given, moved, frame.diagonal, "curve")
     return given, moved, u.length(c.capture_radius, units, frame)
+
+
+def overlays(key: str, entry: CurveCfg, model: PointModel, units: str) -> tuple[list, str]:
+    """What ``select -o`` draws over a curve edit's preview (the capture band is the coloured
+    moving region): the curve snapped to the model (red), the curve after the edit (green: the
+    same knots with each control point moved by moved_to - control_points) and the snapped
+    control points (black dots); and the legend to append."""
+    from splatdeform.deform.curve import SAMPLES_PER_SPAN, snapped_curve
+    from splatdeform.render.overlay import Overlay
+
+    given, moved, _ = points(entry, units, model)
+    curve = snapped_curve(model, given, degree=entry.degree,
+                          parametrization=entry.parametrization)
+    t = np.linspace(0, 1, SAMPLES_PER_SPAN * (given.shape[0] - 1) + 1)
+    before = curve.points(t)
+    after = before + curve.weights(t) @ (moved - given)
+    return [Overlay(before, "line", CURVE_BEFORE_COLOR, 3),
+            Overlay(after, "line", CURVE_AFTER_COLOR, 3),
+            Overlay(curve.control_points, "markers", CONTROL_POINT_COLOR, 4)], \
+        "; curve red, moved green"

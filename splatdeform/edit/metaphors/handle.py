@@ -36,6 +36,20 @@ def label(n: int) -> str:
     return "handle" if n == 1 else "handles"
 
 
+def columns(entry: tuple[HandleCfg, list, str]) -> int:
+    """A handle's basis columns: its 4 affine frame coordinates."""
+    return 4
+
+
+def as_applied(cfg: EditConfig, matrices: list[np.ndarray]
+               ) -> np.ndarray | list[np.ndarray] | None:
+    """The handle matrices as apply takes them: one 4x4 for the ``handle:`` form, the list
+    (one per handle) for ``handles:``, None without handles."""
+    if cfg.handle is not None:
+        return matrices[0]
+    return matrices or None
+
+
 def metaphor(key: str, entry: tuple[HandleCfg, list, str], ctx: Any) -> Metaphor:
     _, region, region_key = entry
     return handle_metaphor(ctx.model.positions, ctx.mask(region), region_key)
@@ -47,6 +61,12 @@ def delta(key: str, entry: tuple[HandleCfg, list, str], group: Any, deformation:
     points = deformation.moving_idx[group.rows]
     matrix = transform_matrix(entry[0], key, ctx.units, ctx.model, points)
     return delta_for_transform(group.frame.control_points, matrix), matrix
+
+
+def single_matrix(cfg: EditConfig, model: PointModel, points: np.ndarray) -> np.ndarray:
+    """The 4x4 transform of the single ``handle:`` form; ``points`` as in
+    :func:`transform_matrix`."""
+    return transform_matrix(cfg.handle, "handle", cfg.regions.units, model, points)
 
 
 def transform_matrix(h: HandleCfg, key: str, units: str, model: PointModel,

@@ -1,10 +1,11 @@
 """``points:`` control-point pairs (rubber-sheeting) from the config: the pairs in model units,
 the edit's precomputation with them, its delta_c, its report and ``--residuals`` CSV.
 
-Pairs are constraints at arbitrary positions, not model points, so they are not a moving-region
-kind of :data:`splatdeform.edit.metaphors.KINDS`: they add 3 columns after every handle and
-curve (:mod:`splatdeform.deform.points`), and :mod:`splatdeform.edit.run` calls
-:func:`precompute` / :func:`control_displacement` here when the edit has ``points:``.
+Pairs are constraints at arbitrary positions, not model points: the last kind of
+:data:`splatdeform.edit.metaphors.KINDS`, without a moving region (:func:`metaphor` is None).
+They add 3 columns after every handle and curve (:mod:`splatdeform.deform.points`) through the
+kind hooks :func:`prepare` (rings, fit and basis with the pairs), :func:`report` (residuals)
+and :func:`select` (what ``select`` shows without a fit).
 
 Pairs files: CSV or TXT (comma, semicolon, tab or blank separated), a header line naming the
 columns (``x, y, z, X, Y, Z`` unless ``points.columns`` names them), ``#`` comments; at most
@@ -80,6 +81,31 @@ CAPABILITIES = Capabilities(streams=0, reusable=0, why={
 def entries(cfg: EditConfig) -> list[tuple[str, object]]:
     """(key, entry) of the edit's control-point pairs: ``[("points", cfg.points)]`` or []."""
     return [("points", cfg.points)] if cfg.points is not None else []
+
+
+def basis_key(entry) -> dict:
+    """What of the pairs determines the basis: all of them (their sources are constraints)."""
+    return entry.model_dump()
+
+
+def label(n: int) -> str:
+    """Pairs have no moving region: nothing in the counts line's moving name."""
+    return ""
+
+
+def columns(entry) -> int:
+    """The basis columns of the pairs: 3 (g I)."""
+    return 3
+
+
+def metaphor(key: str, entry, ctx) -> None:
+    """No moving region: the pairs' columns are fitted by :func:`prepare`."""
+    return None
+
+
+def delta(key: str, entry, group, deformation, ctx) -> tuple[np.ndarray, None]:
+    """The pair columns' rows of delta_c (g I), from the fit :func:`prepare` made."""
+    return group.constraints.delta(), None
 
 
 def read_pairs_file(path: Path, columns: list[str] | None, key: str) -> tuple[np.ndarray, list]:
@@ -224,73 +250,37 @@ class PointsReport:
         return Path(path)
 
 
-def precompute(cfg: EditConfig, model: PointModel, base_dir: Path, *, stored: bool = True):
-    """The deformation of a ``points:`` edit (pairs plus any fixed regions, handles, curve)
-    and its :class:`PointsFit` (``stored=False``: the basis deferred, for one-shot apply)."""
-    from splatdeform.edit import plain
-
+def prepare(cfg: EditConfig, model: PointModel, base_dir: Path | None, fixed: np.ndarray,
+            metaphors: list, *, fit_fn, basis_fn):
+    """The deformation of a ``points:`` edit: the pairs plus any fixed region (``fixed`` (N,)
+    bool, may be empty), handles and curve (``metaphors``), with the edit's fitter and basis;
+    the pair columns come last and their group holds the :class:`PointsFit`."""
     pairs, _ = pairs_of(cfg, model, base_dir)
-    fixed = plain.fixed_mask(cfg, model, base_dir) if cfg.regions.fixed else \
-        np.zeros(model.n_points, dtype=bool)
-    return prepare_points(model, fixed, plain.metaphors(cfg, model, base_dir), pairs,
-                          fit_fn=plain.fit_fn(cfg, model), basis_fn=plain.basis_fn(cfg, stored),
+    return prepare_points(model, fixed, metaphors, pairs, fit_fn=fit_fn, basis_fn=basis_fn,
                           smoothing=cfg.points.smoothing, tolerance=cfg.points.tolerance,
-                          continuity=cfg.boundary.continuity, neighbors=cfg.boundary.neighbors)
+                          continuity=cfg.boundary.continuity,
+                          neighbors=cfg.boundary.neighbors)[0]
 
 
-def control_displacement(cfg: EditConfig, model: PointModel, deformation, fit: PointsFit):
-    """delta_c (k, 3) of every handle and curve (their configured poses) then g I for the
-    pairs, and the handle matrices (as :func:`splatdeform.edit.plain.control_displacement`)."""
-    from splatdeform.edit.metaphors import Context, entries
-
-    ctx = Context.of(cfg, model, None)
-    parts, matrices = [], []
-    for (kind, key, entry), group in zip(entries(cfg), deformation.groups, strict=False):
-        part, matrix = kind.delta(key, entry, group, deformation, ctx)
-        parts.append(part)
-        if matrix is not None:
-            matrices.append(matrix)
-    parts.append(fit.delta())
-    delta = np.vstack(parts)
-    if cfg.handle is not None:
-        return delta, matrices[0]
-    return delta, matrices or None
-
-
-def report(cfg: EditConfig, model: PointModel, base_dir: Path, deformation, fit: PointsFit,
+def report(cfg: EditConfig, model: PointModel, base_dir: Path | None, deformation,
            delta_c: np.ndarray) -> PointsReport:
     """Residuals at the pairs, errors at the check pairs, points outside the hull."""
+    fit = next(g.constraints for g in deformation.groups if isinstance(g.constraints, PointsFit))
     _, check = pairs_of(cfg, model, base_dir)
     check_err = None if check is None else pair_errors(deformation, check, delta_c)
     return PointsReport(fit, pair_errors(deformation, fit.pairs, delta_c), check, check_err,
                         outside_hull(fit.pairs.sources, model.positions), model.n_points)
 
 
-def select(cfg: EditConfig, model: PointModel, base_dir: Path):
-    """What ``select`` shows of a ``points:`` edit, without the fit: the fixed region and its
-    rings and any handles' and curves' regions exactly as ``deform`` computes them, and the
-    pairs and check pairs (model units), checked as ``deform`` checks them (the same one-line
-    refusals). Returns (:class:`~splatdeform.edit.selection.Selection`, pairs, check or None).
-    """
-    from splatdeform.deform.points import _rings_of_fixed, check_pair_regions, check_pairs
-    from splatdeform.deform.regions import layout
-    from splatdeform.edit import plain
-    from splatdeform.edit.selection import Selection, moving_label
+def select(cfg: EditConfig, model: PointModel, base_dir: Path | None, fixed: np.ndarray,
+           metaphors: list) -> tuple[Pairs, Pairs | None]:
+    """What ``select`` shows of the pairs, without the fit: (pairs, check pairs or None) in
+    model units, checked against the fixed mask (N,) bool and the moving regions as ``deform``
+    checks them (the same one-line refusals)."""
+    from splatdeform.deform.points import check_pair_regions, check_pairs
 
     pairs, check = pairs_of(cfg, model, base_dir)
-    fixed = plain.fixed_mask(cfg, model, base_dir) if cfg.regions.fixed else \
-        np.zeros(model.n_points, dtype=bool)
-    metaphors = plain.metaphors(cfg, model, base_dir)
     lo, hi = model.bbox()
     check_pairs(pairs, lo, hi, anchored=bool(metaphors) or bool(fixed.any()))
     check_pair_regions(pairs, model.positions, fixed, metaphors)
-    if metaphors:
-        lay = layout(model, fixed, metaphors, continuity=cfg.boundary.continuity,
-                     neighbors=cfg.boundary.neighbors)
-        sel = Selection(lay.fixed, lay.moving, list(lay.fixed_rings), list(lay.moving_rings),
-                        moving_label(cfg))
-    else:
-        rings = _rings_of_fixed(model, fixed, cfg.boundary.continuity, cfg.boundary.neighbors) \
-            if fixed.any() else []
-        sel = Selection(fixed, np.zeros(model.n_points, dtype=bool), rings, [], "moving")
-    return sel, pairs, check
+    return pairs, check
