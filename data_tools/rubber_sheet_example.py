@@ -19,47 +19,23 @@ from pathlib import Path
 
 import numpy as np
 
-from data_tools.warps import drift_warp
+from splatdeform.examples.terrain import N_PAIRS, N_POINTS, control_indices, drift, pairs_csv, truth
 from splatdeform.model import PointModel
 
-N_POINTS = 60_000
-N_PAIRS = 12
+__all__ = ["N_PAIRS", "N_POINTS", "control_indices", "drift", "truth", "write_inputs"]
 MAX_ERROR = 8.0   # metres: the top of the colour ramp
 
 
-def truth(n: int = N_POINTS, seed: int = 0) -> np.ndarray:
-    """(n, 3) the true terrain (metres): rolling hills along a 400 m x 2 km strip."""
-    rng = np.random.default_rng(seed)
-    xy = rng.uniform([0, 0], [400, 2000], (n, 2))
-    z = 15 * np.sin(xy[:, 0] / 90) * np.cos(xy[:, 1] / 260) + 0.02 * xy[:, 1]
-    return np.column_stack([xy, z + rng.normal(0, 0.05, n)])
-
-
-def drift(p: np.ndarray) -> np.ndarray:
-    """The known smooth warp of the scan (:func:`data_tools.warps.drift_warp` on the strip)."""
-    return drift_warp(p, (0.0, 0.0, 0.0), (400.0, 2000.0, 0.0))
-
-
-def control_indices(p: np.ndarray, k: int = N_PAIRS) -> np.ndarray:
-    """k well-spread control points (two rows along the strip, as a survey would place)."""
-    targets = [(x, y) for y in np.linspace(60, 1940, k // 2) for x in (70, 330)]
-    return np.array([int(np.argmin((p[:, 0] - x) ** 2 + (p[:, 1] - y) ** 2))
-                     for x, y in targets])
-
-
 def write_inputs(out_dir: Path) -> tuple[np.ndarray, np.ndarray]:
-    """drifted_scan.ply and gcp.csv in ``out_dir``; returns (truth, drifted) (N, 3)."""
+    """drifted_scan.ply and gcp.csv in ``out_dir`` (:mod:`splatdeform.examples.terrain`, as
+    ``splatdeform example rubber_sheet`` writes them); returns (truth, drifted) (N, 3)."""
     from splatdeform.io import save
 
     out_dir.mkdir(parents=True, exist_ok=True)
     true = truth()
     scan = drift(true)
     save(PointModel(positions=scan), out_dir / "drifted_scan.ply")
-    idx = control_indices(true)
-    lines = ["# control points: x,y,z in the drifted scan -> X,Y,Z surveyed (metres)",
-             "x,y,z,X,Y,Z"]
-    lines += [",".join(f"{v:.4f}" for v in (*scan[i], *true[i])) for i in idx]
-    (out_dir / "gcp.csv").write_text("\n".join(lines) + "\n")
+    (out_dir / "gcp.csv").write_text(pairs_csv(true, scan))
     return true, scan
 
 

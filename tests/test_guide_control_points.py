@@ -59,3 +59,26 @@ def test_the_guides_commands_draw_its_coloured_picture(tmp_path):
     warped = tmp_path / "demo_out" / "rubber_sheet" / "warped.png"
     assert _hues(warped)[0] >= 3                           # not two plain grey strips
     assert (tmp_path / "pairs.png").is_file() and (tmp_path / "residuals.csv").is_file()
+
+
+def test_the_packaged_example_is_the_guides_data(tmp_path):
+    """``splatdeform example rubber_sheet`` (what a pip user has) writes the clone's example
+    scan and pairs byte for byte, and its config runs (issue 48: the quick start outside the
+    clone)."""
+    from data_tools.rubber_sheet_example import write_inputs
+    from splatdeform.examples import write_example
+
+    write_inputs(tmp_path / "clone")
+    written = write_example("rubber_sheet", tmp_path / "pip")
+    assert [p.relative_to(tmp_path / "pip").as_posix() for p in written] == [
+        "scans/drifted_scan.ply", "scans/gcp.csv", "rubber_sheet.yaml"]
+    for name in ("drifted_scan.ply", "gcp.csv"):
+        assert (tmp_path / "pip" / "scans" / name).read_bytes() == \
+            (tmp_path / "clone" / name).read_bytes()
+    run = subprocess.run([sys.executable, "-m", "splatdeform.cli", "deform",
+                          "rubber_sheet.yaml", "--residuals", "residuals.csv"],
+                         cwd=tmp_path / "pip", capture_output=True, text=True, timeout=300)
+    assert run.returncode == 0, run.stderr
+    assert "pairs 12 (smoothing 0)" in run.stdout
+    assert (tmp_path / "pip" / "out" / "warped.ply").is_file()
+    assert _hues(tmp_path / "pip" / "out" / "warped.png")[0] >= 3

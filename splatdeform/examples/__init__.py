@@ -13,7 +13,8 @@ from pathlib import Path
 
 from splatdeform.errors import InputError
 
-#: name -> (what it is, [(file, maker)]); a maker is "bar", "sphere" or a config's name
+#: name -> (what it is, [(file, maker)]); a maker is "bar", "sphere", "drifted", "gcp" or a
+#: config's name
 EXAMPLES: dict[str, tuple[str, list[tuple[str, str]]]] = {
     "bar": ("the quick start: a bumpy bar (20,000 points) and bend.yaml, a handle edit",
             [("scans/bar.ply", "bar"), ("bend.yaml", "BEND")]),
@@ -21,6 +22,10 @@ EXAMPLES: dict[str, tuple[str, list[tuple[str, str]]]] = {
               [("scans/bar.ply", "bar"), ("curve.yaml", "CURVE")]),
     "sphere": ("a sphere (10,000 points) and pull.yaml, its top pulled up and twisted",
                [("scans/sphere.ply", "sphere"), ("pull.yaml", "PULL")]),
+    "rubber_sheet": ("a drifted terrain scan (60,000 points), 12 surveyed control points "
+                     "(gcp.csv) and rubber_sheet.yaml, a points: edit warping it back",
+                     [("scans/drifted_scan.ply", "drifted"), ("scans/gcp.csv", "gcp"),
+                      ("rubber_sheet.yaml", "RUBBER_SHEET")]),
 }
 
 
@@ -38,6 +43,17 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def _contents(maker: str, scratch: Path) -> bytes:
+    if maker in ("drifted", "gcp"):   # the rubber-sheeting terrain (seeded)
+        from splatdeform.io import save
+        from splatdeform.model import PointModel
+
+        from . import terrain
+
+        true = terrain.truth()
+        scan = terrain.drift(true)
+        if maker == "gcp":
+            return terrain.pairs_csv(true, scan).encode()
+        return save(PointModel(positions=scan), scratch / "drifted.ply").read_bytes()
     if maker in ("bar", "sphere"):
         from splatdeform.io import save
 
@@ -84,7 +100,7 @@ def write_example(name: str, folder: str | Path, *, force: bool = False) -> list
 def cmd_example(args: argparse.Namespace) -> int:
     if args.list:
         for name, (what, files) in EXAMPLES.items():
-            print(f"{name:8s} {what}: {', '.join(f for f, _ in files)}")
+            print(f"{name:12s} {what}: {', '.join(f for f, _ in files)}")
         return 0
     if args.name is None:
         raise InputError(f"example: expected an example name ({', '.join(EXAMPLES)}) or --list")

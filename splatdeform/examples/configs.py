@@ -51,3 +51,19 @@ handle:
     translate: [0, 0, 0.6]
 fit: {tolerance: 1.0e-3}
 """
+
+RUBBER_SHEET = """\
+# Rubber-sheeting: warp a drifted terrain scan onto 12 surveyed control points. Each row of
+# scans/gcp.csv is a pair: x,y,z where the point lies in the scan -> X,Y,Z surveyed (metres).
+input: scans/drifted_scan.ply
+output: out/warped.ply
+points:
+  pairs: {file: scans/gcp.csv}
+  smoothing: 0            # 0: through every pair exactly; > 0: least squares (scipy's meaning)
+  # check_pairs: {file: check.csv}   # held out of the fit, only reported
+render:
+  output: out/warped.png
+  up: +z
+  elevation: 50
+  color: elevation        # the drifted scan has no colours of its own
+"""
