@@ -100,7 +100,7 @@ def chunk_children(model, out, deformation, delta_c: np.ndarray, rows: np.ndarra
     split parent's child 0 in its row; ``emit(children)`` receives the other children (a model
     per block of at most the chunk's size or :data:`CHILD_BLOCK` children, in parent-row then
     child order; each child depends on its parent alone, so blocks change nothing)."""
-    from splatdeform.deform.model_apply import _transform_attributes
+    from splatdeform.deform.model_apply import _transform_attributes, check_finite
 
     if rows.size == 0:
         return
@@ -116,6 +116,7 @@ def chunk_children(model, out, deformation, delta_c: np.ndarray, rows: np.ndarra
             kids, deformed, _ = sp.deformed_children(
                 model, rows[lo:hi], counts[lo:hi], field, covariance=covariance,
                 transform=_transform_attributes, dtype=out.positions.dtype)
+        check_finite(sp.take(model, kids.parent), deformed)   # as the in-memory apply's check
         sp.put_first(out, kids, deformed)
         emit(sp.take(deformed, np.flatnonzero(kids.child != 0)))
 
