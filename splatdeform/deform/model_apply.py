@@ -240,24 +240,29 @@ def _apply_oneshot(deformation: Deformation, model: PointModel, out: PointModel,
         raise InputError("deformation: basis has no gradients; normals/axes need them")
     free = deformation.free_idx
     jac_all = np.empty((free.size, 3, 3)) if keep_jac and needs_jac else None
+    size = min(APPLY_ROWS, free.size)
+    moved_buf = np.empty((size, 3))  # float64 scratch, reused: no chunk-sized allocations
+    jac_buf = np.empty((size, 3, 3)) if needs_jac else None
     for lo, hi, disp, grad in oneshot_chunks(basis.points, basis.fit, delta,
                                              gradients=needs_jac, backend=basis.backend,
                                              device=basis.device):
-        rows = free[lo:hi]
-        moved = disp.astype(np.float64)
-        moved += model.positions[rows]
-        out.positions[rows] = moved
-        if not needs_jac:
-            continue
-        jac = grad.astype(np.float64)
-        jac[:, 0, 0] += 1
-        jac[:, 1, 1] += 1
-        jac[:, 2, 2] += 1
-        for s in range(0, hi - lo, APPLY_ROWS):  # cache-sized blocks of the attribute work
-            _transform_attributes(model, out, rows[s:s + APPLY_ROWS], jac[s:s + APPLY_ROWS],
-                                  covariance, stats)
-        if jac_all is not None:
-            jac_all[lo:hi] = jac
+        for s in range(0, hi - lo, APPLY_ROWS):  # cache-sized blocks of the device chunk
+            e = min(s + APPLY_ROWS, hi - lo)
+            rows = free[lo + s:lo + e]
+            moved = moved_buf[:e - s]
+            np.copyto(moved, disp[s:e])  # float32 -> float64 as astype
+            moved += model.positions[rows]
+            out.positions[rows] = moved
+            if jac_buf is None:
+                continue
+            jac = jac_buf[:e - s]
+            np.copyto(jac, grad[s:e])
+            jac[:, 0, 0] += 1
+            jac[:, 1, 1] += 1
+            jac[:, 2, 2] += 1
+            _transform_attributes(model, out, rows, jac, covariance, stats)
+            if jac_all is not None:
+                jac_all[lo + s:lo + e] = jac
     return jac_all
 
 

@@ -130,7 +130,7 @@ def border_knn_edges(positions: np.ndarray, labels: np.ndarray, neighbors: int,
     radius, tree = knn_radius(positions, k, box=(lo, hi))
     extent = float((hi - lo).max())
     search: SubsetKnn | None = None
-    frontier = np.arange(n)
+    frontier = None  # every point, unless the band below is found
     if radius > 0 and 2 * radius * _BAND_SAFETY < extent:
         try:
             cells = Cells(positions, 2 * radius * _BAND_SAFETY, (lo, hi))
@@ -144,6 +144,8 @@ def border_knn_edges(positions: np.ndarray, labels: np.ndarray, neighbors: int,
                                    _REACH)
             if search is not None and 2 * search.subset.size > n:  # most of the model
                 search = None
+    if frontier is None:
+        frontier = np.arange(n)
     if search is not None:
         query = search.query
     else:
