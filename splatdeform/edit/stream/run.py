@@ -290,10 +290,16 @@ def stream_deform(src: ChunkFile, cfg, base_dir: Path, out: Path, *, chunk: int,
     """Plan (passes 1-4, rings, fit) and the second pass. Returns the plan (its timings with
     the second pass's as ``apply``)."""
     from splatdeform.edit.plain import handle_matrix, make_fit_fn
+    from splatdeform.edit.stream.poscache import cached_positions
 
-    plan = build_plan(src, cfg, base_dir, chunk=chunk, quiet=quiet, max_border=max_border,
-                      make_fit_fn=make_fit_fn, handle_matrix=handle_matrix,
-                      max_handle=max_handle)
+    cache = cached_positions(src, out)   # a LAZ: decoded once for passes 1-4, not four times
+    try:
+        plan = build_plan(src if cache is None else cache, cfg, base_dir, chunk=chunk,
+                          quiet=quiet, max_border=max_border, make_fit_fn=make_fit_fn,
+                          handle_matrix=handle_matrix, max_handle=max_handle)
+    finally:
+        if cache is not None:
+            cache.close()
     if check_fit is not None:
         check_fit(plan.border.fit)  # warns, or raises before any output
     shared = Shared(plan.border.fit, plan.frame, plan.matrix, plan.delta_c, cfg.backend,
