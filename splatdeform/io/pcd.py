@@ -49,6 +49,8 @@ TYPE_SIZES = {"I": (1, 2, 4, 8), "U": (1, 2, 4, 8), "F": (4, 8)}
 MAX_HEADER_LINES = 64
 HEAD_BYTES = 2**20   # the header must end within the file's first MiB
 ASCII_CHUNK_ROWS = 200_000
+#: rows per block when records and float64 columns are filled (a block's rows stay in the cache)
+FILL_ROWS = 1 << 16
 PLY_TYPES = {"i1": "char", "u1": "uchar", "i2": "short", "u2": "ushort", "i4": "int",
              "u4": "uint", "f4": "float", "f8": "double", "i8": "double", "u8": "double"}
 
@@ -426,13 +428,16 @@ def read_source(path: str | Path) -> tuple[PcdSource, int]:
     return source, at
 
 
-def _read(path: str | Path) -> tuple[PcdSource, int, dict[str, np.ndarray] | None]:
-    """:func:`read_source`'s (source, body offset) and, for binary_compressed, the decoded
-    block's columns ({field: (N,) or (N, COUNT) view}, one field's values after another as the
-    block holds them; None for the other encodings). The header is parsed from the file's first
-    bytes and checked against its size; a binary or compressed body is read alone (the
-    compressed block straight into the bytes the decoder takes, no copy of the file)."""
+def _read(path: str | Path, groups: tuple[tuple[str, ...], ...] = ()
+          ) -> tuple[PcdSource, int, list[np.ndarray | None]]:
+    """:func:`read_source`'s (source, body offset) and, per group of field names in
+    ``groups``, their (N, len(group)) float64 values taken from a compressed block's columns
+    as the records are filled (None for the other encodings, or where a field is missing or
+    has COUNT > 1: :func:`_columns` of the records then). The header is parsed from the file's
+    first bytes and checked against its size; a binary or compressed body is read alone (the
+    compressed block straight into the buffer the decoder reads, no copy of the file)."""
     path = Path(path)
+    none: list[np.ndarray | None] = [None] * len(groups)
     with open_regular(path) as fh:
         size = os.fstat(fh.fileno()).st_size
         head = fh.read(HEAD_BYTES + 8)
@@ -450,39 +455,45 @@ def _read(path: str | Path) -> tuple[PcdSource, int, dict[str, np.ndarray] | Non
             if len(data) != points:   # the file shrank after its size was read
                 raise FormatError(f"{path}: PCD binary body ends after {len(data):,} of "
                                   f"{points:,} points")
-            return replace(source, data=data), at, None
+            return replace(source, data=data), at, none
         else:
             fh.seek(at)
             body = fh.read()
     if source.encoding == "ascii":
         data, texts = _parse_ascii(path, body, source, points)
-        return replace(source, data=data, ascii_text=texts), at, None
+        return replace(source, data=data, ascii_text=texts), at, none
     raw = lzf_decode(path, block, points * dtype.itemsize)
     del block
     data = np.empty(points, dtype=dtype)
     columns, offset = {}, 0
     for name in source.fields:
         sub = dtype[name]
-        column = np.frombuffer(raw, dtype=sub.base, count=points * (sub.itemsize //
-                               sub.base.itemsize), offset=offset).reshape(data[name].shape)
-        data[name] = column
-        columns[name] = column
+        columns[name] = np.frombuffer(raw, dtype=sub.base, count=points * (
+            sub.itemsize // sub.base.itemsize), offset=offset).reshape(data[name].shape)
         offset += sub.itemsize * points
-    return replace(source, data=data), at, columns
+    outs = [np.empty((points, len(g)), dtype=np.float64)
+            if all(n in columns and not dtype[n].shape for n in g) else None for g in groups]
+    for start in range(0, points, FILL_ROWS):   # each block's records written from the cache
+        stop = start + FILL_ROWS
+        for name, column in columns.items():
+            data[name][start:stop] = column[start:stop]
+        for out, group in zip(outs, groups, strict=True):
+            for i, name in enumerate(group if out is not None else ()):
+                out[start:stop, i] = columns[name][start:stop]
+    return replace(source, data=data), at, outs
 
 
-def _columns(data: np.ndarray, names: tuple[str, ...],
-             columns: dict[str, np.ndarray] | None = None) -> np.ndarray | None:
+def _columns(data: np.ndarray, names: tuple[str, ...]) -> np.ndarray | None:
     """(N, len(names)) float64 of those fields of the records ``data`` (None when one is
-    missing), filled column by column (no float64 temporaries), from ``columns`` (the same
-    fields' values, contiguous) where given."""
+    missing), filled block by block (no float64 temporaries; each block's rows read once)."""
     if not all(n in (data.dtype.names or ()) for n in names):
         return None
     if any(data.dtype[n].shape for n in names):   # a COUNT > 1 field: (N, 3, COUNT) as before
         return np.stack([data[n].astype(np.float64) for n in names], axis=1)
     out = np.empty((len(data), len(names)), dtype=np.float64)
-    for i, n in enumerate(names):
-        out[:, i] = data[n] if columns is None else columns[n]
+    for start in range(0, len(data), FILL_ROWS):
+        for i, n in enumerate(names):
+            out[start:start + FILL_ROWS, i] = data[n][start:start + FILL_ROWS]
     return out
 
 
@@ -515,20 +526,23 @@ def xyz_of(data: np.ndarray) -> np.ndarray:
 
 
 def read_model(path: str | Path, *, drop_nonfinite: bool = False) -> PointModel:
-    source, _, columns = _read(path)
+    xyz, normal_names = ("x", "y", "z"), ("normal_x", "normal_y", "normal_z")
+    source, _, (positions, normals) = _read(path, (xyz, normal_names))
     data = source.data
-    positions = _columns(data, ("x", "y", "z"), columns)
+    if positions is None:
+        positions = _columns(data, xyz)
     source = organized_holes(path, source, positions)
     if source.finite is not None:
-        data, positions, columns = source.rows, positions[source.finite], None
+        data, positions, normals = source.rows, positions[source.finite], None
     if not np.isfinite(positions).all():   # the usual case: no per-point mask
         bad = nonfinite_points(path, positions, drop_nonfinite)
         keep = ~bad
         source = replace(source, data=data[keep], width=int(keep.sum()), height=1,
                          ascii_text=None if source.ascii_text is None
                          else source.ascii_text[keep])
-        data, positions, columns = source.data, positions[keep], None
-    normals = _columns(data, ("normal_x", "normal_y", "normal_z"), columns)
+        data, positions, normals = source.data, positions[keep], None
+    if normals is None:   # not from a compressed block, or points dropped: from the records
+        normals = _columns(data, normal_names)
     if normals is not None and not np.isfinite(normals).all():
         normals = None
     colors = _colors(data)
