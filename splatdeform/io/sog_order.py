@@ -70,9 +70,12 @@ def morton_order(positions: np.ndarray) -> np.ndarray:
     """(N,) int64 permutation putting (N, 3) ``positions`` in Morton order: ``positions[out]``
     is sorted. Computed on the positions rounded to float32 (what SOG's writers read), as
     splat-transform 3.7.0 orders them."""
-    p = np.asarray(positions, dtype=np.float32).astype(np.float64)
+    with np.errstate(over="ignore", invalid="ignore"):   # past float32: no order (refused later)
+        p = np.asarray(positions, dtype=np.float64).astype(np.float32).astype(np.float64)
     out = np.arange(len(p), dtype=np.int64)
-    runs = [(0, len(p))] if len(p) > 1 else []
+    # a box that is not finite: the input's order (splat-transform's rule, and any run inside a
+    # finite box has a finite box)
+    runs = [(0, len(p))] if len(p) > 1 and np.isfinite(p).all() else []
     while runs:
         start, end = runs.pop()
         rows = out[start:end]
