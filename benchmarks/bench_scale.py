@@ -183,18 +183,20 @@ def run_cases(opts: argparse.Namespace, work: Path) -> list[tuple[str, dict, dic
         floor = best(py(FLOOR_PLY, str(scan), str(tmp_out / "floor.ply")), rep)
         clean()
         label = f"{millions:g}M"
-        if n <= opts.memory_max * 1_000_000:
+        if "deform" not in opts.skip and n <= opts.memory_max * 1_000_000:
             cfg = edit_config(work, scan, tmp_out / "bent.ply")
             r = best(sd("deform", str(cfg)), rep)
             clean()
             rows.append((f"deform {label} PLY in memory", r, floor,
                          "streamed!" if streamed(r["out"]) else ""))
-        cfg = edit_config(work, scan, tmp_out / "bent.ply")
-        r = best(sd("deform", str(cfg), "--memory-budget", opts.budget), rep)
-        clean()
-        rows.append((f"deform {label} PLY --memory-budget {opts.budget}", r, floor,
-                     "" if streamed(r["out"]) else "in memory (estimate under the budget)"))
-        if not streamed(r["out"]) and n >= 1_000_000:  # under the budget: stream it anyway
+        if "deform" not in opts.skip:
+            cfg = edit_config(work, scan, tmp_out / "bent.ply")
+            r = best(sd("deform", str(cfg), "--memory-budget", opts.budget), rep)
+            clean()
+            rows.append((f"deform {label} PLY --memory-budget {opts.budget}", r, floor,
+                         "" if streamed(r["out"]) else "in memory (estimate under the budget)"))
+        # under the budget: stream it anyway
+        if "deform" not in opts.skip and not streamed(r["out"]) and n >= 1_000_000:
             r = best(sd("deform", str(cfg), "--memory-budget", "512MB"), rep)
             clean()
             rows.append((f"deform {label} PLY --memory-budget 512MB", r, floor,
@@ -263,7 +265,9 @@ def main() -> None:
     ap.add_argument("--budget", default="1GB", help="the streamed runs' --memory-budget")
     ap.add_argument("--busy", type=int, default=0, help="CPU-bound processes beside the run")
     ap.add_argument("--repeat", type=int, default=1, help="best of N per case (default 1)")
-    ap.add_argument("--skip", nargs="*", default=[], choices=["convert", "pcd", "laz", "paper"])
+    ap.add_argument("--skip", nargs="*", default=[],
+                    choices=["deform", "convert", "pcd", "laz", "paper"],
+                    help="cases left out (deform: the PLY deforms; the floor still runs)")
     ap.add_argument("--workdir", help="folder for the generated files (default: a temp dir, "
                     "removed at the end)")
     ap.add_argument("--json", help="also write the rows here")
