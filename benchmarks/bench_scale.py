@@ -4,6 +4,7 @@ process against the floor of the same file, ratios taken in one run, with each p
     python benchmarks/bench_scale.py                    # idle: 5M and 20M
     python benchmarks/bench_scale.py --busy 2           # beside two CPU-bound processes
     python benchmarks/bench_scale.py --sizes 5 --skip laz pcd
+    python benchmarks/bench_scale.py --sizes 5 --memory-only --repeat 3   # in-memory 5M alone
 
 Files are generated in a temporary folder (``--workdir`` to keep them between runs), never in
 the repository. Scans: the bumpy cylinder of ``bench_stream.py`` (x in [0, 4], binary PLY with
@@ -189,14 +190,15 @@ def run_cases(opts: argparse.Namespace, work: Path) -> list[tuple[str, dict, dic
             clean()
             rows.append((f"deform {label} PLY in memory", r, floor,
                          "streamed!" if streamed(r["out"]) else ""))
-        if "deform" not in opts.skip:
+        if "deform" not in opts.skip and not opts.memory_only:
             cfg = edit_config(work, scan, tmp_out / "bent.ply")
             r = best(sd("deform", str(cfg), "--memory-budget", opts.budget), rep)
             clean()
             rows.append((f"deform {label} PLY --memory-budget {opts.budget}", r, floor,
                          "" if streamed(r["out"]) else "in memory (estimate under the budget)"))
         # under the budget: stream it anyway
-        if "deform" not in opts.skip and not streamed(r["out"]) and n >= 1_000_000:
+        if "deform" not in opts.skip and not opts.memory_only and not streamed(r["out"]) \
+                and n >= 1_000_000:
             r = best(sd("deform", str(cfg), "--memory-budget", "512MB"), rep)
             clean()
             rows.append((f"deform {label} PLY --memory-budget 512MB", r, floor,
@@ -268,10 +270,15 @@ def main() -> None:
     ap.add_argument("--skip", nargs="*", default=[],
                     choices=["deform", "convert", "pcd", "laz", "paper"],
                     help="cases left out (deform: the PLY deforms; the floor still runs)")
+    ap.add_argument("--memory-only", action="store_true",
+                    help="only the in-memory deform case(s) and their floor (no streamed "
+                    "runs, convert, PCD, LAZ or paper scene)")
     ap.add_argument("--workdir", help="folder for the generated files (default: a temp dir, "
                     "removed at the end)")
     ap.add_argument("--json", help="also write the rows here")
     opts = ap.parse_args()
+    if opts.memory_only:
+        opts.skip = sorted({*opts.skip, "convert", "pcd", "laz", "paper"})
     work = Path(opts.workdir or tempfile.mkdtemp(prefix="bench_scale."))
     work.mkdir(parents=True, exist_ok=True)
     print(f"# {time.strftime('%Y-%m-%d %H:%M %Z')} {platform.node()} ({os.cpu_count()} cores, "
