@@ -60,10 +60,10 @@ PALETTE_CAP = 4096  # the fast encoder's most entries: the k-means cost grows wi
 #: SH encoders: ``reference`` (the default) sizes the palette as the reference encoder
 #: (splat-transform: 1024 x 2^floor(log2(N / 1024)) entries, at most 65536, so about N / 1.5 to
 #: N / 3 entries; SH error about that encoder's, file about its size, k-means cost ~N^2 / 2);
-#: ``fast``: a power of two near N / 16, at most 4096 (measured: 2.4x the SH RMS error, 2.8x
-#: the mean absolute, 0.49x the file on the 6.8k-splat SH3 test tile; 1.5x, 1.8x, 0.51x and
-#: 8.9 s against ~270 s on a generated 150k-splat SH3 scene: scenes with more varied SH lose
-#: more)
+#: ``fast``: a power of two near N / 16, at most 4096 (measured, files in Morton order: 2.4x the
+#: SH RMS error, 2.8x the mean absolute, 0.47x the file on the 6.8k-splat SH3 test tile; 1.5x,
+#: 1.8x, 0.48x and 8.9 s against ~270 s on a generated 150k-splat SH3 scene: scenes with more
+#: varied SH lose more)
 QUALITIES = ("reference", "fast")
 _QUALITY: ContextVar[str] = ContextVar("sog_quality", default="reference")
 MAX_META = 16 << 20  # bytes of a meta.json (a few codebooks: tens of kilobytes)
