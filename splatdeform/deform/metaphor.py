@@ -52,7 +52,8 @@ def handle_metaphor(positions: np.ndarray, mask: np.ndarray, name: str = "region
     if idx.size == 0:
         what = "the handle region" if name == "regions.handle" else "it"
         raise RegionError.at(f"{name}", f"selects no point; widen {what}")
-    frame = handle_frame(positions[idx], name)
+    points = positions[idx]  # gathered once for the frame and the coordinates
+    frame = handle_frame(points, name)
     grads = np.broadcast_to(frame.coordinate_gradients(), (idx.size, 4, 3))
     return Metaphor(name=name, idx=idx, control_points=frame.control_points,
-                    coords=frame.coordinates(positions[idx]), gradients=grads, frame=frame)
+                    coords=frame.coordinates(points), gradients=grads, frame=frame)
