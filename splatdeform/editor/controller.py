@@ -245,6 +245,10 @@ class EditorController:
         """Replace the curve (None: no curve)."""
         self.curve = curve
 
+    def set_points(self, points: Any) -> None:
+        """Replace the ``points:`` config (a new PointsCfg; None: no pairs)."""
+        self.points = points
+
     def _moving(self) -> np.ndarray:
         """(N,) bool: the live handles' points and the curve band."""
         _, handles = self.masks()
@@ -448,7 +452,7 @@ class EditorController:
         """The editable state as a value (for undo / redo: :mod:`.history`)."""
         return Snapshot(tuple(self.fixed),
                         tuple((tuple(h.selectors), h.matrix.copy()) for h in self.handles),
-                        self.curve, self.covariance)
+                        self.curve, self.covariance, self.points)
 
     def restore(self, snap: Snapshot) -> None:
         """Back to ``snap``'s state. When its regions match the last fit's, that fit is
@@ -457,6 +461,7 @@ class EditorController:
         self.handles = [HandleState(list(s), m.copy()) for s, m in snap.handles]
         self.curve = snap.curve
         self.settings.gaussians.covariance = snap.covariance
+        self.points = snap.points
 
     # ---- config and save ---------------------------------------------------------------
     def to_config(self, *, output: str | Path | None = None,

@@ -27,7 +27,9 @@ from . import payload
 from . import selectors as sl
 from .controller import EditorController, check_pose
 from .history import History
+from .pairs import OPS as _PAIR_OPS
 from .security import SaveFolder, default_save_folder
+from .state import Snapshot
 
 DEFAULT_SIZE = 0.08  # a new selector: this fraction of the model's diagonal
 MAX_NUMBER = 1e15    # the largest magnitude a number in a request may have
@@ -164,11 +166,12 @@ class Session:
         if ed.points is None:
             return None
         from splatdeform.deform.points import pair_errors
-        from splatdeform.edit.metaphors.points import pairs_of
+
+        from .pairs import model_pairs
 
         fit = ed.points_fit if not ed.stale else None
-        pairs = fit.pairs if fit is not None else pairs_of(ed.settings, ed.model,
-                                                          ed.base_dir)[0]
+        pairs = fit.pairs if fit is not None else model_pairs(ed.points, ed.units, ed.model,
+                                                              ed.base_dir)
         info: dict[str, Any] = {"n": pairs.n, "sources": (pairs.sources - ed.origin).tolist(),
                                 "targets": (pairs.targets - ed.origin).tolist(),
                                 "delta": None, "after": None}
@@ -287,6 +290,10 @@ class Session:
         self.ed.add_handle()
 
     def _op_fit(self, req: dict[str, Any]) -> None:
+        self.refit()
+
+    def refit(self) -> None:
+        """Fit the current state (the page uploads the new basis: a new ``fit.id``)."""
         self.last_fit = self.ed.fit()
         self.fit_id += 1
 
@@ -363,12 +370,27 @@ class Session:
         self.ed.reset_pose(int(req.get("handle", 0)))
 
     def _op_undo(self, req: dict[str, Any]) -> dict[str, Any]:
-        self.history.undo()
+        self._step(self.history.undo)
         return self.state()
 
     def _op_redo(self, req: dict[str, Any]) -> dict[str, Any]:
-        self.history.redo()
+        self._step(self.history.redo)
         return self.state()
+
+    def _step(self, move: Callable[[], bool]) -> None:
+        """Undo or redo; a step that changed only the pairs of a current fit refits, as the
+        pair actions do (a refused refit leaves the fit stale, with its line as the message)."""
+        live, before = not self.ed.stale, self.ed.snapshot()
+        if not move() or not live or not self.ed.stale:
+            return
+        after = self.ed.snapshot()
+        if after.points is not None and after.points != before.points and \
+                Snapshot(before.fixed, before.handles, before.curve, before.covariance,
+                         after.points).same(after):
+            try:
+                self.refit()
+            except SplatdeformError as exc:
+                self.message = f"{exc} (Fit again after fixing it)"
 
     def _op_save(self, req: dict[str, Any]) -> dict[str, Any]:
         """Save under the file *names* typed in the page, into the save folder (never a path,
@@ -419,7 +441,7 @@ class Session:
         "move_curve_point": _op_move_curve_point, "remove_curve_point": _op_remove_curve_point,
         "remove_curve": _op_remove_curve, "curve_settings": _op_curve_settings,
         "reset_curve": _op_reset_curve, "covariance": _op_covariance, "undo": _op_undo,
-        "redo": _op_redo, "save": _op_save,
+        "redo": _op_redo, "save": _op_save, **_PAIR_OPS,
     }
 
 

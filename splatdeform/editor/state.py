@@ -59,18 +59,21 @@ class HandleState:
 class Snapshot:
     """The controller's editable state as a value (:meth:`EditorController.snapshot`): the
     fixed selectors, per handle its selectors and (4, 4) pose, the curve (immutable, its moved
-    points included) and the Gaussians' covariance mode. Selectors are immutable values.
-    Compare two with :meth:`same`."""
+    points included), the Gaussians' covariance mode and the control-point pairs (the
+    ``points:`` config: replaced on a change, never changed in place). Selectors are immutable
+    values. Compare two with :meth:`same`."""
 
     fixed: tuple[Selector, ...]
     handles: tuple[tuple[tuple[Selector, ...], np.ndarray], ...]
     curve: CurveState | None
     covariance: str
+    points: Any = None
 
     def same(self, other: Snapshot | None) -> bool:
         """True when ``other`` holds the same state (poses compared exactly)."""
         if other is None or self.fixed != other.fixed or self.curve != other.curve or \
-                self.covariance != other.covariance or len(self.handles) != len(other.handles):
+                self.covariance != other.covariance or self.points != other.points or \
+                len(self.handles) != len(other.handles):
             return False
         return all(sa == sb and np.array_equal(ma, mb)
                    for (sa, ma), (sb, mb) in zip(self.handles, other.handles, strict=True))
