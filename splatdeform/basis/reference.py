@@ -13,7 +13,6 @@ one (n, 4k) product: grad_d = p_d (G Wc) - G (s_d Wc) with G = 3 r).
 from __future__ import annotations
 
 import numpy as np
-from scipy.spatial.distance import cdist
 
 from splatdeform.basis.checks import check_fit, check_points
 from splatdeform.basis.result import Basis
@@ -59,6 +58,7 @@ def compute_basis(
     grads = np.empty((total, k, 3), dtype=np.float64) if gradients else None
     if total == 0:
         return Basis(values=values, gradients=grads)
+    from scipy.spatial.distance import cdist  # on first use (scipy.spatial: ~0.2 s import)
 
     w_lin = w[1:4]  # (3, k)
     w_c = w[4:]  # (n, k)

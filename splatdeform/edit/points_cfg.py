@@ -6,7 +6,6 @@ from typing import Annotated
 
 from pydantic import Field, field_validator
 
-from splatdeform.deform.points import MAX_PAIRS
 from splatdeform.edit.schema import MAX_VALUE, Number, Strict
 
 _Strict = Strict
@@ -43,6 +42,8 @@ class PointsCfg(_Strict):
     @field_validator("pairs", "check_pairs", mode="before")
     @classmethod
     def _bounded(cls, v):   # before any row is validated: a 2 MB config holds ~140,000 rows
+        from splatdeform.deform.points import MAX_PAIRS  # not at import: the deform layer
+
         if isinstance(v, list) and len(v) > MAX_PAIRS:
             raise ValueError(f"{len(v):,} inline pairs exceed the limit of {MAX_PAIRS:,} (the "
                              "dense fit: O(m^3) time, 8 m^2 bytes)")

@@ -20,7 +20,6 @@ import warnings
 from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
-from scipy.linalg import LinAlgError, LinAlgWarning, solve
 
 from splatdeform.blas import blas_threads
 from splatdeform.errors import InputError, ProcessingError
@@ -177,7 +176,7 @@ def _solve(x: np.ndarray, b: np.ndarray, threads: int = 1) -> tuple[np.ndarray, 
     Should rounding make A22 not positive definite (near-duplicate points), the full saddle
     system is solved by the symmetric-indefinite factorisation instead.
     """
-    from scipy.linalg import blas, lapack, solve_triangular
+    from scipy.linalg import LinAlgError, blas, lapack, solve_triangular
 
     from splatdeform.rbf.cholesky import factor_lower, solve_lower
     from splatdeform.rbf.fit import _larft
@@ -218,6 +217,8 @@ def _solve(x: np.ndarray, b: np.ndarray, threads: int = 1) -> tuple[np.ndarray, 
 
 def _solve_indefinite(x: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The saddle system [[Phi, P], [P^T, 0]] by the symmetric-indefinite solver (?sysv)."""
+    from scipy.linalg import LinAlgError, LinAlgWarning, solve
+
     m, k = b.shape
     lhs = np.zeros((m + 4, m + 4))
     cubed_distances(x, x, out=lhs[:m, :m])

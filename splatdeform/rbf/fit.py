@@ -17,7 +17,6 @@ from collections.abc import Callable, Iterator
 from typing import Literal
 
 import numpy as np
-from scipy.linalg import lapack, solve_triangular
 
 from splatdeform.blas import blas_threads
 from splatdeform.errors import InputError, ProcessingError
@@ -86,6 +85,8 @@ def _check_inputs(
 
 
 def _geqrf(a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    from scipy.linalg import lapack  # on first use: scipy.linalg costs ~0.1 s to import
+
     qr, tau, _, info = lapack.dgeqrf(a, lwork=max(1, a.shape[1]) * _NB, overwrite_a=1)
     if info != 0:
         raise ProcessingError(f"fit: LAPACK dgeqrf failed (info={info})")
@@ -102,6 +103,8 @@ def _larft(v: np.ndarray, tau: np.ndarray) -> np.ndarray:
     if np.all(tau != 0.0):  # T^-1 = diag(1 / tau) + strictly upper(V^T V): one solve
         inv = np.triu(gram, 1)
         inv[np.arange(nb), np.arange(nb)] = 1.0 / tau
+        from scipy.linalg import solve_triangular
+
         return solve_triangular(inv, np.eye(nb), lower=False, check_finite=False)
     t = np.zeros((nb, nb))
     for i in range(nb):
@@ -412,6 +415,8 @@ def _fit(pts: np.ndarray, b: np.ndarray, tol: float, max_centers: int,
     cols = state.cols
     hist = np.minimum.accumulate(np.vstack(history), axis=0)  # rounding-level monotonicity
     r_tri = np.triu(state.r[:cols, :cols])
+    from scipy.linalg import solve_triangular
+
     weights = solve_triangular(r_tri, qtb[:cols], lower=False, check_finite=False)
     if not np.all(np.isfinite(weights)):
         raise ProcessingError("fit: the triangular solve produced non-finite weights")

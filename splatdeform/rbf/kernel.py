@@ -10,7 +10,6 @@ from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.spatial.distance import cdist
 
 
 def triharmonic(r: np.ndarray) -> np.ndarray:
@@ -54,6 +53,8 @@ def phi_gradient(x: np.ndarray, s: np.ndarray) -> np.ndarray:
 
 def kernel_matrix(x: np.ndarray, s: np.ndarray, kernel: str = "triharmonic") -> np.ndarray:
     """phi(|x_i - s_j|) for points x (M, 3) and centers s (n, 3): (M, n) float64."""
+    from scipy.spatial.distance import cdist  # on first use (scipy.spatial: ~0.2 s import)
+
     r = cdist(np.asarray(x, dtype=np.float64), np.asarray(s, dtype=np.float64))
     return KERNELS[kernel].phi(r)
 
