@@ -53,15 +53,18 @@ def _blocks(positions: np.ndarray, lo: np.ndarray, edge: float, strides: np.ndar
     place."""
     n = positions.shape[0]
     buf = np.empty((min(_BLOCK, n), 3))
-    scale = strides.astype(np.float64)
+    s0, s1, s2 = (float(v) for v in strides)
+    base = s0 + s1 + s2  # the + 1 of every axis, added once (exact integers below 2**52)
     for a in range(0, n, _BLOCK):
         w = buf[:min(_BLOCK, n - a)]
         np.subtract(positions[a:a + _BLOCK], lo, out=w)
         np.divide(w, edge, out=w)
         np.floor(w, out=w)
-        w += 1
-        w *= scale
-        yield a, w[:, 0] + w[:, 1] + w[:, 2]
+        key = w[:, 0] * s0
+        key += w[:, 1] * s1
+        key += w[:, 2] * s2 if s2 != 1 else w[:, 2]
+        key += base
+        yield a, key
 
 
 def cell_keys(positions: np.ndarray, edge: float, box: tuple | None = None
