@@ -9,8 +9,6 @@ from __future__ import annotations
 
 import hashlib
 import shutil
-import subprocess
-import sys
 import threading
 from collections.abc import Iterator
 from pathlib import Path
@@ -19,6 +17,7 @@ import numpy as np
 import pytest
 import yaml
 from editor_client import Client
+from editor_pairs_edit import deform_again, points_edit
 
 import splatdeform as sd
 from data_tools.synth import bumpy_bar
@@ -29,8 +28,6 @@ from splatdeform.editor.session import Session
 from splatdeform.errors import InputError
 
 N = 2000
-GCP = ("x,y,z,X,Y,Z\n3.5,0,0,3.5,0.3,0.1\n4.5,0.2,0,4.6,0.5,0\n"
-       "2.5,-0.2,0.1,2.5,0,0.2\n4,0,-0.1,4,0.2,0\n")
 
 
 @pytest.fixture(scope="module")
@@ -40,33 +37,12 @@ def bar_path(tmp_path_factory) -> Path:
     return path
 
 
-def points_edit(folder: Path, bar: Path, extra: str = "") -> Path:
-    """pts.yaml beside a copy of ``bar``: a fixed box and the pairs of gcp.csv."""
-    shutil.copy(bar, folder / "bar.ply")
-    (folder / "gcp.csv").write_text(GCP)
-    path = folder / "pts.yaml"
-    path.write_text("input: bar.ply\noutput: pts_out.ply\nfit: {tolerance: 0.001}\n"
-                    "regions:\n  fixed: [{box: {min: [-1,-1,-1], max: [1,1,1]}}]\n"
-                    "points:\n  pairs: {file: gcp.csv}\n" + extra)
-    return path
-
-
 def _local(ed: EditorController, p) -> list[float]:
     return [float(v) for v in np.asarray(p, float) - ed.origin]
 
 
 def _digest(path: Path) -> str:
     return hashlib.sha256(path.read_bytes()).hexdigest()
-
-
-def _deform_again(work: Path, saved_yaml: str, saved_model: str) -> None:
-    data = yaml.safe_load((work / saved_yaml).read_text())
-    data["output"] = "again.ply"
-    (work / "again.yaml").write_text(yaml.safe_dump(data))
-    run = subprocess.run([sys.executable, "-m", "splatdeform.cli", "deform", "again.yaml"],
-                         cwd=work, capture_output=True, text=True, timeout=300)
-    assert run.returncode == 0, run.stderr
-    assert (work / "again.ply").read_bytes() == (work / saved_model).read_bytes()
 
 
 # ---- the session ---------------------------------------------------------------------------
@@ -109,7 +85,7 @@ def test_pairs_are_added_moved_removed_undone_and_saved_inline(bar_path, tmp_pat
     assert rows.shape == (5, 6) and np.allclose(rows[:, 3:], shown)
     assert rows[0].tolist() == [3.6, 0.0, 0.0, 3.5, 0.4, 0.1]
     assert _digest(csv) == before_csv
-    _deform_again(tmp_path, "out.yaml", "out.ply")
+    deform_again(tmp_path, "out.yaml", "out.ply")
 
 
 def test_relative_units_stay_relative(bar_path, tmp_path):
@@ -131,7 +107,7 @@ def test_relative_units_stay_relative(bar_path, tmp_path):
     assert saved["regions"]["units"] == "relative"
     assert np.allclose(saved["points"]["pairs"][0], [0.2, 0.5, 0.5, 0.25, 0.7, 0.5])
     assert saved["points"]["pairs"][1:] == rows[1:]
-    _deform_again(tmp_path, "out.yaml", "out.ply")
+    deform_again(tmp_path, "out.yaml", "out.ply")
 
 
 def test_pairs_start_on_a_bare_model_and_the_last_one_removes_points(bar_path, tmp_path):
@@ -197,7 +173,7 @@ def test_a_handle_is_removed_and_undo_brings_it_and_its_fit_back(bar_path, tmp_p
     assert saved["regions"]["handle"] == [{"box": {"min": [3.5, -1.0, -1.0],
                                                    "max": [5.0, 1.0, 1.0]}}]
     assert np.allclose(np.asarray(saved["handle"]["matrix"])[:3, 3], (0, 0.4, 0))
-    _deform_again(tmp_path, "out.yaml", "out.ply")
+    deform_again(tmp_path, "out.yaml", "out.ply")
 
 
 # ---- hostile requests over HTTP ------------------------------------------------------------

@@ -299,8 +299,13 @@ const pairsGroup = new THREE.Group();
 scene3.add(pairsGroup);
 function renderPairs() {
   for (const o of [...pairsGroup.children]) { pairsGroup.remove(o); o.geometry.dispose(); o.material.dispose(); }
-  const pt = S.state && S.state.points;
+  let pt = S.state && S.state.points;
   if (!pt) return;
+  const d = S.pairDrag;  // a pair's end under the gizmo, drawn where it is dragged
+  if (d && d.index < pt.n) {
+    const key = d.end === 'source' ? 'sources' : 'targets';
+    pt = { ...pt, [key]: pt[key].map((p, i) => (i === d.index ? d.at : p)) };
+  }
   const seg = new Float32Array(6 * pt.n);
   for (let i = 0; i < pt.n; i++) seg.set([...pt.sources[i], ...pt.targets[i]], 6 * i);
   const g = new THREE.BufferGeometry();
@@ -455,10 +460,13 @@ async function applyState(st) {
   const sel = $('active-handle');
   sel.innerHTML = '';
   for (let h = 0; h < st.handles; h++) sel.add(new Option(`adds to handle ${h}`, h));
-  sel.value = Math.min(S.activeHandle, st.handles - 1);
+  S.activeHandle = Math.min(S.activeHandle, st.handles - 1);
+  sel.value = S.activeHandle;
+  $('remove-handle').disabled = st.handles < 2;
   if (S.selected && S.selected.type === 'selector' && !findSelector(S.selected)) S.selected = null;
   if (S.selected && S.selected.type === 'pose' && (!st.fit || st.stale)) S.selected = null;
   if (S.selected && S.selected.type === 'curve' && (!st.curve || S.selected.index >= st.curve.control.length)) S.selected = null;
+  if (S.selected && S.selected.type === 'pair' && (!st.points || S.selected.index >= st.points.n)) S.selected = null;
   if (!S.selected && st.fit && !st.stale) {  // the first handle's pose, else the curve's first point
     S.selected = st.fit.control.length ? { type: 'pose', handle: 0 } : st.curve ? { type: 'curve', index: 0 } : null;
   }
@@ -466,6 +474,7 @@ async function applyState(st) {
   renderOutlines();
   renderCurve();
   renderPairs();
+  applyPairInfo();
   const cv = st.curve;
   $('curveinfo').textContent = !cv ? 'no curve: click control points on the model'
     : `${cv.control.length} control points · band ${cv.band} points` + (cv.problem ? `\n⚠ ${cv.problem}` : '');
@@ -497,6 +506,7 @@ function selectorRows(y, depth, out) {
   return out;
 }
 
+const MAX_PAIR_ROWS = 200;  // pairs listed in the tree (any pair: click its dot on the view)
 function renderTree() {
   const tree = $('tree');
   tree.innerHTML = '';
@@ -509,7 +519,7 @@ function renderTree() {
     if (ref) {
       if (S.selected && ref.type === S.selected.type && ref.role === S.selected.role &&
           ref.handle === S.selected.handle && ref.index === S.selected.index) div.classList.add('sel');
-      div.onclick = () => { S.selected = ref; renderTree(); attachGizmo(); };
+      div.onclick = () => { S.selected = ref; renderTree(); attachGizmo(); applyPairInfo(); };
     }
     tree.appendChild(div);
   };
@@ -533,6 +543,12 @@ function renderTree() {
     for (let i = 0; i < cv.control.length; i++) {
       row(1, `point ${i}${moving ? ' · drag its moved point' : ''}`, { type: 'curve', index: i });
     }
+  }
+  const pt = S.state.points;
+  if (pt) {
+    row(0, `control-point pairs (${pt.n})`);
+    for (let i = 0; i < Math.min(pt.n, MAX_PAIR_ROWS); i++) row(1, `pair ${i}`, { type: 'pair', index: i });
+    if (pt.n > MAX_PAIR_ROWS) row(1, `… ${pt.n - MAX_PAIR_ROWS} more: click a pair's dot on the view`);
   }
   const s = S.selected && S.selected.type === 'selector' ? findSelector(S.selected) : null;
   if (s && document.activeElement !== $('sel-text')) $('sel-text').value = JSON.stringify(s.yaml);
@@ -565,12 +581,20 @@ function pivotOf(h) {
   return affine(S.poses[h], S.fit.control[4 * h]);
 }
 
+const pairEnd = () => $('pair-end').value;  // 'target' | 'source'
 function attachGizmo() {
   gizmo.detach();
   requestDraw();  // the gizmo's matrices are updated by the draw (its picking needs them)
   const sel = S.selected;
   if (!sel) return;
   gizmoTarget.quaternion.identity();
+  if (sel.type === 'pair') {  // the pair's target (or source): each drag is one move_pair
+    const pt = S.state.points;
+    gizmoTarget.position.fromArray((pairEnd() === 'source' ? pt.sources : pt.targets)[sel.index]);
+    gizmo.setMode('translate');
+    gizmo.attach(gizmoTarget);
+    return;
+  }
   if (sel.type === 'curve') {  // after a fit the moved point (the pose), before it the point
     const cv = S.state.curve, moving = S.state.fit && !S.state.stale;
     gizmoTarget.position.fromArray((moving ? cv.moved : cv.control)[sel.index]);
@@ -600,7 +624,10 @@ gizmo.addEventListener('dragging-changed', (e) => {
     return;
   }
   if (!sel || !drag) return;
-  if (sel.type === 'curve') {
+  if (sel.type === 'pair') {  // one request per drag: the server checks, refits, records
+    act({ op: 'move_pair', index: sel.index, [pairEnd()]: gizmoTarget.position.toArray() })
+      .then((st) => { S.pairDrag = null; return applyState(st); });
+  } else if (sel.type === 'curve') {
     act({ op: 'move_curve_point', index: sel.index, center: gizmoTarget.position.toArray(),
       moved: !!(S.state.fit && !S.state.stale), commit: true }).then(applyState);
   } else if (sel.type === 'pose') {
@@ -621,7 +648,11 @@ renderer.domElement.addEventListener('pointermove', (e) => { lastInput = perform
 gizmo.addEventListener('objectChange', () => {
   const sel = S.selected;
   if (!sel || !drag) { requestDraw(); return; }
-  if (sel.type === 'curve') {
+  if (sel.type === 'pair') {  // the arrow follows the gizmo; the fit follows at the drag's end
+    S.pairDrag = { index: sel.index, end: pairEnd(), at: gizmoTarget.position.toArray() };
+    renderPairs();
+    requestDraw();
+  } else if (sel.type === 'curve') {
     const cv = S.state.curve, p = gizmoTarget.position.toArray();
     if (S.state.fit && !S.state.stale) {  // a pose step: new delta C, a draw, 1 point to the server
       cv.moved[sel.index] = p;
@@ -680,25 +711,71 @@ function forEachOnScreen(visit) {
   return { rect, p };
 }
 
-// The nearest point drawn within 12 px of a click (local coordinates), or null.
-function pick(clientX, clientY) {
+// The nearest point drawn within 12 px of a click: its index and drawn position (local
+// coordinates), or null.
+function pickPoint(clientX, clientY) {
   const canvas = renderer.domElement.getBoundingClientRect();
   const x = clientX - canvas.left, y = clientY - canvas.top;
   let best = -1, bestZ = Infinity;
   const { p } = forEachOnScreen((i, sx, sy, w) => {
     if ((sx - x) ** 2 + (sy - y) ** 2 < 144 && w < bestZ) { bestZ = w; best = i; }
   });
-  return best < 0 ? null : [p[3 * best], p[3 * best + 1], p[3 * best + 2]];
+  return best < 0 ? null : { index: best, at: [p[3 * best], p[3 * best + 1], p[3 * best + 2]] };
+}
+function pick(clientX, clientY) {
+  const hit = pickPoint(clientX, clientY);
+  return hit && hit.at;
 }
 window.sdPick = pick;
+
+// The pair whose source or target dot is drawn within 8 px of a click (the nearest), or -1.
+function pickPair(clientX, clientY) {
+  const pt = S.state && S.state.points;
+  if (!pt) return -1;
+  let best = -1, bestD = 64;
+  for (let i = 0; i < pt.n; i++) {
+    for (const p of [pt.sources[i], pt.targets[i]]) {
+      const [sx, sy] = window.sdScreenOf(p), d = (sx - clientX) ** 2 + (sy - clientY) ** 2;
+      if (d < bestD) { bestD = d; best = i; }
+    }
+  }
+  return best;
+}
+
+function selectPair(index) {
+  S.selected = { type: 'pair', index };
+  renderTree(); attachGizmo(); applyPairInfo();
+}
+function applyPairInfo() {
+  const pt = S.state && S.state.points, on = !!(S.selected && S.selected.type === 'pair');
+  $('pair-remove').disabled = !on;
+  $('pairinfo').textContent = !pt ? 'no pairs: "add pair", then click a source on the model'
+    : `${pt.n} pairs · select one in the tree or click its dot, drag it with the gizmo` +
+      (on ? ` · pair ${S.selected.index} selected` : '');
+}
 
 let down = null;
 renderer.domElement.addEventListener('pointerdown', (e) => { down = [e.clientX, e.clientY]; });
 renderer.domElement.addEventListener('pointerup', async (e) => {
-  if (!down || !S.placing || gizmo.dragging) return;
+  if (!down || gizmo.dragging || S.tool || stroke) return;
   if (Math.hypot(e.clientX - down[0], e.clientY - down[1]) > 4) return;
-  const at = pick(e.clientX, e.clientY);
-  if (!at) { $('status').textContent = 'no point under the cursor: click on the model'; return; }
+  if (!S.placing) {  // a click on a pair's dot selects that pair
+    const i = pickPair(e.clientX, e.clientY);
+    if (i >= 0) selectPair(i);
+    return;
+  }
+  const hit = pickPoint(e.clientX, e.clientY);
+  if (!hit) { $('status').textContent = 'no point under the cursor: click on the model'; return; }
+  const at = hit.at;
+  if (S.placing[0] === 'pair') {  // the source: the picked point where the model was (undeformed)
+    S.placing = null;
+    const P = S.arrays.positions, i = hit.index;
+    const st = await act({ op: 'add_pair', source: [P[3 * i], P[3 * i + 1], P[3 * i + 2]] });
+    if (!st.error && st.points) S.selected = { type: 'pair', index: st.points.n - 1 };
+    await applyState(st);
+    if (!st.error) $('status').textContent = (st.message ? `${st.message} · ` : '') + 'drag the new pair\'s target with the gizmo';
+    return;
+  }
   if (S.placing[0] === 'curve') {  // stays on: every click adds a control point until "done"
     await applyState(await act({ op: 'add_curve_point', center: at }));
     return;
@@ -826,6 +903,20 @@ $('curve-remove').onclick = async () => { S.selected = null; applyState(await ac
 $('curve-radius').onchange = async () => applyState(await act({ op: 'curve_settings', capture_radius: Number($('curve-radius').value) }));
 $('curve-degree').onchange = async () => applyState(await act({ op: 'curve_settings', degree: Number($('curve-degree').value) }));
 $('active-handle').onchange = () => { S.activeHandle = Number($('active-handle').value); };
+$('remove-handle').onclick = async () => {
+  const handle = Number($('active-handle').value || 0);
+  if (S.selected && S.selected.type === 'pose') S.selected = null;
+  applyState(await act({ op: 'remove_handle', handle }));
+};
+$('pair-add').onclick = () => { S.placing = ['pair']; S.tool = null;
+  $('status').textContent = 'click on the model: the point becomes the new pair\'s source'; };
+$('pair-remove').onclick = async () => {
+  if (!(S.selected && S.selected.type === 'pair')) { $('status').textContent = 'select a pair first'; return; }
+  const index = S.selected.index;
+  S.selected = null;
+  applyState(await act({ op: 'remove_pair', index }));
+};
+$('pair-end').onchange = attachGizmo;
 $('new-handle').onclick = async () => { const st = await act({ op: 'add_handle' }); S.activeHandle = st.handles - 1; applyState(st); };
 $('fit').onclick = async () => {
   $('fit').disabled = true; $('fitinfo').textContent = 'fitting …';
@@ -838,6 +929,13 @@ $('reset').onclick = async () => applyState(await act({ op: 'reset_pose', handle
 $('undo').onclick = async () => applyState(await act({ op: 'undo' }));
 $('redo').onclick = async () => applyState(await act({ op: 'redo' }));
 $('remove').onclick = async () => {
+  if (S.selected && S.selected.type === 'pair') { $('pair-remove').click(); return; }
+  if (S.selected && S.selected.type === 'pose') {  // a handle's row: the handle and its pose
+    const handle = S.selected.handle;
+    S.selected = null;
+    applyState(await act({ op: 'remove_handle', handle }));
+    return;
+  }
   if (S.selected && S.selected.type === 'curve') {
     const index = S.selected.index;
     S.selected = null;
@@ -988,7 +1086,7 @@ window.sdGizmo = gizmo;
 window.sdDebug = { model: () => model, outlines, gizmo, order: () => S.order, curve: () => curveGroup, pairs: () => pairsGroup };
 window.sdAct = async (req) => { const st = await act(req); await applyState(st); return st; };
 window.sdState = () => S.shown;
-window.sdSelect = (ref) => { S.selected = ref; renderTree(); attachGizmo(); };
+window.sdSelect = (ref) => { S.selected = ref; renderTree(); attachGizmo(); applyPairInfo(); };
 window.sdScreenOf = (p) => {  // page pixel of a local point (tests click on the model)
   const v = new THREE.Vector3(...p).project(camera), rect = renderer.domElement.getBoundingClientRect();
   return [rect.left + (v.x * 0.5 + 0.5) * rect.width, rect.top + (0.5 - v.y * 0.5) * rect.height];
