@@ -192,7 +192,7 @@ def run_edit(config: EditPlan | EditConfig | dict | str | Path,
     result.points = plain.report(cfg, model, base_dir, deformation, delta_c)
     if plan.output is not None:
         t0 = time.perf_counter()
-        with writing(**cfg.save.model_dump()):   # save: spz_version, sog_quality, pcd_data
+        with writing(**cfg.save.model_dump()):   # every save: key (spz_version, sog_order...)
             result.output = save(deformed, plan.output)
         timings["save"] = time.perf_counter() - t0
     return result
