@@ -429,15 +429,16 @@ def read_source(path: str | Path) -> tuple[PcdSource, int]:
 
 
 def _read(path: str | Path, groups: tuple[tuple[str, ...], ...] = ()
-          ) -> tuple[PcdSource, int, list[np.ndarray | None]]:
+          ) -> tuple[PcdSource, int, list[tuple[np.ndarray | None, bool]]]:
     """:func:`read_source`'s (source, body offset) and, per group of field names in
-    ``groups``, their (N, len(group)) float64 values taken from a compressed block's columns
-    as the records are filled (None for the other encodings, or where a field is missing or
-    has COUNT > 1: :func:`_columns` of the records then). The header is parsed from the file's
-    first bytes and checked against its size; a binary or compressed body is read alone (the
-    compressed block straight into the buffer the decoder reads, no copy of the file)."""
+    ``groups``, (their (N, len(group)) float64 values, whether every one is finite), taken
+    from a compressed block's columns as the records are filled ((None, False) for the other
+    encodings, or where a field is missing or has COUNT > 1: :func:`_columns` of the records
+    then). The header is parsed from the file's first bytes and checked against its size; a
+    binary or compressed body is read alone (the compressed block straight into the buffer
+    the decoder reads, no copy of the file)."""
     path = Path(path)
-    none: list[np.ndarray | None] = [None] * len(groups)
+    none: list[tuple[np.ndarray | None, bool]] = [(None, False)] * len(groups)
     with open_regular(path) as fh:
         size = os.fstat(fh.fileno()).st_size
         head = fh.read(HEAD_BYTES + 8)
@@ -473,14 +474,17 @@ def _read(path: str | Path, groups: tuple[tuple[str, ...], ...] = ()
         offset += sub.itemsize * points
     outs = [np.empty((points, len(g)), dtype=np.float64)
             if all(n in columns and not dtype[n].shape for n in g) else None for g in groups]
+    finite = [out is not None for out in outs]
     for start in range(0, points, FILL_ROWS):   # each block's records written from the cache
         stop = start + FILL_ROWS
         for name, column in columns.items():
             data[name][start:stop] = column[start:stop]
-        for out, group in zip(outs, groups, strict=True):
+        for k, (out, group) in enumerate(zip(outs, groups, strict=True)):
             for i, name in enumerate(group if out is not None else ()):
                 out[start:stop, i] = columns[name][start:stop]
-    return replace(source, data=data), at, outs
+            if finite[k]:
+                finite[k] = bool(np.isfinite(out[start:stop]).all())
+    return replace(source, data=data), at, list(zip(outs, finite, strict=True))
 
 
 def _columns(data: np.ndarray, names: tuple[str, ...]) -> np.ndarray | None:
@@ -527,14 +531,16 @@ def xyz_of(data: np.ndarray) -> np.ndarray:
 
 def read_model(path: str | Path, *, drop_nonfinite: bool = False) -> PointModel:
     xyz, normal_names = ("x", "y", "z"), ("normal_x", "normal_y", "normal_z")
-    source, _, (positions, normals) = _read(path, (xyz, normal_names))
+    source, _, ((positions, finite), (normals, normals_finite)) = _read(path,
+                                                                        (xyz, normal_names))
     data = source.data
     if positions is None:
         positions = _columns(data, xyz)
+        finite = bool(np.isfinite(positions).all())
     source = organized_holes(path, source, positions)
-    if source.finite is not None:
-        data, positions, normals = source.rows, positions[source.finite], None
-    if not np.isfinite(positions).all():   # the usual case: no per-point mask
+    if source.finite is not None:   # the finite cells
+        data, positions, normals, finite = source.rows, positions[source.finite], None, True
+    if not finite:   # the usual case has no per-point mask
         bad = nonfinite_points(path, positions, drop_nonfinite)
         keep = ~bad
         source = replace(source, data=data[keep], width=int(keep.sum()), height=1,
@@ -543,7 +549,8 @@ def read_model(path: str | Path, *, drop_nonfinite: bool = False) -> PointModel:
         data, positions, normals = source.data, positions[keep], None
     if normals is None:   # not from a compressed block, or points dropped: from the records
         normals = _columns(data, normal_names)
-    if normals is not None and not np.isfinite(normals).all():
+        normals_finite = normals is not None and bool(np.isfinite(normals).all())
+    if not normals_finite:
         normals = None
     colors = _colors(data)
     kind = classify(has_faces=False, has_normals=normals is not None, has_radius=False,
