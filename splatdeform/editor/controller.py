@@ -6,7 +6,7 @@ Actions: add / move / resize / remove selectors, :meth:`EditorController.fit`,
 :meth:`EditorController.set_pose` (delta_c applied to the precomputed basis, the per-frame path:
 :mod:`.frames`) and :meth:`EditorController.save` (deformed model, edit YAML, before/after PNG:
 :mod:`.saving`). The state changes only through these public methods (also
-:meth:`~EditorController.store_pose`, :meth:`~EditorController.set_covariance`,
+:meth:`~EditorController.store_pose`, ``set_covariance``, ``set_points``, ``remove_handle``,
 :meth:`~EditorController.snapshot` / :meth:`~EditorController.restore` for undo). Everything
 goes through the same pipeline as ``splatdeform deform``: the config models
 (:mod:`splatdeform.edit.config`), :func:`splatdeform.edit.precompute` for rings, fit and basis, and

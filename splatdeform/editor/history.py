@@ -2,7 +2,8 @@
 
 A snapshot (:class:`~.state.Snapshot`, from :meth:`EditorController.snapshot`) is the fixed
 selectors, per handle its selectors and (4, 4) pose, the curve (an immutable
-:class:`~.curve.CurveState`, its moved points included) and the Gaussians' covariance mode.
+:class:`~.curve.CurveState`, its moved points included), the Gaussians' covariance mode and
+the control-point pairs (the ``points:`` config, replaced whole on a change).
 Selectors are immutable values, so a snapshot is a few small tuples; it comes back through
 :meth:`EditorController.restore`. Restoring one that matches the last fit's
 regions makes that fit current again (the controller compares region keys), so undoing a wrong

@@ -5,9 +5,12 @@ Coordinates in requests and answers are *local* (model minus ``controller.origin
 draws them. Every change is recorded for undo / redo (:mod:`.history`); a pose drag sends
 ``pose`` messages (16 floats) and records once when the drag ends (``commit``).
 
-Requests name their action in ``op``; :data:`Session.OPS` is the table of actions. The session
+Requests name their action in ``op``; :data:`Session.OPS` is the table of actions (the pair
+actions and handle removal come from :mod:`.pairs`; with a current fit, a pair change and its
+undo / redo refit at once). The session
 changes the controller only through its public methods (selectors, :meth:`~.controller.
-EditorController.store_pose`, ``set_curve``, ``set_covariance``, ``save``; undo through
+EditorController.store_pose`, ``set_curve``, ``set_covariance``, ``set_points``,
+``remove_handle``, ``save``; undo through
 :mod:`.history`'s ``snapshot`` / ``restore``).
 """
 
