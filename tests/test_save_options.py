@@ -69,3 +69,22 @@ def test_sog_quality_and_pcd_data(splats: Path, tmp_path: Path) -> None:
     save(bumpy_bar(3000, seed=8), src)
     out = _run(_edit(src, "out.pcd", pcd_data="binary_compressed"), tmp_path)
     assert pcd_io.read_header(out)[0].encoding == "binary_compressed"
+
+
+def test_editor_save_writes_the_save_keys_as_deform(splats: Path, tmp_path: Path) -> None:
+    """The editor's Save honours ``save:`` (here SPZ v3) as ``deform`` does: the same bytes."""
+    from splatdeform.editor.controller import EditorController
+
+    cfg = tmp_path / "e.yaml"
+    cfg.write_text(yaml.safe_dump(_edit(splats, str(tmp_path / "out.spz"), spz_version=3)))
+    ed = EditorController.open(cfg)
+    ed.fit()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")   # the lossy writer's note
+        result = ed.save(model_path=tmp_path / "saved.spz", config_path=tmp_path / "s.yaml",
+                         image=False)
+    assert spz.read_info(result.model)["version"] == 3
+    assert yaml.safe_load(result.config.read_text())["save"]["spz_version"] == 3
+    run = run_cli("deform", str(result.config), "-o", str(tmp_path / "again.spz"))
+    assert run.returncode == 0, run.stderr
+    assert (tmp_path / "again.spz").read_bytes() == result.model.read_bytes()

@@ -39,8 +39,8 @@ def edit_yaml(settings: EditConfig, *, input_path: Path, output_path: Path, conf
     (``{"region": [...], "matrix" or "transform": ...}``, its region written as
     ``regions.handle``); handles: the ``handles:`` entries (None or empty: none); curve: the
     ``curve:`` mapping; settings: boundary, fit, normals, backend, device, render (its output
-    relative to ``base_dir``), memory budget and gaussians (written when set in ``settings``
-    or ``gaussians``)."""
+    relative to ``base_dir``), memory budget, the writers' ``save:`` options and gaussians
+    (written when set in ``settings`` or ``gaussians``)."""
     data: dict[str, Any] = {
         "input": relative_path(input_path, config_dir),
         "output": relative_path(output_path, config_dir),
@@ -77,6 +77,9 @@ def edit_yaml(settings: EditConfig, *, input_path: Path, output_path: Path, conf
         data["render"] = render
     if s.memory_budget is not None:
         data["memory_budget"] = s.memory_budget
+    saving = {k: v for k, v in s.save.model_dump().items() if v is not None}
+    if saving:   # the writers' options (spz_version, sog_quality, ...): the same bytes again
+        data["save"] = saving
     return data
 
 

@@ -229,7 +229,10 @@ def _save(ed: EditorState, model_path: str | Path | None,
     text = yaml_text(to_yaml_dict(ed, output=out, config_dir=ypath.resolve().parent),
                      "splatdeform edit written by the editor; reproduce with:\n"
                      f"  splatdeform deform {ypath.name}")
-    written = save_model(deformed, out)
+    from ..io.options import writing
+
+    with writing(**ed.to_config().save.model_dump()):   # the save: keys, as deform writes
+        written = save_model(deformed, out)
     with atomic_write(ypath) as stream:
         stream.write(text.encode())
     if view is not None:
