@@ -448,7 +448,11 @@ def _read(path: str | Path, groups: tuple[tuple[str, ...], ...] = ()
         if source.encoding == "binary_compressed":
             packed = _check_block(path, head, at, points, dtype.itemsize, size)
             fh.seek(at + 8)
-            block = np.empty(packed, dtype=np.uint8)   # numpy's large pages: fewer faults
+            # the block is read into the records' memory when it fits there (the records are
+            # filled only after it is decoded): one allocation of the file's size less
+            data = np.empty(points, dtype=dtype)
+            flat = data.view(np.uint8)
+            block = flat[:packed] if packed <= flat.size else np.empty(packed, np.uint8)
             block = block[:fh.readinto(block)]
         elif source.encoding == "binary":
             fh.seek(at)
@@ -465,7 +469,6 @@ def _read(path: str | Path, groups: tuple[tuple[str, ...], ...] = ()
         return replace(source, data=data, ascii_text=texts), at, none
     raw = lzf_decode(path, block, points * dtype.itemsize)
     del block
-    data = np.empty(points, dtype=dtype)
     columns, offset = {}, 0
     for name in source.fields:
         sub = dtype[name]
