@@ -167,7 +167,7 @@ def _apply(deformation: Deformation, model: PointModel, delta: np.ndarray,
     oneshot = isinstance(deformation.basis, DeferredBasis) and deformation.basis.stored is None
     if oneshot:  # d(x) and J(x) from the centers and W delta_c, chunk by chunk
         jac_free = _apply_oneshot(deformation, model, out, delta, needs_jac, covariance,
-                                  stats, keep_jac=split == "auto" and model.gaussians is not None)
+                                  stats, keep_jac=split == "auto" and _splittable(model))
     else:
         values = deformation.basis.values.astype(np.float64, copy=False)
         out.positions[free] = ap.displace(model.positions[free], values, delta)
@@ -193,14 +193,22 @@ def _apply(deformation: Deformation, model: PointModel, delta: np.ndarray,
             jac_free = ap.jacobians(grads, delta)
             _transform_attributes(model, out, free, jac_free, covariance, stats)
         _moving_attributes(deformation, model, out, delta, covariance, stats)
-        if split == "auto" and model.gaussians is not None:  # issue 37
-            from splatdeform.deform.split import fit_field, split_splats
+        if split == "auto" and _splittable(model):  # issues 37, 46: splats, surfel discs
+            from splatdeform.deform.split import fit_field
+            from splatdeform.deform.split_surfel import split_points
 
-            out = split_splats(model, out, free, jac_free, fit_field(deformation, delta),
+            out = split_points(model, out, free, jac_free, fit_field(deformation, delta),
                                moved=int(model.n_points - np.count_nonzero(deformation.fixed)),
                                covariance=covariance, transform=_transform_attributes,
                                stats=stats)
     return out
+
+
+def _splittable(model: PointModel) -> bool:
+    """True when ``gaussians.split`` may split points of ``model`` (splats, surfel axes)."""
+    from splatdeform.deform.split_surfel import splittable
+
+    return splittable(model)
 
 
 def _moving_attributes(deformation: Deformation, model: PointModel, out: PointModel,

@@ -154,6 +154,13 @@ def plan(scale_log: np.ndarray, rotation: np.ndarray, jac: np.ndarray,
     """The children per axis of M splats (rest log-scales (M, 3), quaternions (M, 4),
     Jacobians (M, 3, 3), :func:`curvature` (M, 3)) by the module's rule, before the cap."""
     sigma, rot = _frames(scale_log, rotation)
+    return plan_frames(sigma, rot, jac, curv)
+
+
+def plan_frames(sigma: np.ndarray, rot: np.ndarray, jac: np.ndarray,
+                curv: np.ndarray) -> SplitPlan:
+    """:func:`plan` from the extents (M, 3) and axes (M, 3, 3) (columns) themselves: a surfel
+    disc passes its two axes and a zero third extent (never split along it)."""
     jac = np.asarray(jac, np.float64)
     m = jac.shape[0]
     det = _det3(jac)
@@ -372,7 +379,7 @@ def put_first(out: PointModel, kids: Children, deformed: PointModel, *,
         if arr is not None:
             arr[kids.parent[first]] = getattr(deformed, name)[first]
     for name in ("scale_log", "rotation", "opacity", "sh_dc", "sh_rest"):
-        arr = getattr(result.gaussians, name)
+        arr = None if result.gaussians is None else getattr(result.gaussians, name)
         if arr is not None:
             arr[kids.parent[first]] = getattr(deformed.gaussians, name)[first]
     if result.source is not None and result.source.element("vertex") is not None:

@@ -166,7 +166,9 @@ def run_edit(config: EditPlan | EditConfig | dict | str | Path,
             save_deformation(reuse, key, deformation)
     else:
         timings.update({"rings": 0.0, "fit": 0.0, "basis": 0.0})
-    if reuse is not None and model.gaussians is not None and cfg.gaussians.split == "auto":
+    from splatdeform.deform.split_surfel import splittable
+
+    if reuse is not None and splittable(model) and cfg.gaussians.split == "auto":
         from splatdeform.deform.split import split_like_oneshot
 
         split_like_oneshot(deformation, cfg.backend, cfg.device)  # as without --reuse

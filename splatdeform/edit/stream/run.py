@@ -132,8 +132,11 @@ def dask_wants(path: str, start: int, stop: int, labels: np.ndarray, shared: Sha
 
 def may_split(src: ChunkFile, shared: Shared) -> bool:
     """True when a streamed edit may split splats: ``gaussians.split: auto``, a file of
-    splats and a field with an RBF part (an affine field never splits)."""
-    if shared.split != "auto" or not src.n_points or src.read(0, 1).gaussians is None:
+    splats or surfel discs with axes and a field with an RBF part (an affine field never
+    splits)."""
+    from splatdeform.deform.split_surfel import splittable
+
+    if shared.split != "auto" or not src.n_points or not splittable(src.read(0, 1)):
         return False
     return bool(np.any(np.asarray(shared.fit.weights, np.float64)[4:] @ shared.delta_c))
 

@@ -10,7 +10,8 @@ count (the PLY header, written first, counts the children): each chunk writes it
 split parent's row holding its child 0, and the other children (in parent-row, child order) go
 to a spill file (Dask: one children part per chunk) appended after every original row. The
 output is the in-memory file's rows in the in-memory order: byte-identical where the backend
-gives each point the same values whatever the chunking (one-shot evaluation does).
+gives each point the same values whatever the chunking (one-shot evaluation does). Surfel discs
+with tangent axes split the same way (:mod:`splatdeform.deform.split_surfel`).
 """
 
 from __future__ import annotations
@@ -25,6 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from splatdeform.deform import split as sp
+from splatdeform.deform import split_surfel as ssf
 
 #: at most this many children deformed at once in pass 5 (bounds the temporaries of a
 #: heavily split chunk; a chunk's own size when smaller)
@@ -70,12 +72,12 @@ def chunk_wants(model, deformation, delta_c: np.ndarray, start: int) -> Wants:
     J at the free centres and the bend test through :func:`splatdeform.deform.split.fit_field`
     of the chunk's (one-shot) ``deformation``, as the in-memory apply computes them."""
     free = deformation.free_idx
-    if model.gaussians is None or free.size == 0:
+    if not ssf.splittable(model) or free.size == 0:
         return np.zeros(0, np.int64), np.ones((0, 3), np.int64), np.zeros(0)
     field = sp.fit_field(deformation, delta_c)
     with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
         _, jac = field(model.positions[free], True)
-        rows, want = sp.wanted(model, free, jac, field)
+        rows, want = ssf.wanted_any(model, free, jac, field)
     keep = want.split
     return (rows[keep].astype(np.int64) + start, want.counts[keep].astype(np.uint8),
             want.excess[keep])
@@ -113,7 +115,7 @@ def chunk_children(model, out, deformation, delta_c: np.ndarray, rows: np.ndarra
         if hi <= lo:
             continue
         with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
-            kids, deformed, _ = sp.deformed_children(
+            kids, deformed, _ = ssf.deformed_any(
                 model, rows[lo:hi], counts[lo:hi], field, covariance=covariance,
                 transform=_transform_attributes, dtype=out.positions.dtype)
         check_finite(sp.take(model, kids.parent), deformed)   # as the in-memory apply's check
@@ -159,7 +161,7 @@ def field_split(fld, src, chunk: int, backend: str | None) -> Decision | None:
     from splatdeform.io.chunks import chunk_ranges
 
     if fld.meta.get("gaussians", {}).get("split", sp.DEFAULT_SPLIT) != "auto" or \
-            not src.n_points or src.read(0, 1).gaussians is None or \
+            not src.n_points or not ssf.splittable(src.read(0, 1)) or \
             not np.any(np.asarray(fld.fit.weights, np.float64)[4:] @ fld.delta_c):
         return None
     wants, moved = [], 0
