@@ -203,9 +203,9 @@ class BandAdjacency:
         seen = np.zeros(n, dtype=bool)
         seen[edges.ravel()] = True
         self.nodes = np.flatnonzero(seen)
-        lookup = np.empty(n, dtype=np.int64)
+        lookup = np.empty(n, dtype=np.int32 if self.nodes.size < 2**31 else np.int64)
         lookup[self.nodes] = np.arange(self.nodes.size)
-        self.local = _symmetric(lookup[edges], self.nodes.size)
+        self.local = _symmetric(lookup[edges].astype(np.int64), self.nodes.size)
 
     @property
     def shape(self) -> tuple[int, int]:
