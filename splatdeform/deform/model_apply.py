@@ -97,8 +97,9 @@ def apply(deformation: Deformation, model: PointModel, delta_c: np.ndarray, *,
     (:data:`splatdeform.deform.gaussians.COVARIANCE_MODES`); ``stats``, when given, receives
     ``refused_splats`` (splats whose covariance the ``rotation`` mode kept, det J <= 0).
     split: ``auto`` (default) replaces free-region splats one Gaussian cannot follow by
-    children appended after the originals (:mod:`splatdeform.deform.split`; ``stats`` then
-    receives split_splats, split_children, split_capped); ``off`` keeps the point count.
+    children appended after the originals (:mod:`splatdeform.deform.split`; surfel discs with
+    tangent axes alike, :mod:`splatdeform.deform.split_surfel`; ``stats`` then receives
+    split_splats, split_children, split_capped); ``off`` keeps the point count.
 
     Parameters
     ----------
@@ -116,8 +117,8 @@ def apply(deformation: Deformation, model: PointModel, delta_c: np.ndarray, *,
     stats : dict, optional
         Receives ``refused_splats`` (and the ``split_*`` counts).
     split : {"auto", "off"}
-        Split free-region splats one Gaussian cannot follow (``auto``, the default; models
-        without splats are never split).
+        Split free-region splats one Gaussian cannot follow, and surfel discs with tangent
+        axes one disc cannot follow (``auto``, the default; other models are never split).
 
     Returns
     -------

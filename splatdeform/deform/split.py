@@ -157,10 +157,11 @@ def plan(scale_log: np.ndarray, rotation: np.ndarray, jac: np.ndarray,
     return plan_frames(sigma, rot, jac, curv)
 
 
-def plan_frames(sigma: np.ndarray, rot: np.ndarray, jac: np.ndarray,
-                curv: np.ndarray) -> SplitPlan:
-    """:func:`plan` from the extents (M, 3) and axes (M, 3, 3) (columns) themselves: a surfel
-    disc passes its two axes and a zero third extent (never split along it)."""
+def plan_frames(sigma: np.ndarray, rot: np.ndarray, jac: np.ndarray, curv: np.ndarray,
+                max_children: int = MAX_CHILDREN) -> SplitPlan:
+    """:func:`plan` from the extents (M, 3) and axes (M, 3, 3) (columns) themselves, at most
+    ``max_children`` per splat: a surfel disc passes its two axes and a zero third extent
+    (never split along it)."""
     jac = np.asarray(jac, np.float64)
     m = jac.shape[0]
     det = _det3(jac)
@@ -193,7 +194,7 @@ def plan_frames(sigma: np.ndarray, rot: np.ndarray, jac: np.ndarray,
         active, axis = active[ex > 1], axis[ex > 1]
         nxt = counts[active].copy()
         nxt[np.arange(active.size), axis] += 1
-        fits = nxt.prod(axis=1) <= MAX_CHILDREN
+        fits = nxt.prod(axis=1) <= max_children
         active = active[fits]
         counts[active] = nxt[fits]
     return SplitPlan(counts, excess)

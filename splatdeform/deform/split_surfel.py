@@ -22,7 +22,8 @@ off the middle overshoot unless they stay large (the smallest children within 1.
 0.68 of the parent's extent however many there are). Hence :data:`LAYOUTS`: 2 children at
 +-0.2 (each 0.8 along, 1.04 across), 3 at 0, +-0.28 (0.72 along, 1.01 across) along one axis,
 or 2 x 2 at (+-0.18, +-0.18) (0.84 on both axes), in disc units. The splat rule's counts per
-axis map to these: both axes split -> 2 x 2, else min(count, 3) along the split axis.
+axis (grown to at most 4 children, the layouts' largest) map to these: both axes split ->
+2 x 2, else min(count, 3) along the split axis.
 
 Round surfels (a radius and a normal, no axes) are not split: their children must be round,
 and round discs covering a disc from off-centre overshoot it by far more than 1.1 x.
@@ -99,7 +100,7 @@ def wanted_surfels(model: PointModel, rows: np.ndarray, jac: np.ndarray, field: 
     sigma, rot = surfel_frames(model.axes[rows])
     curv = sp.curvature(model.positions[rows], sigma, rot, field) if rows.size \
         else np.zeros((0, 3))
-    want = sp.plan_frames(sigma, rot, jac, curv)
+    want = sp.plan_frames(sigma, rot, jac, curv, max_children=4)   # the layouts' largest
     return rows, sp.SplitPlan(surfel_counts(want.counts), want.excess)
 
 

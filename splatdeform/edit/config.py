@@ -270,8 +270,9 @@ class GaussiansCfg(_Strict):
     split: Literal["auto", "off"] = Field(
         DEFAULT_SPLIT, description="`auto`: split free-region splats one Gaussian cannot "
         "follow into children (the written file, streamed or not, and `deform --render`; the "
-        "editor's live pose and animation frames draw them unsplit); `off`: keep the splat "
-        "count")
+        "editor's live pose and animation frames draw them unsplit); it also governs surfel "
+        "discs with tangent axes (`ux`..`vz`), split by the same rule (round surfels are never "
+        "split); `off`: keep the point count")
 
 
 UpAxis = Literal["+x", "+y", "+z", "-x", "-y", "-z"]
