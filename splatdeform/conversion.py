@@ -34,7 +34,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import InputError
+from .errors import FormatError, InputError
 from .model import MAX_SCALE, MIN_SCALE, PointModel
 
 #: splat-transform's frame is the file's turned 180 degrees about z (measured with 3.7.0)
@@ -261,7 +261,10 @@ def _copy_ply(src: Path, dst: Path) -> bool:
     checks = _verbatim_checks(chunks.dtype)
 
     def verbatim(a: int, b: int) -> tuple[np.ndarray, list]:
-        rows = chunks.rows(a, b)
+        fh.seek(chunks.data_offset + a * chunks.record_bytes)   # the chunks come in order
+        rows = np.fromfile(fh, dtype=chunks.dtype, count=b - a)
+        if len(rows) != b - a:
+            raise FormatError(f"{src}: truncated binary body at vertex {a}")
         if _rows_verbatim(chunks, rows, *checks):
             return rows, chunks.props
         return chunks.encode(chunks.model_of(rows))   # raises the load's error, if any
@@ -271,7 +274,8 @@ def _copy_ply(src: Path, dst: Path) -> bool:
             map_chunks(chunks, dst, lambda a, b: chunks.encode(chunks.read(a, b)), chunk,
                        read_ahead=True)
         else:
-            map_chunks(chunks, dst, verbatim, chunk)
+            with open(src, "rb") as fh:   # one handle for every chunk
+                map_chunks(chunks, dst, verbatim, chunk)
     except Exception:   # noqa: BLE001 - nothing written (atomic): the whole load says why
         return False
     return True
