@@ -84,7 +84,8 @@ def test_cli_typos_suggest(tmp_path, scans, argv, hint):
 def test_example_list_and_write(tmp_path):
     listed = run_cli("example", "--list", cwd=tmp_path)
     assert listed.returncode == 0
-    assert [ln.split()[0] for ln in listed.stdout.splitlines()] == ["bar", "curve", "sphere"]
+    assert [ln.split()[0] for ln in listed.stdout.splitlines()] == [
+        "bar", "curve", "sphere", "rubber_sheet"]
     assert run_cli("example", "bar", cwd=tmp_path).returncode == 0
     ply = (tmp_path / "scans" / "bar.ply").read_bytes()
     assert hashlib.sha256(ply).digest() == hashlib.sha256(
