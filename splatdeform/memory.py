@@ -53,7 +53,10 @@ BASE_BYTES = 150 * 2**20   # interpreter + numpy + scipy + pyopencl resident (me
 DEFORM_BYTES_PER_POINT = 150
 # A stored basis (--reuse, the editor): b and grad b of every point in float32, k = 4 columns
 STORED_BASIS_BYTES_PER_POINT = 4 * 16 * 4
-KNN_BYTES_PER_NEIGHBOR = 16
+# the rings' kNN graph, per point and neighbour: 16 bytes over the border band only (the
+# points with an edge: ~0.3M of a 5M bend), so counted as half the points' worth, with room
+# for wide bands; the 5M bend measured ~220 B/point in all (issue 45)
+KNN_BYTES_PER_NEIGHBOR = 8
 FIT_BYTES_PER_CENTER = 128 * 2**10   # the fit's working set per allowed center (fit.max_centers)
 
 # Streaming (deform's out-of-core path): per point of a chunk beyond ~4 copies of its record
