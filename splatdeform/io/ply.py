@@ -28,7 +28,14 @@ from ..model import (
 from . import playcanvas
 from .checks import check_fits, infinite_opacity_ok
 from .chunks import ChunkFile
-from .ply_format import MAX_HEADER_BYTES, header_text, parse_header, read_ply, write_ply
+from .ply_format import (
+    MAX_HEADER_BYTES,
+    _write_binary_element,
+    header_text,
+    parse_header,
+    read_ply,
+    write_ply,
+)
 from .splats import finite_opacity
 
 AXIS_NAMES = ("ux", "uy", "uz", "vx", "vy", "vz")
@@ -422,78 +429,172 @@ def _plain_ply_input(model: PointModel) -> bool:
     return name.endswith(".ply") and not name.endswith(".compressed.ply")
 
 
-def source_for_save(model: PointModel) -> PlySource:
-    """The PlySource a save writes: the verbatim source with the model's geometry written in."""
+def _save_columns(model: PointModel, names: tuple[str, ...]
+                  ) -> list[tuple[str, np.ndarray, str, bool]]:
+    """What a save writes into the vertex element, in order: (property name, values (N,),
+    PLY type of a new property, ``changed``: an existing 3DGS field whose unchanged rows keep
+    their bytes, so that a double-typed column keeps its untouched values bit-exact).
+    ``names``: the source vertex element's fields (empty without a source)."""
+    cols: list[tuple[str, np.ndarray, str, bool]] = []
+    pos_type = "double" if model.source is None else "float"
+    cols += [(axis, model.positions[:, i], pos_type, False) for i, axis in enumerate("xyz")]
+    if model.normals is not None:
+        cols += [(n, model.normals[:, i], "float", False)
+                 for i, n in enumerate(("nx", "ny", "nz"))]
+    if model.colors is not None and (model.source is None or "red" in names):
+        cols += [(n, model.colors[:, i], "uchar", False)
+                 for i, n in enumerate(("red", "green", "blue"))]
+    if model.radius is not None:
+        name = next((n for n in RADIUS_NAMES if n in names), "radius")
+        cols.append((name, model.radius, "float", False))
+    if model.axes is not None and (model.radius is None or "ux" in names):
+        flat = model.axes.reshape(-1, 6)
+        cols += [(n, flat[:, i], "float", False) for i, n in enumerate(AXIS_NAMES)]
+    g = model.gaussians
+    if g is not None:
+        cols += [(f"scale_{i}", g.scale_log[:, i], "float", False) for i in range(3)]
+        cols += [(f"rot_{i}", g.rotation[:, i], "float", False) for i in range(4)]
+        # SH (rotated by deformations) and the other 3DGS fields: only changed rows are written
+        opacity = g.opacity if g.opacity is None or _plain_ply_input(model) else \
+            finite_opacity(g.opacity)   # alpha 0 / 1 of a quantised file: finite in a PLY
+        extra = [("opacity", opacity)] if opacity is not None else []
+        for part, prefix in ((g.sh_dc, "f_dc_"), (g.sh_rest, "f_rest_")):
+            if part is not None:
+                extra += [(f"{prefix}{i}", part[:, i]) for i in range(part.shape[1])]
+        cols += [(name, values, "float", name in names) for name, values in extra]
+    return cols
+
+
+def _save_start(model: PointModel) -> tuple[PlySource, np.ndarray, list[PlyProperty]]:
+    """(the source a save starts from, its vertex rows (not copied), their properties)."""
     if model.source is not None:
         source = model.source
         vertex = source.element("vertex")
-        data = vertex.data.copy()
-        props = list(vertex.properties)
+        data, props = vertex.data, list(vertex.properties)
     else:
         source = PlySource(elements=[], comments=["written by splatdeform"], text=False,
                            byte_order="<")
-        data = np.empty(model.n_points, dtype=[])
-        props = []
+        data, props = np.empty(model.n_points, dtype=[]), []
     if data.shape[0] != model.n_points:
         raise FormatError(f"model has {model.n_points} points but its PLY source "
                           f"{data.shape[0]} vertices; cannot save it verbatim")
-    pos_type = "double" if model.source is None else "float"
-    for i, axis in enumerate("xyz"):
-        data, props = _set_field(data, props, axis, model.positions[:, i], pos_type)
-    if model.normals is not None:
-        for i, n in enumerate(("nx", "ny", "nz")):
-            data, props = _set_field(data, props, n, model.normals[:, i])
-    if model.colors is not None and (model.source is None or "red" in data.dtype.names):
-        for i, n in enumerate(("red", "green", "blue")):
-            data, props = _set_field(data, props, n, model.colors[:, i], "uchar")
-    if model.radius is not None:
-        name = next((n for n in RADIUS_NAMES if n in (data.dtype.names or ())), "radius")
-        data, props = _set_field(data, props, name, model.radius)
-    if model.axes is not None and (model.radius is None or "ux" in (data.dtype.names or ())):
-        flat = model.axes.reshape(-1, 6)
-        for i, n in enumerate(AXIS_NAMES):
-            data, props = _set_field(data, props, n, flat[:, i])
-    g = model.gaussians
-    if g is not None:
-        for i in range(3):
-            data, props = _set_field(data, props, f"scale_{i}", g.scale_log[:, i])
-        for i in range(4):
-            data, props = _set_field(data, props, f"rot_{i}", g.rotation[:, i])
-        # SH (rotated by deformations) and the other 3DGS fields; only changed rows are written
-        # so that a double-typed column keeps its untouched values bit-exact
-        opacity = g.opacity if g.opacity is None or _plain_ply_input(model) else \
-            finite_opacity(g.opacity)   # alpha 0 / 1 of a quantised file: finite in a PLY
-        columns = [("opacity", opacity)] if opacity is not None else []
-        for part, prefix in ((g.sh_dc, "f_dc_"), (g.sh_rest, "f_rest_")):
-            if part is not None:
-                columns += [(f"{prefix}{i}", part[:, i]) for i in range(part.shape[1])]
-        for name, values in columns:
-            if name in (data.dtype.names or ()):
-                changed = data[name].astype(values.dtype) != values
-                check_fits(f"PLY property {name}", values[changed], data.dtype[name])
-                data[name][changed] = values[changed]
-            else:
-                data, props = _set_field(data, props, name, values)
-    elements = [el for el in source.elements]
+    return source, data, props
+
+
+def _elements(model: PointModel, source: PlySource, new_vertex: PlyElementData
+              ) -> list[PlyElementData]:
+    """The elements a save writes: the source's with ``new_vertex`` in place of its vertex
+    element, or (no source) ``new_vertex`` and the model's triangles."""
+    if model.source is not None:
+        return [new_vertex if el.name == "vertex" else el for el in source.elements]
+    elements = [new_vertex]
+    if model.faces is not None and model.n_faces:
+        column = np.empty(model.n_faces, dtype=object)
+        column[:] = list(model.faces.astype(np.int32))
+        face = np.empty(model.n_faces, dtype=[("vertex_indices", object)])
+        face["vertex_indices"] = column
+        elements.append(PlyElementData(
+            "face", [PlyProperty("vertex_indices", "i4", "int", True, "u1", "uchar")], face))
+    return elements
+
+
+def source_for_save(model: PointModel) -> PlySource:
+    """The PlySource a save writes: the verbatim source with the model's geometry written in."""
+    source, data, props = _save_start(model)
+    data = data.copy()
+    for name, values, type_name, changed_only in _save_columns(model, data.dtype.names or ()):
+        if changed_only:
+            changed = data[name].astype(values.dtype) != values
+            check_fits(f"PLY property {name}", values[changed], data.dtype[name])
+            data[name][changed] = values[changed]
+        else:
+            data, props = _set_field(data, props, name, values, type_name)
     new_vertex = PlyElementData("vertex", props, data, None if model.source is None
                                 else source.element("vertex").ascii_text)
-    if model.source is None:
-        elements = [new_vertex]
-        if model.faces is not None and model.n_faces:
-            column = np.empty(model.n_faces, dtype=object)
-            column[:] = list(model.faces.astype(np.int32))
-            face = np.empty(model.n_faces, dtype=[("vertex_indices", object)])
-            face["vertex_indices"] = column
-            elements.append(PlyElementData(
-                "face", [PlyProperty("vertex_indices", "i4", "int", True, "u1", "uchar")], face))
-    else:
-        elements = [new_vertex if el.name == "vertex" else el for el in elements]
-    return replace(source, elements=elements)
+    return replace(source, elements=_elements(model, source, new_vertex))
+
+
+#: bytes of vertex records a binary save builds at a time (:func:`write_model`)
+SAVE_BLOCK_BYTES = 4 << 20
+
+
+def _save_plan(model: PointModel, data: np.ndarray, props: list[PlyProperty]
+               ) -> tuple[list[tuple[str, np.ndarray, str, bool]], list[PlyProperty]] | None:
+    """The columns and the output's vertex properties of a block-wise save, every value
+    checked as :func:`source_for_save` checks it (the same refusal first); None where the
+    rows cannot be written block by block (list properties, fields unlike their
+    properties)."""
+    names = data.dtype.names or ()
+    if any(p.is_list for p in props) or names != tuple(p.name for p in props) or any(
+            data.dtype[p.name].newbyteorder("=") != np.dtype(p.dtype) for p in props):
+        return None
+    cols = _save_columns(model, names)
+    props = list(props)
+    for name, values, type_name, changed_only in cols:
+        what = f"PLY property {name}"
+        if name not in names:
+            check_fits(what, values, PLY_CODES[type_name])
+            props.append(PlyProperty(name, PLY_CODES[type_name], type_name))
+            continue
+        try:
+            check_fits(what, values, data.dtype[name])
+        except FormatError:
+            if not changed_only:
+                raise
+            changed = data[name].astype(values.dtype) != values   # only these are written
+            check_fits(what, values[changed], data.dtype[name])
+    return cols, props
+
+
+def _write_blocks(out, data: np.ndarray, cols: list[tuple[str, np.ndarray, str, bool]],
+                  dtype: np.dtype) -> None:
+    """The vertex records ``dtype`` (the output's layout): the source's fields of ``data``
+    with ``cols`` written in, built and written :data:`SAVE_BLOCK_BYTES` at a time into one
+    reused buffer (the same bytes as :func:`source_for_save`'s whole element)."""
+    n = data.shape[0]
+    rows = max(1, SAVE_BLOCK_BYTES // max(dtype.itemsize, 1))
+    buf = np.empty(min(rows, n), dtype=dtype)
+    names = data.dtype.names or ()
+    whole = {name for name, _, _, changed_only in cols if not changed_only}
+    kept = [name for name in names if name not in whole]   # fields the columns leave as read
+    for lo in range(0, n, rows):
+        hi = min(lo + rows, n)
+        block = buf[:hi - lo]
+        for name in kept:
+            block[name] = data[name][lo:hi]
+        for name, values, _, changed_only in cols:
+            part = values[lo:hi]
+            if changed_only:
+                changed = data[name][lo:hi].astype(values.dtype) != part
+                block[name][changed] = part[changed].astype(data.dtype[name])
+            elif name in names:
+                block[name] = part.astype(data.dtype[name], copy=False)
+            else:
+                block[name] = part
+        out.write(block.view(np.uint8))
 
 
 def write_model(model: PointModel, stream, *, text: bool | None = None) -> None:
-    """Write ``model`` as PLY to an open binary stream."""
-    write_ply(source_for_save(model), stream, text=text)
+    """Write ``model`` as PLY to an open binary stream: a binary file's vertex records a
+    block at a time (no whole copy of them), the same bytes as
+    ``write_ply(source_for_save(model))``, which writes the rest (ascii files, list
+    properties)."""
+    source, data, props = _save_start(model)
+    plan = None if (source.text if text is None else text) else _save_plan(model, data, props)
+    if plan is None:
+        write_ply(source_for_save(model), stream, text=text)
+        return
+    cols, props = plan
+    bo = source.byte_order
+    placeholder = PlyElementData("vertex", props, np.empty(model.n_points, dtype=[]))
+    elements = _elements(model, source, placeholder)
+    stream.write(header_text(replace(source, elements=elements), False, bo))
+    for el in elements:
+        if el is placeholder:
+            _write_blocks(stream, data, cols,
+                          np.dtype([(p.name, bo + p.dtype) for p in props]))
+        else:
+            _write_binary_element(stream, el, bo)
 
 
 # ---- chunked access (streaming, Dask) ----------------------------------------------------
