@@ -7,6 +7,7 @@ Real OpenCL (PoCL), real files through the edit layer."""
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 
 import numpy as np
@@ -217,3 +218,66 @@ def test_cli_deform_one_shot_equals_reuse(scans, backend, tmp_path):
     assert moved.any() and np.isin(changed, np.flatnonzero(moved)).all()
     assert np.abs(a.positions - b.positions).max() <= 2e-6 * base.diagonal()
     assert np.abs(a.normals - b.normals).max() <= 1e-5
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+@pytest.mark.parametrize("chunk", [None, 97])
+def test_rows_equal_the_gathered_points(backend, chunk):
+    """``rows``: the points read from the whole array a block at a time give the bits of the
+    gathered copy, chunk for chunk (OpenCL across several gathered blocks too)."""
+    fit, rng = _fit(seed=3)
+    pts = rng.uniform(-2, 3, size=(5000, 3)) + [10.0, -4.0, 2.0]
+    rows = np.flatnonzero(rng.uniform(size=5000) < 0.6)
+    delta = rng.normal(size=(4, 3))
+    def kept(chunks):   # copies: the yielded arrays are buffers a later step reuses
+        return [(lo, hi, np.array(d), np.array(g)) for lo, hi, d, g in chunks]
+
+    got = kept(oneshot_chunks(pts, fit, delta, backend=backend, chunk=chunk, rows=rows))
+    want = kept(oneshot_chunks(pts[rows], fit, delta, backend=backend, chunk=chunk))
+    spans = [(lo, hi) for lo, hi, *_ in got]
+    assert spans[0][0] == 0 and spans[-1][1] == rows.size
+    assert all(a[1] == b[0] for a, b in zip(spans, spans[1:], strict=False))
+    if backend == "numpy":   # OpenCL rounds its chunks to work-groups within each block
+        assert spans == [(lo, hi) for lo, hi, *_ in want]
+    for name, col in (("d", 2), ("grad", 3)):
+        a = np.concatenate([c[col] for c in got])
+        b = np.concatenate([c[col] for c in want])
+        assert np.array_equal(a, b), name
+
+
+def test_rows_refusals_are_the_gathered_points():
+    """A non-finite free point is refused with the gathered points' line; a finite-only check
+    of the rows (a non-finite point elsewhere is not read); bad indices are refused."""
+    fit, rng = _fit()
+    pts = rng.uniform(size=(400, 3))
+    rows = np.arange(0, 400, 2)
+    pts[1] = np.nan                                   # not a row: never read
+    d = df.basis_settings("numpy", stored=False)(pts, fit, rows=rows)
+    assert d.n_points == 200 and np.array_equal(d.points, pts[rows])
+    pts[10, 2] = np.inf
+    with pytest.raises(InputError) as gathered:
+        df.basis_settings("numpy", stored=False)(pts[rows], fit)
+    with pytest.raises(InputError) as by_rows:
+        df.basis_settings("numpy", stored=False)(pts, fit, rows=rows)
+    assert str(by_rows.value) == str(gathered.value) and "row 5 " in str(by_rows.value)
+    for bad in (np.array([0, 400]), np.array([-1]), np.zeros((2, 2), dtype=int)):
+        with pytest.raises(InputError, match="rows: expected"):
+            df.basis_settings("numpy", stored=False)(pts, fit, rows=bad)
+
+
+def test_prepare_keeps_no_copy_of_the_free_points():
+    """The deferred basis of an edit reads the model's positions by the free indices (issue
+    45: no float64 copy of the free points beside the model), and gives the same model."""
+    bar = bumpy_bar(3000)
+    fixed = sd.select(bar, [sd.Box(min=(-1, -1, -1), max=(1, 1, 1))])
+    handle = sd.select(bar, [sd.Box(min=(3, -1, -1), max=(5, 1, 1))])
+    d = sd.prepare_handle(bar, fixed, handle, basis_fn=df.basis_settings("numpy", stored=False))
+    assert d.basis.positions is bar.positions and np.array_equal(d.basis.rows, d.free_idx)
+    assert d.basis.n_points == d.free_idx.size
+    lift = sd.compose_transform(pivot=(4, 0, 0), translate=(0, 0.5, 0))
+    once = sd.apply(d, bar, sd.delta_for(d, lift), moving_matrix=lift)
+    copied = DeferredBasis(bar.positions[d.free_idx], d.fit, "numpy")
+    twice = sd.apply(dataclasses.replace(d, basis=copied), bar, sd.delta_for(d, lift),
+                     moving_matrix=lift)
+    assert np.array_equal(once.positions, twice.positions)
+    assert np.array_equal(once.normals, twice.normals)

@@ -31,13 +31,19 @@ from ..rbf.result import RbfFit
 from .checks import check_fit, check_points
 from .result import Basis
 
-#: points per one-shot chunk: bounds the float64 Jacobians and the apply's temporaries
-#: (262,144 points: 19 MB of J) while keeping kernel launches few
+#: points per one-shot chunk of the numpy path: bounds the float64 Jacobians and the apply's
+#: temporaries (262,144 points: 19 MB of J)
 ONESHOT_CHUNK = 1 << 18
+#: the same for OpenCL: 65,536 points (its two host slots and device buffers ~11 MB) keep
+#: kernel launches few; 262,144 cost the 5M-point bend 40-60 MB more peak for no less time
+OPENCL_ONESHOT_CHUNK = 1 << 16
 #: the numpy path's (rows, centers) float64 temporaries per block, on one BLAS thread (the
 #: reference's own default is 256 MB; 16 MB measured 30 % less CPU and a lower peak; with the
 #: default thread pool the many small products ran 2x slower than the stored basis, busy box)
 NUMPY_TEMP_BYTES = 16 << 20
+#: OpenCL chunks per block of points gathered by index (``rows``): 4 x 65,536 points (6 MB of
+#: float64), pipelined by the kernel's two host slots within the block
+GATHER_CHUNKS = 4
 
 
 def combined_fit(fit: RbfFit, delta_c: np.ndarray) -> RbfFit:
@@ -53,10 +59,13 @@ def combined_fit(fit: RbfFit, delta_c: np.ndarray) -> RbfFit:
 
 def oneshot_chunks(points: np.ndarray, fit: RbfFit, delta_c: np.ndarray, *,
                    gradients: bool = True, backend: str = "auto", device: str | None = None,
-                   chunk: int = ONESHOT_CHUNK
+                   chunk: int | None = None, rows: np.ndarray | None = None
                    ) -> Iterator[tuple[int, int, np.ndarray, np.ndarray | None]]:
     """d(x) and grad d(x) at ``points`` (N, 3) model units for control displacements
-    ``delta_c`` (k, 3), ``chunk`` points at a time.
+    ``delta_c`` (k, 3), ``chunk`` points at a time (default :data:`ONESHOT_CHUNK`,
+    :data:`OPENCL_ONESHOT_CHUNK` on OpenCL, where a point's values do not depend on it).
+    ``rows`` (M,) int: evaluate at ``points[rows]`` instead (yielded rows index ``rows``),
+    gathered a block at a time (:data:`GATHER_CHUNKS` chunks) rather than copied whole.
 
     Yields (start, stop, displacement (m, 3), grad (m, 3, 3) or None) for rows start:stop:
     float64 from the numpy backend, float32 from OpenCL (accumulated in double or compensated
@@ -79,24 +88,53 @@ def oneshot_chunks(points: np.ndarray, fit: RbfFit, delta_c: np.ndarray, *,
     """
     from . import resolve_backend
 
-    arr = check_points(points)
+    arr = check_points(points) if rows is None else check_rows(points, rows)
     both = combined_fit(fit, delta_c)
-    chunk = max(1, int(chunk))
+    n = arr.shape[0] if rows is None else rows.shape[0]
     if resolve_backend(backend, device) == "opencl":
         from . import opencl
 
-        yield from opencl.chunks(arr, both, gradients=gradients, device=device,
-                                 max_chunk_points=chunk)
+        chunk = max(1, int(OPENCL_ONESHOT_CHUNK if chunk is None else chunk))
+        if rows is None:
+            yield from opencl.chunks(arr, both, gradients=gradients, device=device,
+                                     max_chunk_points=chunk)
+            return
+        step = chunk * GATHER_CHUNKS   # the kernel pipelines the chunks of one gathered block
+        for lo in range(0, n, step):
+            block = arr[rows[lo:lo + step]]
+            for s, e, d, g in opencl.chunks(block, both, gradients=gradients, device=device,
+                                            max_chunk_points=chunk):
+                yield lo + s, lo + e, d, g
         return
     from ..blas import blas_threads
     from .reference import compute_basis
 
-    for lo in range(0, arr.shape[0], chunk):
-        hi = min(lo + chunk, arr.shape[0])
+    chunk = max(1, int(ONESHOT_CHUNK if chunk is None else chunk))
+    for lo in range(0, n, chunk):
+        hi = min(lo + chunk, n)
+        part = arr[lo:hi] if rows is None else arr[rows[lo:hi]]
         with blas_threads(1):  # many small products: an unlimited pool spins on a busy machine
-            b = compute_basis(arr[lo:hi], both, gradients=gradients,
+            b = compute_basis(part, both, gradients=gradients,
                               max_chunk_bytes=NUMPY_TEMP_BYTES)
         yield lo, hi, b.values, b.gradients
+
+
+def check_rows(points: np.ndarray, rows: np.ndarray) -> np.ndarray:
+    """``points`` (N, 3) (returned as given) after the checks :func:`check_points` makes of
+    ``points[rows]`` (the same refusal), a block at a time: ``rows`` (M,) int in 0..N-1."""
+    arr, idx = np.asarray(points), np.asarray(rows)
+    if idx.ndim != 1 or (idx.size and idx.dtype.kind not in "iu"):
+        raise InputError(f"rows: expected a 1-D integer array, got {idx.dtype} {idx.shape}")
+    if arr.dtype.kind not in "fiu" or arr.ndim != 2 or arr.shape[1] != 3:
+        check_points(arr[idx])   # raises: the same line as for the gathered points
+    if idx.size and (int(idx.min()) < 0 or int(idx.max()) >= arr.shape[0]):
+        raise InputError(f"rows: expected indices in 0..{arr.shape[0] - 1}")
+    if arr.dtype.kind == "f":
+        step = ONESHOT_CHUNK
+        for lo in range(0, idx.size, step):
+            if not np.isfinite(arr[idx[lo:lo + step]]).all():
+                check_points(arr[idx])   # raises, naming the row as the gathered points'
+    return arr
 
 
 @dataclass
@@ -106,15 +144,23 @@ class DeferredBasis:
     ``values`` / ``gradients`` (the editor, ``--reuse``, ``full_basis``, rendering), which
     then behave as :class:`Basis`'s.
 
-    backend: the concrete backend (numpy | opencl), resolved when it was made.
+    positions: the free points (N, 3), or with ``rows`` (N,) int the array (M, 3) they are
+    rows of (the model's positions: no copy of the free points is kept). backend: the
+    concrete backend (numpy | opencl), resolved when it was made.
     """
 
-    points: np.ndarray
+    positions: np.ndarray
     fit: RbfFit
     backend: str
     device: str | None = None
     with_gradients: bool = True
     stored: Basis | None = None
+    rows: np.ndarray | None = None
+
+    @property
+    def points(self) -> np.ndarray:
+        """(N, 3) the free points (gathered from ``positions`` when ``rows`` is given)."""
+        return self.positions if self.rows is None else self.positions[self.rows]
 
     def store(self) -> Basis:
         """The stored basis (computed once, then kept)."""
@@ -137,7 +183,7 @@ class DeferredBasis:
 
     @property
     def n_points(self) -> int:
-        return int(self.points.shape[0])
+        return int((self.positions if self.rows is None else self.rows).shape[0])
 
     @property
     def k(self) -> int:
@@ -145,13 +191,20 @@ class DeferredBasis:
 
 
 def deferred_basis(points: np.ndarray, fit: RbfFit, *, gradients: bool = True,
-                   backend: str = "auto", device: str | None = None) -> DeferredBasis:
-    """A :class:`DeferredBasis` of ``fit`` at ``points`` (N, 3): the backend resolved and the
-    inputs checked now (the same errors as :func:`splatdeform.basis.compute_basis`, at the same
-    stage), the evaluation left to apply."""
+                   backend: str = "auto", device: str | None = None,
+                   rows: np.ndarray | None = None) -> DeferredBasis:
+    """A :class:`DeferredBasis` of ``fit`` at ``points`` (N, 3), or at ``points[rows]``
+    (``rows`` (N,) int: the points are read from ``points`` as needed, never copied whole):
+    the backend resolved and the inputs checked now (the same errors as
+    :func:`splatdeform.basis.compute_basis`, at the same stage), the evaluation left to
+    apply."""
     from . import resolve_backend
 
-    check_points(points)
+    if rows is None:
+        check_points(points)
+    else:
+        check_rows(points, rows)
     check_fit(fit)
     chosen = resolve_backend(backend, device)
-    return DeferredBasis(points, fit, chosen, device, bool(gradients))
+    return DeferredBasis(points, fit, chosen, device, bool(gradients),
+                         rows=None if rows is None else np.asarray(rows))

@@ -17,6 +17,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from splatdeform.basis.oneshot import deferred_basis
 from splatdeform.basis.result import Basis
 from splatdeform.deform.handle import AffineFrame
 from splatdeform.deform.metaphor import Metaphor, handle_metaphor
@@ -119,8 +120,7 @@ def prepare(model: PointModel, fixed: np.ndarray, moving: np.ndarray, *,
     """:func:`prepare_metaphors` for one metaphor given as masks and callables.
 
     coordinates(points (M, 3)) -> (M, k) control coordinates of moving points (called with the
-    moving points in index order); coordinate_gradients(points (M, 3)) -> (M, k, 3).
-    """
+    moving points in index order); coordinate_gradients(points (M, 3)) -> (M, k, 3)."""
     if not moving.any():
         check_regions(fixed, moving, handle_name=moving_name)
     idx = np.flatnonzero(moving)
@@ -206,7 +206,6 @@ def basis_settings(backend: str = "auto", device: str | None = None,
     from functools import partial
 
     from splatdeform.basis import compute_basis
-    from splatdeform.basis.oneshot import deferred_basis
 
     fn = compute_basis if stored else deferred_basis
     return partial(fn, gradients=gradients, backend=backend, device=device)
@@ -294,7 +293,8 @@ def prepare_metaphors(model: PointModel, fixed: np.ndarray, metaphors: list[Meta
 
     free_idx = np.flatnonzero(~(fixed | moving))
     t0 = time.perf_counter()
-    basis = basis_fn(model.positions[free_idx], fit)
+    basis = (basis_fn(model.positions, fit, rows=free_idx) if getattr(basis_fn, "func", None)
+             is deferred_basis else basis_fn(model.positions[free_idx], fit))  # no copy
     timings["basis"] = time.perf_counter() - t0
     return Deformation(
         n_points=n, fixed=fixed, moving=moving, free_idx=free_idx,

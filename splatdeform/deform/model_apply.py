@@ -252,9 +252,9 @@ def _apply_oneshot(deformation: Deformation, model: PointModel, out: PointModel,
     size = min(APPLY_ROWS, free.size)
     moved_buf = np.empty((size, 3))  # float64 scratch, reused: no chunk-sized allocations
     jac_buf = np.empty((size, 3, 3)) if needs_jac else None
-    for lo, hi, disp, grad in oneshot_chunks(basis.points, basis.fit, delta,
+    for lo, hi, disp, grad in oneshot_chunks(basis.positions, basis.fit, delta,
                                              gradients=needs_jac, backend=basis.backend,
-                                             device=basis.device):
+                                             device=basis.device, rows=basis.rows):
         for s in range(0, hi - lo, APPLY_ROWS):  # cache-sized blocks of the device chunk
             e = min(s + APPLY_ROWS, hi - lo)
             rows = free[lo + s:lo + e]
