@@ -83,12 +83,13 @@ def cmd_deform(args: argparse.Namespace) -> int:
     from pathlib import Path
 
     from splatdeform.edit.config import load_edit
+    _check_workers(args)
+    _check_budget_alone(args, "--reuse/--reuse-file" if args.reuse or args.reuse_file else None)
+    cfg = load_edit(args.config)   # a bad config says so before the deform path is imported
     from splatdeform.edit.plan import plan_edit
     from splatdeform.edit.result import format_report
     from splatdeform.edit.run import run_edit
-    _check_workers(args)
-    _check_budget_alone(args, "--reuse/--reuse-file" if args.reuse or args.reuse_file else None)
-    cfg = load_edit(args.config)
+
     if args.backend:
         cfg.backend = args.backend
     if args.spz_version:

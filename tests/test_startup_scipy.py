@@ -67,3 +67,12 @@ def test_fit_imports_lapack_on_first_use():
             "fit = fit_incremental(x, np.sin(x), tolerance=1e-3, max_centers=60)\n"
             "assert np.all(np.isfinite(fit.weights))\n")
     assert "scipy.linalg" in _scipy_after(code, ROOT)[0].split()
+
+
+def test_a_bad_config_is_refused_before_the_deform_path_is_imported(tmp_path):
+    """``deform`` reads the config before it imports the plan and the run (and with them
+    scipy): a wrong key costs the config's validation only."""
+    (tmp_path / "edit.yaml").write_text(EDIT.replace("boundary:", "boundry:"))
+    code = ("from splatdeform.cli import main\n"
+            "try:\n    main(['deform', 'edit.yaml'])\nexcept SystemExit:\n    pass")
+    assert _scipy_after(code, tmp_path) == []
