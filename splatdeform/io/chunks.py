@@ -136,6 +136,8 @@ def map_chunks(src: ChunkFile, dst: str | Path, fn: ChunkFn, chunk: int, *,
     ``src`` closes or the output is renamed or removed."""
     from concurrent.futures import ThreadPoolExecutor
 
+    from splatdeform.interrupts import deferred_signals
+
     from .atomic import atomic_path
 
     dst = Path(dst)
@@ -145,30 +147,34 @@ def map_chunks(src: ChunkFile, dst: str | Path, fn: ChunkFn, chunk: int, *,
     with src, atomic_path(dst) as tmp:
         writer = ChunkWriter(src, tmp, extra)
         pending = None   # the writer thread's last write
-        with ThreadPoolExecutor(1, "splatdeform-write") as out:
-            try:
-                if reader is not None:
-                    src._ahead = {}
+        out = ThreadPoolExecutor(1, "splatdeform-write")
+        try:
+            if reader is not None:
+                src._ahead = {}
 
-                    def ahead(i: int) -> None:
-                        if i < len(ranges):
-                            src._ahead[ranges[i]] = reader.submit(
-                                lambda a, b: src.model_of(src.rows(a, b)), *ranges[i])
-                    ahead(0)
-                for i, (start, stop) in enumerate(ranges):
-                    if reader is not None:
-                        ahead(i + 1)
-                    records = fn(start, stop)
-                    if pending is not None:
-                        pending.result()
-                    pending = out.submit(writer.write, *records)
-                    if progress is not None:
-                        progress(stop - start)
+                def ahead(i: int) -> None:
+                    if i < len(ranges):
+                        src._ahead[ranges[i]] = reader.submit(
+                            lambda a, b: src.model_of(src.rows(a, b)), *ranges[i])
+                ahead(0)
+            for i, (start, stop) in enumerate(ranges):
+                if reader is not None:
+                    ahead(i + 1)
+                records = fn(start, stop)
                 if pending is not None:
                     pending.result()
-                for block in appendix() if appendix is not None else ():
-                    writer.write(block, None)
-            finally:
+                pending = out.submit(writer.write, *records)
+                if progress is not None:
+                    progress(stop - start)
+            if pending is not None:
+                pending.result()
+            for block in appendix() if appendix is not None else ():
+                writer.write(block, None)
+        finally:
+            # a Ctrl-C or SIGTERM waits until both threads are done: cut short, the wait
+            # would let the writer create the temporary file after its removal
+            with deferred_signals():
+                out.shutdown(wait=True)
                 if reader is not None:
                     reader.shutdown(wait=True, cancel_futures=True)
                     src._ahead = None
