@@ -65,8 +65,11 @@ def dask_client(scheduler: Any = None, workers: int | None = None, *,
             yield client
         return
     with deferred_signals():
+        # the workers' own loggers at CRITICAL: a task's error reaches the client (one line);
+        # a worker's heartbeat to a scheduler that is closing (a Ctrl-C, a busy machine) would
+        # otherwise print a traceback of its own
         cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
-                               dashboard_address=None, silence_logs=logging.ERROR)
+                               dashboard_address=None, silence_logs=logging.CRITICAL)
         try:
             client = Client(cluster)
         except BaseException:
