@@ -711,7 +711,10 @@ class PlyChunkWriter:
                  extra: int = 0) -> None:
         self.src = src
         self.expected, self.written = src.n_points + int(extra), 0
-        self.stream = open(out, "wb")
+        # the atomic temporary file, which exists: never created here, so a writer that runs
+        # after a Ctrl-C removed it cannot leave a new one behind (FileNotFoundError instead)
+        self.stream = open(out, "r+b")
+        self.stream.truncate(0)
         self.stream.write(src.header_bytes(props, int(extra)))
 
     def write(self, rows: np.ndarray) -> None:
