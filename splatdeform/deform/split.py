@@ -421,12 +421,20 @@ def split_splats(model: PointModel, out: PointModel, rows: np.ndarray, jac: np.n
     kids, deformed, kid_jac = deformed_children(
         model, rows[split], chosen.counts[split], field, covariance=covariance,
         transform=transform, stats=stats, dtype=out.positions.dtype)
+    if stats is not None and "child_jacobians" in stats:  # asked for (benchmarks): (C, 3, 3)
+        stats["child_jacobians"] = (kids.parent, kids.child, kid_jac)
+    return assemble(model, out, kids, deformed, stats)
+
+
+def assemble(model: PointModel, out: PointModel, kids, deformed: PointModel,
+             stats: dict | None) -> PointModel:
+    """``out`` with child 0 of each split parent in its parent's row and the other children
+    appended in order (``stats["parent_rows"]``: the parent row of every appended child); the
+    one assembly of split splats and split surfel discs."""
     first = kids.child == 0
-    if stats is not None:  # the parent row of every appended child, in output order
+    if stats is not None:
         stats["parent_rows"] = np.concatenate([stats.get("parent_rows", np.zeros(0, np.int64)),
                                                kids.parent[~first]])
-        if "child_jacobians" in stats:  # asked for (benchmarks): (C, 3, 3), as ``kids``
-            stats["child_jacobians"] = (kids.parent, kids.child, kid_jac)
     result = put_first(out, kids, deformed, copy=out is model)
     return concat(result, take(deformed, np.flatnonzero(~first)))
 

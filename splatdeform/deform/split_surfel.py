@@ -196,9 +196,4 @@ def split_points(model: PointModel, out: PointModel, rows: np.ndarray, jac: np.n
     kids, deformed, _ = deformed_surfel_children(
         model, rows[split], chosen.counts[split], field, covariance=covariance,
         transform=transform, stats=stats, dtype=out.positions.dtype)
-    first = kids.child == 0
-    if stats is not None:
-        stats["parent_rows"] = np.concatenate([stats.get("parent_rows", np.zeros(0, np.int64)),
-                                               kids.parent[~first]])
-    result = sp.put_first(out, kids, deformed, copy=out is model)
-    return sp.concat(result, sp.take(deformed, np.flatnonzero(~first)))
+    return sp.assemble(model, out, kids, deformed, stats)
